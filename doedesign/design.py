@@ -1,0 +1,204 @@
+"""The DOE design file: a ``.npz`` that numpy alone can read.
+
+Fields
+------
+height_m : float64 (rows, cols)
+    Surface height in metres, z up as a profilometer reports it: 0 at the unetched
+    top surface, negative where glass was etched (level k is k steps deep).
+    Row 0 is the top row; column 0 the left column. The array is centred on the
+    optical axis. Flipping the sign point-reflects the PSF.
+pitch_m : float
+    DOE pixel pitch (square pixels).
+material : str
+    Registry name of the material (see :mod:`doedesign.materials`).
+design_wavelength_m : float
+    Wavelength at which the level step is a 2 pi / N phase step.
+levels : int (rows, cols), optional
+    Level index per pixel once quantized (0 = top surface, k = k steps deep).
+aperture : bool (rows, cols), optional
+    The clear region (True where light passes).
+metadata : str
+    JSON object: name, target, camera parameters, tool version, ``format_version``.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import DesignFileError, DoeError
+from .fileio import atomic_path
+from .materials import get_material
+
+FORMAT_VERSION = 1
+REQUIRED = ("height_m", "pitch_m", "material", "design_wavelength_m", "metadata")
+
+
+@dataclass
+class Design:
+    """A DOE height map with its pitch, material and provenance.
+
+    Construct directly or with :meth:`load`; :meth:`validate` runs on both.
+    """
+
+    height_m: np.ndarray
+    pitch_m: float
+    material: str = "fused_silica"
+    design_wavelength_m: float = 550e-9
+    levels: np.ndarray | None = None
+    aperture: np.ndarray | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.height_m = np.asarray(self.height_m, dtype=np.float64)
+        self.pitch_m = float(self.pitch_m)
+        self.design_wavelength_m = float(self.design_wavelength_m)
+        if self.levels is not None:
+            self.levels = np.asarray(self.levels)
+        if self.aperture is not None:
+            self.aperture = np.asarray(self.aperture)
+        self.metadata = dict(self.metadata)
+        self.metadata.setdefault("format_version", FORMAT_VERSION)
+        self.metadata.setdefault("tool_version", __version__)
+        self.validate()
+
+    @property
+    def shape(self):
+        return self.height_m.shape
+
+    @property
+    def name(self):
+        return self.metadata.get("name", "design")
+
+    def validate(self, source="design"):
+        """Raise :class:`DesignFileError` naming the field when anything is wrong."""
+        h = self.height_m
+        if h.ndim != 2 or min(h.shape) < 1:
+            raise DesignFileError(f"{source}: height_m must be a 2-D array, got shape {h.shape}")
+        if not np.all(np.isfinite(h)):
+            raise DesignFileError(f"{source}: height_m holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
+        if not (np.isfinite(self.pitch_m) and self.pitch_m > 0):
+            raise DesignFileError(f"{source}: pitch_m must be positive, got {self.pitch_m}")
+        if self.pitch_m > 1e-3:
+            raise DesignFileError(f"{source}: pitch_m = {self.pitch_m} m is not a DOE pitch (metres expected)")
+        if not (np.isfinite(self.design_wavelength_m) and 100e-9 < self.design_wavelength_m < 20e-6):
+            raise DesignFileError(f"{source}: design_wavelength_m = {self.design_wavelength_m} is not a wavelength in metres")
+        if np.max(np.abs(h)) > 1e-3:
+            raise DesignFileError(f"{source}: height_m reaches {np.max(np.abs(h)):.3g} m; heights must be in metres")
+        try:
+            get_material(self.material)
+        except DoeError as exc:
+            raise DesignFileError(f"{source}: material: {exc}") from None
+        for name in ("levels", "aperture"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape != h.shape:
+                raise DesignFileError(f"{source}: {name} has shape {arr.shape}, height_m has {h.shape}")
+        if self.levels is not None:
+            if not np.issubdtype(self.levels.dtype, np.integer):
+                raise DesignFileError(f"{source}: levels must be integers, got {self.levels.dtype}")
+            if self.levels.size and self.levels.min() < 0:
+                raise DesignFileError(f"{source}: levels must be non-negative, minimum is {self.levels.min()}")
+        if self.aperture is not None and self.aperture.dtype != bool:
+            raise DesignFileError(f"{source}: aperture must be boolean, got {self.aperture.dtype}")
+
+    def phase(self, wavelength_m):
+        """Phase (rad) of the height map at ``wavelength_m``, from the heights themselves."""
+        return get_material(self.material).phase(self.height_m, wavelength_m)
+
+    def height_2pi_m(self):
+        """2 pi height at the design wavelength."""
+        return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
+
+    def save(self, path):
+        """Write the design atomically to ``path`` (``.npz``)."""
+        arrays = dict(
+            height_m=self.height_m,
+            pitch_m=np.float64(self.pitch_m),
+            material=np.str_(self.material),
+            design_wavelength_m=np.float64(self.design_wavelength_m),
+            metadata=np.str_(json.dumps(self.metadata, default=_plain)),
+        )
+        if self.levels is not None:
+            arrays["levels"] = self.levels.astype(np.int16)
+        if self.aperture is not None:
+            arrays["aperture"] = self.aperture.astype(bool)
+        path = Path(path)
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez_compressed(tmp, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path):
+        """Read and validate a design file; errors name the file and the field."""
+        path = Path(path)
+        if not path.is_file():
+            raise DesignFileError(f"{path}: no such file")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {k: npz[k] for k in npz.files}
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise DesignFileError(f"{path}: not a design file (.npz): {exc}") from None
+        missing = [k for k in REQUIRED if k not in data]
+        if missing:
+            raise DesignFileError(f"{path}: missing field(s) {', '.join(missing)}; a design needs {', '.join(REQUIRED)}")
+        try:
+            metadata = json.loads(str(data["metadata"]))
+        except json.JSONDecodeError as exc:
+            raise DesignFileError(f"{path}: metadata is not valid JSON ({exc})") from None
+        if not isinstance(metadata, dict):
+            raise DesignFileError(f"{path}: metadata must be a JSON object")
+        if int(metadata.get("format_version", FORMAT_VERSION)) > FORMAT_VERSION:
+            raise DesignFileError(f"{path}: format_version {metadata['format_version']} is newer than this tool reads ({FORMAT_VERSION})")
+        for k in ("pitch_m", "design_wavelength_m"):
+            if data[k].ndim != 0 or not np.issubdtype(data[k].dtype, np.number):
+                raise DesignFileError(f"{path}: {k} must be a number")
+        if not np.issubdtype(data["height_m"].dtype, np.floating):
+            raise DesignFileError(f"{path}: height_m must be floating point, got {data['height_m'].dtype}")
+        design = cls.__new__(cls)
+        design.height_m = data["height_m"].astype(np.float64)
+        design.pitch_m = float(data["pitch_m"])
+        design.material = str(data["material"])
+        design.design_wavelength_m = float(data["design_wavelength_m"])
+        design.levels = data.get("levels")
+        design.aperture = data.get("aperture")
+        design.metadata = metadata
+        design.validate(source=str(path))
+        return design
+
+    def summary(self):
+        """Dictionary for ``doe inspect --json``."""
+        h = self.height_m
+        out = {
+            "kind": "design",
+            "name": self.name,
+            "shape": list(h.shape),
+            "pitch_m": self.pitch_m,
+            "size_m": [h.shape[0] * self.pitch_m, h.shape[1] * self.pitch_m],
+            "material": self.material,
+            "design_wavelength_m": self.design_wavelength_m,
+            "height_min_m": float(h.min()),
+            "height_max_m": float(h.max()),
+            "height_2pi_m": self.height_2pi_m(),
+            "levels": None,
+            "metadata": self.metadata,
+        }
+        if self.levels is not None:
+            used, counts = np.unique(self.levels, return_counts=True)
+            out["levels"] = {"count": int(self.levels.max()) + 1 if self.levels.size else 0,
+                             "used": used.tolist(), "pixels": counts.tolist()}
+        if self.aperture is not None:
+            out["aperture_fraction"] = float(self.aperture.mean())
+        return out
+
+
+def _plain(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)

@@ -1,0 +1,403 @@
+"""Split-aperture PSFs: exact pixel-integrated intensity from a pixelated DOE.
+
+Model
+-----
+The DOE is piecewise constant on its pixel grid (pitch ``p``; ``p/q`` with ``doe_oversample=q``).
+Behind an ideal lens the sensor field is the Fraunhofer transform of the pupil
+``t = A exp(i (phi_DOE + W_defocus))``, where ``A`` is the fraction of each pupil sample inside
+the view's half-aperture and ``W`` the exact spherical-wave defocus
+``k [(sqrt(r^2 + d^2) - d) - (sqrt(r^2 + d0^2) - d0)]`` of a point at ``d`` seen by a lens
+focused at ``d0``. For a piecewise-constant pupil the intensity at sensor position ``x`` is
+exactly
+
+    I(x) = p^4 / (lambda z)^2 * sinc^2(p x / lambda z) * sum_k C_k exp(-2 pi i k p x / (lambda z)),
+
+with ``C`` the discrete autocorrelation of ``t`` (lags ``k``). The sensor-pixel integral of
+each term separates per axis into a 1-D integral of envelope times fringe, computed by
+Gauss-Legendre quadrature. So the PSF is exact at the sensor pixels with no sensor-side
+oversampling, aliasing-free (the envelope carries the light into higher zones correctly),
+and normalized to all the light through the view's half-aperture: ``energy_in_window`` is
+what the window holds, nothing is renormalized.
+
+Cost per view and wavelength: one FFT autocorrelation on a (2N)^2 grid and a matrix
+Fourier transform from the lag grid to the window's pixel centres (Hermitian half only).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.fft as sfft
+
+from .camera import Camera
+from .errors import DoeError, SamplingError
+from .fileio import write_npz
+from .materials import get_material
+
+log = logging.getLogger(__name__)
+
+VIEWS = ("coded", "uncoded")
+# Largest defocus phase step (rad) between adjacent pupil samples before the piecewise-constant
+# sampling of the smooth spherical term is refused, and before it is warned about.
+MAX_DEFOCUS_STEP_RAD = np.pi / 2
+WARN_DEFOCUS_STEP_RAD = np.pi / 4
+
+
+@dataclass
+class PSFResult:
+    """PSFs of both views on the sensor window.
+
+    Attributes
+    ----------
+    psf : ndarray (views, depths, wavelengths, rows, cols)
+        Fraction of the light through each view's half-aperture falling in each sensor pixel.
+        Row 0 is the top of the window; the axis is at ``axis_pixel``.
+    energy_in_window : ndarray (views, depths, wavelengths)
+        ``psf.sum((-2, -1))``: the part of that light the window holds.
+    """
+
+    psf: np.ndarray
+    views: tuple
+    wavelengths_m: np.ndarray
+    depths_m: np.ndarray
+    pixel_pitch_m: float
+    axis_pixel: tuple = (256, 256)
+    sampling: dict = field(default_factory=dict)
+
+    @property
+    def energy_in_window(self):
+        return self.psf.sum(axis=(-2, -1))
+
+    def view(self, name):
+        """The PSF of one view, shaped (depths, wavelengths, rows, cols)."""
+        return self.psf[list(self.views).index(name)]
+
+    def polychromatic(self, weights):
+        """Spectrally weighted PSF (views, depths, rows, cols); weights are normalized to sum 1."""
+        w = np.asarray(weights, dtype=float)
+        if w.shape != (len(self.wavelengths_m),) or np.any(w < 0) or w.sum() <= 0:
+            raise DoeError(f"spectral weights must be {len(self.wavelengths_m)} non-negative numbers, not all zero")
+        return np.tensordot(self.psf, w / w.sum(), axes=([2], [0]))
+
+    def save(self, path):
+        """Write the PSF ``.npz`` (fields documented in the README)."""
+        import json
+
+        return write_npz(
+            path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
+            depths_m=np.asarray(self.depths_m), pixel_pitch_m=np.float64(self.pixel_pitch_m),
+            energy_in_window=self.energy_in_window, axis_pixel=np.asarray(self.axis_pixel),
+            sampling=np.str_(json.dumps(self.sampling, default=float)))
+
+    @classmethod
+    def load(cls, path):
+        """Read a PSF ``.npz`` written by :meth:`save`."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, EOFError) as exc:
+            raise DoeError(f"{path}: not a PSF file: {exc}") from None
+        for key in ("psf", "views", "wavelengths_m", "depths_m", "pixel_pitch_m"):
+            if key not in data:
+                raise DoeError(f"{path}: missing field {key!r} of a PSF file")
+        psf = data["psf"]
+        if psf.ndim != 5:
+            raise DoeError(f"{path}: psf must be (views, depths, wavelengths, rows, cols), got shape {psf.shape}")
+        return cls(psf=psf, views=tuple(str(v) for v in data["views"]), wavelengths_m=data["wavelengths_m"],
+                   depths_m=data["depths_m"], pixel_pitch_m=float(data["pixel_pitch_m"]),
+                   axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))))
+
+
+class PSFEngine:
+    """PSFs and their height gradient for one camera, DOE grid and set of wavelengths and depths.
+
+    Parameters
+    ----------
+    camera : Camera
+    pitch_m : float
+        DOE pixel pitch.
+    shape : (int, int)
+        Shape of the design's height map (centred on the axis inside the aperture grid).
+    material : str or Material
+    wavelengths_m : sequence of float
+    depths_m : sequence of float, optional
+        Point-source distances; ``inf`` is optical infinity (defocused unless the camera is
+        focused at infinity). Default: the camera's focus distance (in focus).
+    doe_oversample : int
+        Pupil samples per DOE pixel per axis, for sampling the smooth defocus term finely;
+        the DOE profile itself is piecewise constant and exact at any value.
+    """
+
+    def __init__(self, camera: Camera, pitch_m, shape, material="fused_silica", wavelengths_m=(550e-9,),
+                 depths_m=None, doe_oversample=1):
+        if not (np.isfinite(pitch_m) and pitch_m > 0):
+            raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
+        self.camera = camera
+        self.pitch_m = float(pitch_m)
+        self.shape = tuple(int(v) for v in shape)
+        self.material = get_material(material)
+        self.wavelengths_m = np.atleast_1d(np.asarray(wavelengths_m, dtype=float))
+        if depths_m is None:
+            depths_m = (camera.focus_distance_m,)
+        self.depths_m = np.atleast_1d(np.asarray(depths_m, dtype=float))
+        if self.wavelengths_m.size == 0:
+            raise DoeError("no wavelengths given")
+        if np.any(self.depths_m <= 0) or np.any(np.isnan(self.depths_m)):
+            raise DoeError(f"point-source distances must be positive, got {self.depths_m}")
+        self.material.n(self.wavelengths_m)  # raises for wavelengths outside the material's range
+        self.q = int(doe_oversample)
+        if self.q < 1:
+            raise DoeError("doe_oversample must be a positive integer")
+        self.grid_shape = camera.pupil_grid_shape(self.shape, self.pitch_m)
+        self.step_m = self.pitch_m / self.q
+        weights = camera.view_weights(self.grid_shape, self.pitch_m, self.q)
+        # Offsets of the design inside the pupil grid (design centred on the axis).
+        self._offset = ((self.grid_shape[0] - self.shape[0]) // 2, (self.grid_shape[1] - self.shape[1]) // 2)
+        self._views = {}
+        for i, name in enumerate(VIEWS):
+            amp = weights[i]
+            rows = np.flatnonzero(amp.any(axis=1))
+            cols = np.flatnonzero(amp.any(axis=0))
+            if rows.size == 0:
+                raise DoeError(f"the {name} view has no clear aperture")
+            box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
+            self._views[name] = (box, amp[box[0]:box[1], box[2]:box[3]])
+        self._opd = {float(d): self._defocus_opd(d) for d in self.depths_m}
+        self.sampling = self._check_sampling()
+        self._uncoded_cache = {}
+
+    # -- geometry -----------------------------------------------------------------------------
+    def _sample_radius2(self):
+        rows, cols = self.grid_shape[0] * self.q, self.grid_shape[1] * self.q
+        y = (np.arange(rows) - (rows - 1) / 2) * self.step_m
+        x = (np.arange(cols) - (cols - 1) / 2) * self.step_m
+        return y[:, None] ** 2 + x[None, :] ** 2
+
+    def _defocus_opd(self, depth_m):
+        """Optical path difference (m) of a point at ``depth_m`` against the focused one."""
+        r2 = self._sample_radius2()
+        d0 = self.camera.focus_distance_m
+
+        def sag(d):
+            if np.isinf(d):
+                return np.zeros_like(r2)
+            # sqrt(r^2 + d^2) - d, written to avoid cancellation for r << d.
+            return r2 / (np.sqrt(r2 + d * d) + d)
+
+        opd = sag(depth_m) - sag(d0)
+        return opd if np.any(opd) else None
+
+    def _check_sampling(self):
+        z, a = self.camera.sensor_distance_m, self.camera.pixel_pitch_m
+        wl_min = float(self.wavelengths_m.min())
+        report = {
+            "doe_oversample": self.q,
+            "pupil_step_m": self.step_m,
+            "zones_in_window": float(max(self.camera.window_shape) * a * self.step_m / (wl_min * z)),
+            "max_defocus_step_rad": 0.0,
+        }
+        for d, opd in self._opd.items():
+            if opd is None:
+                continue
+            gy, gx = np.gradient(opd, self.step_m)
+            grad = np.sqrt(gx ** 2 + gy ** 2)
+            clear = self.camera.view_weights(self.grid_shape, self.pitch_m, self.q).max(axis=0) > 0
+            step = float(2 * np.pi / wl_min * grad[clear].max() * self.step_m)
+            report["max_defocus_step_rad"] = max(report["max_defocus_step_rad"], step)
+            if step > MAX_DEFOCUS_STEP_RAD:
+                need = int(np.ceil(self.q * step / WARN_DEFOCUS_STEP_RAD))
+                raise SamplingError(
+                    f"defocus for a source at {d:g} m changes the phase by {step:.2f} rad between pupil samples "
+                    f"of {self.step_m * 1e6:.2f} um at {wl_min * 1e9:.0f} nm (limit {MAX_DEFOCUS_STEP_RAD:.2f} rad): "
+                    f"this would alias; use doe_oversample >= {need}")
+            if step > WARN_DEFOCUS_STEP_RAD:
+                log.warning("defocus phase step %.2f rad per pupil sample (source at %g m); "
+                            "consider doe_oversample=%d", step, d, self.q * 2)
+        return report
+
+    # -- pupil and transforms ------------------------------------------------------------------
+    def _pupil(self, view, height_m, wavelength, depth):
+        """Complex pupil samples of a view inside its bounding box."""
+        (r0, r1, c0, c1), amp = self._views[view]
+        phase = np.zeros(amp.shape)
+        if view == "coded":
+            full = np.zeros(self.grid_shape)
+            oy, ox = self._offset
+            full[oy:oy + self.shape[0], ox:ox + self.shape[1]] = height_m
+            if self.q > 1:
+                full = np.repeat(np.repeat(full, self.q, axis=0), self.q, axis=1)
+            phase += self.material.phase(full[r0:r1, c0:c1], wavelength)
+        opd = self._opd[float(depth)]
+        if opd is not None:
+            phase += 2 * np.pi / wavelength * opd[r0:r1, c0:c1]
+        return amp * np.exp(1j * phase)
+
+    def _kernels(self, view, wavelength):
+        """Kernels from autocorrelation lags to pixel-integrated intensity, per axis.
+
+        ``K[j, k] = integral over sensor pixel j of sinc^2(p x / lambda z) exp(-2 pi i k p x / lambda z) dx``
+        by Gauss-Legendre quadrature, exact for the piecewise-constant pupil. Row kernels hold
+        lags ky >= 0 with the Hermitian fold (factor 2 for ky > 0).
+        """
+        (r0, r1, c0, c1), _ = self._views[view]
+        cam = self.camera
+        lz = wavelength * cam.sensor_distance_m
+        ky = np.arange(r1 - r0)
+        kx = np.arange(-(c1 - c0 - 1), c1 - c0)
+        kern_y = self._axis_kernel(cam.window_shape[0], cam.axis_pixel[0], ky, lz)
+        kern_y[:, 1:] *= 2.0
+        kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], kx, lz)
+        return kern_y, kern_x, self.step_m ** 2 / lz ** 2
+
+    def _axis_kernel(self, n_pix, axis, lags, lz):
+        pix = self.camera.pixel_pitch_m
+        centres = (np.arange(n_pix) - axis) * pix
+        freq = self.step_m / lz  # fringe frequency per lag (cycles per metre on the sensor)
+        # Nodes enough for the fastest fringe across one pixel (phase span up to 2 pi |k| f a).
+        span = 2 * np.pi * np.abs(lags).max() * freq * pix
+        nodes, weights = np.polynomial.legendre.leggauss(int(np.ceil(span / 2)) + 8)
+        u = nodes * pix / 2
+        env = np.sinc(self.step_m * (centres[:, None] + u[None, :]) / lz) ** 2 * (weights * pix / 2)
+        within = np.exp(-2j * np.pi * freq * np.outer(u, lags))
+        return np.exp(-2j * np.pi * freq * np.outer(centres, lags)) * (env @ within)
+
+    @staticmethod
+    def _fft_shape(t):
+        return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
+
+    def _autocorrelation(self, t):
+        """Lags ky = 0..a-1 and kx = -(b-1)..(b-1) of sum_m t[m + k] conj(t[m])."""
+        a, b = t.shape
+        shape = self._fft_shape(t)
+        spec = sfft.fft2(t, s=shape, workers=-1)
+        corr = sfft.ifft2(spec * spec.conj(), workers=-1)
+        cols = np.r_[shape[1] - (b - 1):shape[1], 0:b]
+        return corr[:a][:, cols]
+
+    def _view_psf(self, view, height_m, wavelength, depth):
+        t = self._pupil(view, height_m, wavelength, depth)
+        kern_y, kern_x, const = self._kernels(view, wavelength)
+        scale = const / np.sum(np.abs(t) ** 2)
+        psf = scale * (kern_y @ self._autocorrelation(t) @ kern_x.T).real
+        return psf, (t, kern_y, kern_x, scale)
+
+    # -- public API ----------------------------------------------------------------------------
+    def _check_height(self, height_m):
+        h = np.asarray(height_m, dtype=float)
+        if h.shape != self.shape:
+            raise DoeError(f"height map has shape {h.shape}, the engine was built for {self.shape}")
+        if not np.all(np.isfinite(h)):
+            raise DoeError(f"height map holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
+        return h
+
+    def psf(self, height_m, views=VIEWS, progress=None):
+        """PSFs of the requested views for every depth and wavelength (see :class:`PSFResult`)."""
+        h = self._check_height(height_m)
+        for v in views:
+            if v not in VIEWS:
+                raise DoeError(f"unknown view {v!r}; views are {VIEWS}")
+        rows, cols = self.camera.window_shape
+        out = np.empty((len(views), self.depths_m.size, self.wavelengths_m.size, rows, cols))
+        for vi, view in enumerate(views):
+            for di, depth in enumerate(self.depths_m):
+                for wi, wl in enumerate(self.wavelengths_m):
+                    if view == "uncoded":
+                        key = (float(depth), float(wl))
+                        if key not in self._uncoded_cache:
+                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth)[0]
+                        out[vi, di, wi] = self._uncoded_cache[key]
+                    else:
+                        out[vi, di, wi] = self._view_psf(view, h, wl, depth)[0]
+                    if progress is not None:
+                        progress.update(1)
+        return PSFResult(psf=out, views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
+                         depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
+                         axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
+
+    def value_and_grad(self, height_m, loss_fn):
+        """Loss of the coded PSF and its exact (adjoint) gradient with respect to the heights.
+
+        Parameters
+        ----------
+        height_m : ndarray, shape ``self.shape``
+        loss_fn : callable
+            ``loss_fn(psf)`` with ``psf`` shaped (depths, wavelengths, rows, cols); returns
+            ``(loss, dloss_dpsf)`` with the derivative shaped like ``psf``.
+
+        Returns
+        -------
+        loss : float
+        grad : ndarray, shape ``self.shape``, d loss / d height (per metre).
+        """
+        h = self._check_height(height_m)
+        nd, nw = self.depths_m.size, self.wavelengths_m.size
+        psf = np.empty((nd, nw) + self.camera.window_shape)
+        saved = {}
+        for di, depth in enumerate(self.depths_m):
+            for wi, wl in enumerate(self.wavelengths_m):
+                psf[di, wi], saved[di, wi] = self._view_psf("coded", h, wl, depth)
+        loss, dpsf = loss_fn(psf)
+        dpsf = np.asarray(dpsf, dtype=float)
+        if dpsf.shape != psf.shape:
+            raise DoeError(f"loss gradient has shape {dpsf.shape}, expected {psf.shape}")
+        (r0, r1, c0, c1), _ = self._views["coded"]
+        grad_pupil = np.zeros((r1 - r0, c1 - c0))
+        for (di, wi), (t, kern_y, kern_x, scale) in saved.items():
+            wl = self.wavelengths_m[wi]
+            # dL/dC_k for lags with ky >= 0 (the fold factor 2 of ky > 0 splits over +-ky).
+            d_half = scale * (kern_y.T @ dpsf[di, wi] @ kern_x)
+            d_half[1:] *= 0.5
+            grad_pupil += float(self.material.phase(1.0, wl)) * self._phase_gradient(t, d_half)
+        grad = np.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q))
+        grad[r0:r1, c0:c1] = grad_pupil
+        if self.q > 1:
+            grad = grad.reshape(self.grid_shape[0], self.q, self.grid_shape[1], self.q).sum(axis=(1, 3))
+        oy, ox = self._offset
+        return float(loss), grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
+
+    def _phase_gradient(self, t, d_half):
+        """d loss / d phase of each pupil sample from d loss / d C (lags ky >= 0)."""
+        a, b = t.shape
+        shape = self._fft_shape(t)
+        # Full Hermitian lag array in circular layout: D_{-k} = conj(D_k).
+        d_full = np.zeros(shape, dtype=complex)
+        kx_idx = np.r_[shape[1] - (b - 1):shape[1], 0:b]
+        d_full[np.arange(a)[:, None], kx_idx[None, :]] = d_half
+        neg_rows = (-np.arange(1, a)) % shape[0]
+        neg_cols = (-np.arange(-(b - 1), b)) % shape[1]
+        d_full[neg_rows[:, None], neg_cols[None, :]] = d_half[1:].conj()
+        # alpha_n = sum_k D_k conj(t_{n-k}); dL/dphi_n = -2 Im(alpha_n t_n).
+        alpha = sfft.ifft2(sfft.fft2(d_full, workers=-1) * sfft.fft2(t.conj(), s=shape, workers=-1),
+                           workers=-1)[:a, :b]
+        return -2.0 * np.imag(alpha * t)
+
+
+def parse_wavelengths_nm(text):
+    """Wavelengths in metres from ``"486,589,656"`` or ``"400:700:10"`` (inclusive), in nm."""
+    text = str(text).strip()
+    try:
+        if ":" in text:
+            parts = [float(v) for v in text.split(":")]
+            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+                raise ValueError
+            values = np.arange(parts[0], parts[1] + parts[2] / 2, parts[2])
+        else:
+            values = np.array([float(v) for v in text.split(",") if v.strip()])
+    except ValueError:
+        raise DoeError(f"wavelengths {text!r}: use a list like 486,589,656 or a range like 400:700:10 (nm)") from None
+    if values.size == 0 or np.any(values <= 0):
+        raise DoeError(f"wavelengths {text!r}: need at least one positive wavelength in nm")
+    return values * 1e-9
+
+
+def compute_psf(design, camera=None, wavelengths_m=(486e-9, 589e-9, 656e-9), depths_m=None,
+                doe_oversample=1, views=VIEWS, progress=None):
+    """PSFs of a :class:`~doedesign.design.Design` through ``camera`` (default: the seed camera)."""
+    camera = camera or Camera()
+    engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths_m, depths_m,
+                       doe_oversample)
+    return engine.psf(design.height_m, views=views, progress=progress)
