@@ -24,7 +24,7 @@ COMMAND_MODULES = (
     "metrology.cli",
     "metrology.cli_calibrate",
     "metrology.cli_diagnose",
-    "doedesign.cli_demo",
+    "metrology.cli_demo",
 )
 
 log = logging.getLogger("doe")

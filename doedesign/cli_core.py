@@ -46,7 +46,7 @@ def is_design_file(path):
         return False
 
 
-def inspect_file(path):
+def inspect_file(path, pixel_size_m=None):
     """Summary dictionary of a design or a measurement file."""
     if is_design_file(path):
         return Design.load(path).summary()
@@ -54,13 +54,13 @@ def inspect_file(path):
         readers = importlib.import_module("metrology.readers")
     except ModuleNotFoundError:
         raise DoeError(f"{path}: not a design file, and no measurement readers are installed") from None
-    return readers.read_measurement(path).summary()
+    return readers.read_measurement(path, pixel_size_m=pixel_size_m).summary()
 
 
 def cmd_inspect(args):
     from .cli import print_json
 
-    summary = inspect_file(args.file)
+    summary = inspect_file(args.file, args.pixel_size_m)
     if args.json:
         print_json(summary)
     else:
@@ -96,6 +96,8 @@ def register(sub):
                                    ".asc, .csv, .npy, .npz, .tif).")
     p.add_argument("file")
     p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--pixel-size-m", type=float, default=None,
+                   help="lateral pixel size for files that do not carry one (.npy, TIFF without tags)")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("psf", help="coded and uncoded PSFs of a design",

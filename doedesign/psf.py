@@ -40,6 +40,9 @@ from .materials import get_material
 log = logging.getLogger(__name__)
 
 VIEWS = ("coded", "uncoded")
+# Kernel pairs kept per engine (each about 26 MB for the seed camera): enough for an
+# optimization over a few wavelengths, bounded for 31-band stacks.
+KERNEL_CACHE_SIZE = 8
 # Largest defocus phase step (rad) between adjacent pupil samples before the piecewise-constant
 # sampling of the smooth spherical term is refused, and before it is warned about.
 MAX_DEFOCUS_STEP_RAD = np.pi / 2
@@ -169,6 +172,7 @@ class PSFEngine:
         self._opd = {float(d): self._defocus_opd(d) for d in self.depths_m}
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
+        self._kernel_cache = {}
 
     # -- geometry -----------------------------------------------------------------------------
     def _sample_radius2(self):
@@ -243,6 +247,9 @@ class PSFEngine:
         by Gauss-Legendre quadrature, exact for the piecewise-constant pupil. Row kernels hold
         lags ky >= 0 with the Hermitian fold (factor 2 for ky > 0).
         """
+        key = (view, float(wavelength))
+        if key in self._kernel_cache:
+            return self._kernel_cache[key]
         (r0, r1, c0, c1), _ = self._views[view]
         cam = self.camera
         lz = wavelength * cam.sensor_distance_m
@@ -251,7 +258,11 @@ class PSFEngine:
         kern_y = self._axis_kernel(cam.window_shape[0], cam.axis_pixel[0], ky, lz)
         kern_y[:, 1:] *= 2.0
         kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], kx, lz)
-        return kern_y, kern_x, self.step_m ** 2 / lz ** 2
+        out = (kern_y, kern_x, self.step_m ** 2 / lz ** 2)
+        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
+            self._kernel_cache.pop(next(iter(self._kernel_cache)))
+        self._kernel_cache[key] = out
+        return out
 
     def _axis_kernel(self, n_pix, axis, lags, lz):
         pix = self.camera.pixel_pitch_m

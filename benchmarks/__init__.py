@@ -1,0 +1,1 @@
+"""Speed and quality benchmarks against peers and physical limits (`make bench`)."""

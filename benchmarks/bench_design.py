@@ -1,0 +1,127 @@
+"""Design benchmarks: spot arrays against slmsuite's weighted Gerchberg-Saxton; Bayer design time.
+
+Spot array: a 4 x 4 grid (+-3, +-9 DFT bins about the axis, point- and transpose-symmetric so
+no sign or axis convention of either code matters) on a square N x N DOE filling the pupil.
+The camera's sensor pixel is set to one DFT bin of the DOE, lambda z / (N p), so slmsuite's
+``SpotHologram`` (basis "knm") and our target address the same points. Both phase maps are
+then scored with the same physical model, :class:`doedesign.psf.PSFEngine` (pixelated DOE,
+pixel-integrated sensor, light normalized to all that passes the pupil): efficiency = light on
+the 16 spot pixels, uniformity = 1 - (max - min) / (max + min) of the spot powers.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+
+import numpy as np
+from scipy.integrate import quad
+
+from doedesign import targets
+from doedesign.camera import Camera
+from doedesign.losses import LossSpec
+from doedesign.materials import get_material
+from doedesign.optimize import OptimizerSettings, design_doe
+from doedesign.psf import PSFEngine
+
+log = logging.getLogger(__name__)
+PITCH = 5.4e-6
+WL = 550e-9
+OFFSETS = (-9, -3, 3, 9)
+
+
+def _spot_setup(n):
+    z = 50e-3
+    cam = Camera(aperture_diameter_m=None, doe_side="full", pixel_pitch_m=WL * z / (n * PITCH),
+                 sensor_distance_m=z, window_shape=(n, n), axis_pixel=(n // 2, n // 2))
+    rows, cols = np.meshgrid(OFFSETS, OFFSETS, indexing="ij")
+    pos = np.stack([rows.ravel() + n // 2, cols.ravel() + n // 2], axis=1)
+    return cam, pos
+
+
+def _score(engine, height_m, pos):
+    psf = engine.psf(height_m, views=("coded",)).psf[0, 0, 0]
+    p = psf[pos[:, 0], pos[:, 1]]
+    return float(p.sum()), float(1 - (p.max() - p.min()) / (p.max() + p.min()))
+
+
+def _slmsuite_phase(n, pos, maxiter):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        logging.getLogger("slmsuite").setLevel(logging.WARNING)
+        from slmsuite.holography.algorithms import SpotHologram
+
+        vec = np.stack([pos[:, 1], pos[:, 0]]).astype(float)  # (x = col, y = row) in knm pixels
+        holo = SpotHologram(shape=(n, n), spot_vectors=vec, basis="knm", slm_shape=(n, n))
+        holo.optimize(method="WGS-Kim", maxiter=maxiter, verbose=False)
+        return np.asarray(holo.get_phase(), dtype=float)
+
+
+def spot_array(n=64, maxiter=100):
+    """Rows comparing slmsuite WGS-Kim with our nlopt design on the same spot array."""
+    cam, pos = _spot_setup(n)
+    engine = PSFEngine(cam, PITCH, (n, n), wavelengths_m=[WL])
+    mat = get_material("fused_silica")
+    t0 = time.perf_counter()
+    phase = _slmsuite_phase(n, pos, maxiter)
+    t_wgs = time.perf_counter() - t0
+    h_wgs = -np.mod(-phase, 2 * np.pi) * WL / (2 * np.pi * (mat.n(WL) - 1))
+    eff_wgs, uni_wgs = _score(engine, h_wgs, pos)
+    # Upper bound: every spot carries the pixel envelope sinc^2(u) sinc^2(v) (u, v in cycles/pixel)
+    # and a single bin-wide sensor pixel holds (integral of sinc^2 over one bin)^2 = 0.7737^2 of it.
+    bin_frac = quad(lambda u: np.sinc(u) ** 2, -0.5, 0.5)[0] ** 2
+    env = np.mean([np.sinc(r / n) ** 2 * np.sinc(c / n) ** 2 for r in OFFSETS for c in OFFSETS])
+    limit = float(bin_frac * env)
+    # Asking for the reachable energy makes the L2 term a pure uniformity term.
+    target = targets.spots(pos, camera=cam, wavelengths_m=[WL], energy=limit)
+    t0 = time.perf_counter()
+    run = design_doe(target, cam, PITCH, (n, n), loss=LossSpec(l1=0, energy=1, l2=1),
+                     settings=OptimizerSettings(max_iter=maxiter, height_range="wrap", init="random", seed=0,
+                                                anneal_iter=maxiter // 5))
+    t_ours = time.perf_counter() - t0
+    eff_c, uni_c = _score(engine, run.continuous_height_m, pos)
+    eff_q, uni_q = _score(engine, run.design.height_m, pos)
+    note = (f"{n}x{n} DOE, 4x4 spots, scored by PSFEngine (pixel-integrated, 1 sensor px = 1 DFT bin); "
+            f"slmsuite WGS-Kim {maxiter} it. on numpy; ours nlopt LD_LBFGS energy+L2, {maxiter} it.")
+    return [
+        dict(benchmark="spot_array_efficiency", figure="efficiency continuous (ours)", value=eff_c, unit="fraction",
+             peer="slmsuite WGS-Kim", peer_value=eff_wgs, ratio=eff_c / eff_wgs, limit=limit, notes=note),
+        dict(benchmark="spot_array_uniformity", figure="uniformity continuous (ours)", value=uni_c, unit="fraction",
+             peer="slmsuite WGS-Kim", peer_value=uni_wgs, ratio=uni_c / uni_wgs, limit=1.0, notes=note),
+        dict(benchmark="spot_array_efficiency_16lvl", figure="efficiency 16-level quantized (ours)", value=eff_q,
+             unit="fraction", peer="slmsuite WGS-Kim (continuous)", peer_value=eff_wgs, ratio=eff_q / eff_wgs,
+             limit=limit, notes="ours after the quantization-aware finish; WGS phase is not quantized"),
+        dict(benchmark="spot_array_uniformity_16lvl", figure="uniformity 16-level quantized (ours)", value=uni_q,
+             unit="fraction", peer="slmsuite WGS-Kim (continuous)", peer_value=uni_wgs, ratio=uni_q / uni_wgs,
+             limit=1.0, notes=note),
+        dict(benchmark="spot_array_time", figure="design time (ours, incl. quantization)", value=t_ours, unit="s",
+             peer="slmsuite WGS-Kim", peer_value=t_wgs, ratio=t_ours / t_wgs, limit=None, notes=note),
+    ]
+
+
+def bayer_design_time(size_px=1600, max_iter=100):
+    """Time to design the default Bayer element (L1 + energy, zeros start) at ``size_px``."""
+    cam = Camera(aperture_diameter_m=size_px * PITCH)
+    target = targets.bayer(cam)
+    t0 = time.perf_counter()
+    run = design_doe(target, cam, PITCH, (size_px, size_px), loss=LossSpec(l1=1, energy=1),
+                     settings=OptimizerSettings(max_iter=max_iter, init="zeros", anneal_iter=max(max_iter // 5, 2)))
+    elapsed = time.perf_counter() - t0
+    rep = run.report
+    return [
+        dict(benchmark="bayer_design_time", figure=f"Bayer design, {size_px} px aperture, {rep['evaluations']} evals",
+             value=elapsed, unit="s", peer=None, peer_value=None, ratio=None, limit=None,
+             notes=f"energy on target pixels R/G/B quantized {np.round(rep['quantized']['energy_on_target'][0], 4)}, "
+                   f"continuous {np.round(rep['continuous']['energy_on_target'][0], 4)}"),
+        dict(benchmark="bayer_design_efficiency", figure="mean energy on the R/G/B target pixels (quantized)",
+             value=rep["quantized"]["efficiency"], unit="fraction", peer=None, peer_value=None, ratio=None, limit=None,
+             notes=f"{size_px} px aperture, coded (left) half; fraction of the light through that half"),
+    ]
+
+
+def run(quick=False):
+    """Benchmark rows (see benchmarks/run.py); quick=True finishes in well under 30 s."""
+    rows = spot_array(n=32 if quick else 64, maxiter=30 if quick else 150)
+    rows += bayer_design_time(size_px=64 if quick else 1600, max_iter=4 if quick else 100)
+    return rows

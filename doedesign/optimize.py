@@ -1,0 +1,460 @@
+"""Height-map optimization with nlopt and analytic gradients, then a quantization-aware finish.
+
+Pipeline (:func:`design_doe`)
+-----------------------------
+1. Continuous stage: minimize the target loss (:mod:`doedesign.losses`) over the heights with
+   nlopt (``LD_LBFGS`` by default; ``LD_MMA`` or ``LD_CCSAQ``), gradients from
+   :meth:`doedesign.psf.PSFEngine.value_and_grad`. Heights are bounded, in the design file's
+   convention (z up, 0 = unetched top, etched pixels negative):
+   ``height_range="process"``: ``[-(N-1) step, 0]``, the deepest process level down to the top
+   surface, so every height has a fabricable nearest level; ``"2pi"``: ``[-N step, 0]``, the
+   full 2 pi height at the design wavelength, where a height rounding to level N wraps to
+   level 0 (the same phase at the design wavelength only); ``"wrap"``: unbounded continuous
+   heights wrapped modulo the 2 pi height at the end. Bounds cut a linear phase ramp into a
+   clipped one, so single-wavelength designs (gratings, spot arrays) converge best with
+   "wrap"; the wrap is exact at the design wavelength and approximate elsewhere.
+2. Quantization-aware finish: penalty annealing toward the nearest level. The penalty
+   ``mean sin^2(pi h / step)`` (zero on every level) is added with a growing weight and the
+   heights re-optimized at each weight; finally each height is rounded (not floored) to the
+   nearest level, ``step = height_2pi(design wavelength) / N``. The plain rounding of the
+   continuous optimum is evaluated as well and the better of the two is kept. This rounding
+   is the design-side twin of ``masks.quantize`` (fabrication side); doedesign does not
+   import masks.
+3. Optional fabrication regularizer (``fab_weight``) against one-pixel pillars and holes.
+
+Metrics (energy on target per wavelength and depth, efficiency, L1) are reported for the
+continuous, the plainly rounded and the final quantized design.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .design import Design
+from .errors import DoeError
+from .losses import LossSpec, make_loss, target_metrics
+from .materials import get_material
+from .progress import Progress
+from .psf import PSFEngine
+
+log = logging.getLogger(__name__)
+
+N_LEVELS = 16
+ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
+INITS = ("random", "zeros", "streak", "grating", "lens")
+HEIGHT_RANGES = ("process", "2pi", "wrap")
+# Bounds of the "wrap" range in 2 pi heights: wide enough never to bind, finite for nlopt.
+WRAP_SPAN = 8
+# Weights of the level penalty relative to the continuous loss, one re-optimization each.
+ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
+
+
+# -- levels and bounds ---------------------------------------------------------------------------
+def level_step_m(material="fused_silica", design_wavelength_m=550e-9, n_levels=N_LEVELS):
+    """Height of one process level: the 2 pi height at the design wavelength over ``n_levels``."""
+    return float(get_material(material).height_2pi_m(design_wavelength_m)) / n_levels
+
+
+def height_bounds(step_m, n_levels=N_LEVELS, height_range="process"):
+    """(lower, upper) height bounds in metres for ``height_range`` (see the module docstring)."""
+    if height_range == "process":
+        return -(n_levels - 1) * step_m, 0.0
+    if height_range == "2pi":
+        return -n_levels * step_m, 0.0
+    if height_range == "wrap":
+        return -WRAP_SPAN * n_levels * step_m, WRAP_SPAN * n_levels * step_m
+    raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {height_range!r}")
+
+
+def quantize_heights(height_m, step_m, n_levels=N_LEVELS):
+    """Round heights to the nearest process level.
+
+    Level ``k`` is ``k`` steps deep (height ``-k step``). Heights round to the nearest level
+    (not floor); a height nearer ``-N step`` than ``-(N-1) step`` wraps to level 0 (the same
+    phase at the design wavelength); anything above 0 or deeper clips.
+
+    Returns
+    -------
+    levels : int ndarray
+    height_m : ndarray, exactly ``-levels * step_m``
+    """
+    k = np.rint(-np.asarray(height_m, dtype=float) / step_m).astype(np.int64)
+    k = np.where(k == n_levels, 0, k)
+    k = np.clip(k, 0, n_levels - 1)
+    return k, -k * step_m
+
+
+def level_penalty(height_m, step_m, support=None):
+    """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
+    h = np.asarray(height_m, dtype=float)
+    s = np.ones(h.shape, bool) if support is None else support
+    n = max(int(s.sum()), 1)
+    x = np.pi * h / step_m
+    value = float(np.sum(np.sin(x)[s] ** 2) / n)
+    grad = np.where(s, np.pi / step_m * np.sin(2 * x) / n, 0.0)
+    return value, grad
+
+
+def _neighbour_differences(h):
+    """``h - neighbour`` for the 4 neighbours (up, down, left, right), and where they exist.
+
+    Returns (4, rows, cols) differences and a mask that is False for neighbours outside the
+    array (an edge pixel is judged on the neighbours it has).
+    """
+    pad = np.pad(h, 1, mode="edge")
+    nb = np.stack([pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]])
+    inside = np.ones(nb.shape, dtype=bool)
+    inside[0, 0, :] = inside[1, -1, :] = inside[2, :, 0] = inside[3, :, -1] = False
+    return h[None] - nb, inside
+
+
+_OFFSETS = ((-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+def isolation_penalty(height_m, step_m):
+    """How far one-pixel pillars stick up and holes dig down, in levels, per pixel.
+
+    A pixel higher than all its neighbours contributes ``min(h - neighbour) / step`` (the
+    pillar's height above its tallest neighbour); one lower than all, ``min(neighbour - h) / step``.
+    Returns the mean over pixels and its (sub)gradient.
+    """
+    h = np.asarray(height_m, dtype=float)
+    d, inside = _neighbour_differences(h)
+    d = d / step_m
+    n = h.size
+    kmin = np.where(inside, d, np.inf).argmin(axis=0)
+    kmax = np.where(inside, d, -np.inf).argmax(axis=0)
+    dmin = np.take_along_axis(d, kmin[None], 0)[0]
+    dmax = np.take_along_axis(d, kmax[None], 0)[0]
+    pillar, hole = dmin > 0, dmax < 0
+    value = float((dmin[pillar].sum() - dmax[hole].sum()) / n)
+    grad = (pillar.astype(float) - hole) / (step_m * n)
+    for k, (dr, dc) in enumerate(_OFFSETS):
+        # Neighbour k of pixel (i, j) is (i + dr, j + dc); never outside the array (masked above).
+        c = -(pillar & (kmin == k)).astype(float) + (hole & (kmax == k))
+        grad += np.roll(c, (dr, dc), axis=(0, 1)) / (step_m * n)
+    return value, grad
+
+
+def isolated_pixels(levels):
+    """Number of one-pixel pillars and holes: pixels above (or below) all their in-array neighbours."""
+    d, inside = _neighbour_differences(np.asarray(levels, dtype=float))
+    up = np.all(np.where(inside, d > 0, True), axis=0)
+    down = np.all(np.where(inside, d < 0, True), axis=0)
+    return int(np.count_nonzero(up | down))
+
+
+# -- initial height maps ------------------------------------------------------------------------
+def _wrap_into(h, lower, step_m, n_levels):
+    """Wrap heights modulo the 2 pi height into [lower, 0] (nearest end for the process gap)."""
+    h = -np.mod(-h, n_levels * step_m)
+    return np.where(h < lower, np.where(h < lower - step_m / 2, 0.0, lower), h)
+
+
+def initial_height(kind, shape, step_m, lower, rng, n_levels=N_LEVELS, period_px=16, arms="+",
+                   pitch_m=5.4e-6, camera=None, design_wavelength_m=550e-9, material="fused_silica",
+                   focus_depth_m=None):
+    """A starting height map.
+
+    Parameters
+    ----------
+    kind : {"random", "zeros", "streak", "grating", "lens"}
+        ``random``: uniform in the bounds; ``zeros``: flat; ``streak``: rank-1 maps varying along
+        one axis only (each spreads light along that axis), along columns in the top half and
+        along rows in the bottom half for a "+" cross; ``grating``: a blazed staircase of
+        ``period_px`` along columns, phase rising with column (first order toward higher
+        column); ``lens``: the phase that refocuses the camera from its focus distance to
+        ``focus_depth_m`` (a lens difference), wrapped into the bounds.
+    """
+    rows, cols = shape
+    if kind == "random":
+        return rng.uniform(lower, 0.0, shape)
+    if kind == "zeros":
+        return np.zeros(shape)
+    if kind == "streak":
+        along_cols = np.broadcast_to(rng.uniform(lower, 0.0, cols), shape)
+        along_rows = np.broadcast_to(rng.uniform(lower, 0.0, rows)[:, None], shape)
+        if arms == "h":
+            return along_cols.copy()
+        if arms == "v":
+            return along_rows.copy()
+        return np.where((np.arange(rows) < rows // 2)[:, None], along_cols, along_rows)
+    if kind == "grating":
+        level = (np.arange(cols) % period_px) * n_levels // period_px
+        return np.tile(-(n_levels - 1 - level) * step_m, (rows, 1)).astype(float)
+    if kind == "lens":
+        if camera is None or focus_depth_m is None:
+            raise DoeError("the lens initialization needs the camera and a depth to focus")
+        y = (np.arange(rows) - (rows - 1) / 2) * pitch_m
+        x = (np.arange(cols) - (cols - 1) / 2) * pitch_m
+        r2 = y[:, None] ** 2 + x[None, :] ** 2
+
+        def sag(d):
+            return np.zeros_like(r2) if np.isinf(d) else r2 / (np.sqrt(r2 + d * d) + d)
+
+        # The DOE cancels the defocus path of a point at focus_depth_m: that point comes to focus.
+        opd = -(sag(focus_depth_m) - sag(camera.focus_distance_m))
+        mat = get_material(material)
+        h = opd / (mat.n(design_wavelength_m) - 1.0)
+        return _wrap_into(h, lower, step_m, n_levels)
+    raise DoeError(f"unknown initialization {kind!r}; choose from {', '.join(INITS)} or give a height map")
+
+
+# -- the nlopt driver -----------------------------------------------------------------------------
+@dataclass
+class OptimizerSettings:
+    """Settings of :func:`design_doe` (see the module docstring)."""
+
+    algorithm: str = "LD_LBFGS"
+    max_iter: int = 100
+    ftol_rel: float = 1e-7
+    max_time_s: float | None = None
+    seed: int = 0
+    init: str = "random"
+    height_range: str = "process"
+    n_levels: int = N_LEVELS
+    quantize: bool = True
+    anneal_iter: int = 20
+    fab_weight: float = 0.0
+
+    def __post_init__(self):
+        if self.algorithm not in ALGORITHMS:
+            raise DoeError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
+        if int(self.max_iter) < 1:
+            raise DoeError(f"iterations must be at least 1, got {self.max_iter}")
+        if self.height_range not in HEIGHT_RANGES:
+            raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {self.height_range!r}")
+        if self.max_time_s is not None and not self.max_time_s > 0:
+            raise DoeError(f"time limit must be positive, got {self.max_time_s}")
+        if self.fab_weight < 0:
+            raise DoeError("fab_weight must be >= 0")
+
+
+def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel=1e-7, max_time_s=None,
+             callback=None, desc="optimize"):
+    """Minimize ``fun(x) -> (value, grad)`` over a bounded array with nlopt.
+
+    Parameters
+    ----------
+    callback : callable, optional
+        ``callback(evaluation, value, x)``; returning True stops the run.
+
+    Returns
+    -------
+    x_best : ndarray, the best point evaluated
+    history : list of float, the objective at every evaluation
+    """
+    import nlopt
+
+    shape = x0.shape
+    n = x0.size
+    opt = nlopt.opt(getattr(nlopt, algorithm), n)
+    lo = np.broadcast_to(np.asarray(lower, float), shape).ravel()
+    hi = np.broadcast_to(np.asarray(upper, float), shape).ravel()
+    opt.set_lower_bounds(lo)
+    opt.set_upper_bounds(hi)
+    opt.set_maxeval(int(max_iter))
+    if ftol_rel:
+        opt.set_ftol_rel(float(ftol_rel))
+    if max_time_s:
+        opt.set_maxtime(float(max_time_s))
+    history = []
+    best = {"value": np.inf, "x": np.clip(x0.ravel(), lo, hi).copy()}
+
+    with Progress(max_iter, desc=desc) as bar:
+        def objective(x, grad):
+            value, g = fun(x.reshape(shape))
+            if not np.isfinite(value):
+                raise DoeError(f"{desc}: the loss became {value}")
+            history.append(float(value))
+            if value < best["value"]:
+                best["value"], best["x"] = float(value), x.copy()
+            if grad.size:
+                grad[:] = np.asarray(g, dtype=float).ravel()
+            bar.update(1, status=f"loss {value:.5g}")
+            if callback is not None and callback(len(history), float(value), x.reshape(shape)):
+                opt.force_stop()
+            return float(value)
+
+        opt.set_min_objective(objective)
+        try:
+            opt.optimize(best["x"].copy())
+        except nlopt.RoundoffLimited:
+            log.info("%s: stopped by round-off; keeping the best point", desc)
+        except nlopt.ForcedStop:
+            log.info("%s: stopped by the callback", desc)
+        except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
+            # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
+            if not history:
+                raise DoeError(f"{desc}: nlopt failed before the first evaluation ({exc})") from None
+            log.warning("%s: nlopt stopped with a failure after %d evaluations; keeping the best point",
+                        desc, len(history))
+        result = opt.last_optimize_result()
+    log.info("%s: %d evaluations, loss %.6g -> %.6g (nlopt result %s)", desc, len(history),
+             history[0] if history else np.nan, best["value"], result)
+    return best["x"].reshape(shape), history
+
+
+# -- the whole design run --------------------------------------------------------------------------
+@dataclass
+class DesignRun:
+    """Result of :func:`design_doe`: the design file object and the report figures."""
+
+    design: Design
+    continuous_height_m: np.ndarray
+    history: dict
+    report: dict = field(default_factory=dict)
+
+
+def coded_support(camera, pitch_m, shape):
+    """Boolean map of the design pixels that the coded half-aperture sees (any light at all)."""
+    grid = camera.pupil_grid_shape(shape, pitch_m)
+    coded = camera.view_weights(grid, pitch_m)[0]
+    oy, ox = (grid[0] - shape[0]) // 2, (grid[1] - shape[1]) // 2
+    return coded[oy:oy + shape[0], ox:ox + shape[1]] > 0
+
+
+def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
+               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1):
+    """Optimize a DOE for ``target`` and quantize it to the process levels.
+
+    Parameters
+    ----------
+    target : doedesign.targets.Target
+    camera : doedesign.camera.Camera
+        Its window and axis must match the target's.
+    pitch_m : float
+    shape : (int, int)
+        Design grid (DOE pixels), centred on the axis.
+    loss : doedesign.losses.LossSpec, optional
+    settings : OptimizerSettings, optional
+    init_height_m : ndarray, optional
+        A user starting height map (overrides ``settings.init``).
+    callback : callable, optional
+        ``callback(evaluation, loss, height_m)``; True stops the current stage.
+
+    Returns
+    -------
+    DesignRun
+    """
+    settings = settings or OptimizerSettings()
+    loss = loss or LossSpec()
+    if tuple(target.window_shape) != tuple(camera.window_shape) or target.axis_pixel != camera.axis_pixel:
+        raise DoeError(f"target window {tuple(target.window_shape)} / axis {target.axis_pixel} does not match the "
+                       f"camera's {camera.window_shape} / {camera.axis_pixel}")
+    t0 = time.perf_counter()
+    engine = PSFEngine(camera, pitch_m, shape, material, target.wavelengths_m, target.depths_m, doe_oversample)
+    step = level_step_m(material, design_wavelength_m, settings.n_levels)
+    lower, upper = height_bounds(step, settings.n_levels, settings.height_range)
+    support = coded_support(camera, pitch_m, tuple(shape))
+    rng = np.random.default_rng(settings.seed)
+    if init_height_m is not None:
+        h0 = np.asarray(init_height_m, dtype=float)
+        if h0.shape != tuple(shape):
+            raise DoeError(f"initial height map has shape {h0.shape}, the design is {tuple(shape)}")
+        h0 = np.clip(h0, lower, upper)
+    else:
+        period_m = target.meta.get("period_m")
+        finite = target.depths_m[np.isfinite(target.depths_m)]
+        h0 = initial_height(settings.init, tuple(shape), step, lower, rng, settings.n_levels,
+                            period_px=int(round(period_m / pitch_m)) if period_m else 16,
+                            arms=target.meta.get("arms", "+"), pitch_m=pitch_m, camera=camera,
+                            design_wavelength_m=design_wavelength_m, material=material,
+                            focus_depth_m=float(np.median(finite)) if finite.size else None)
+    h0 = np.where(support, h0, 0.0)
+    target_loss = make_loss(target, loss)
+
+    def objective(h, extra=None):
+        value, grad = engine.value_and_grad(h, target_loss)
+        if settings.fab_weight:
+            v, g = isolation_penalty(h, step)
+            value += settings.fab_weight * v
+            grad = grad + settings.fab_weight * g
+        if extra is not None:
+            v, g = extra(h)
+            value += v
+            grad = grad + g
+        return value, grad
+
+    def metrics(h):
+        psf = engine.psf(h, views=("coded",)).psf[0]
+        out = target_metrics(psf, target)
+        out["loss"] = float(objective(h)[0])
+        return out
+
+    # Only the pixels the coded view sees are free; the others stay at 0 (unetched).
+    def on_support(fun):
+        def wrapped(x):
+            value, grad = fun(full(x))
+            return value, grad[support]
+        return wrapped
+
+    def full(x):
+        h = np.zeros(support.shape)
+        h[support] = x
+        return h
+
+    def stage_callback(i, value, x):
+        return callback(i, value, full(x)) if callback is not None else False
+
+    def run_stage(fun, h_start, max_iter, max_time, desc):
+        x, hist = minimize(on_support(fun), h_start[support], lower, upper, settings.algorithm, max_iter,
+                           settings.ftol_rel, max_time, stage_callback, desc=desc)
+        return full(x), hist
+
+    h_cont, hist_cont = run_stage(objective, h0, settings.max_iter, settings.max_time_s, "design")
+    if settings.height_range == "wrap":
+        lower, upper = height_bounds(step, settings.n_levels, "2pi")
+        h_cont = -np.mod(-h_cont, settings.n_levels * step)
+    history = {"continuous": hist_cont}
+    report = {"continuous": metrics(h_cont)}
+    levels, h_final = quantize_heights(h_cont, step, settings.n_levels)
+    if settings.quantize:
+        report["rounded"] = metrics(h_final)
+        h = h_cont
+        scale = max(report["continuous"]["loss"], 1e-6)
+        history["anneal"] = []
+        # The annealing stages together get at most half the continuous stage's time limit.
+        stage_time = settings.max_time_s / (2 * len(ANNEAL_SCHEDULE)) if settings.max_time_s else None
+        for mu in ANNEAL_SCHEDULE:
+            def penalized(x, mu=mu):
+                v, g = level_penalty(x, step, support)
+                return scale * mu * v, scale * mu * g
+
+            h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, settings.anneal_iter, stage_time,
+                                f"anneal x{mu:g}")
+            history["anneal"].extend(hist)
+        lev_a, h_a = quantize_heights(h, step, settings.n_levels)
+        report["annealed"] = metrics(h_a)
+        if report["annealed"]["loss"] <= report["rounded"]["loss"]:
+            levels, h_final, report["quantized_from"] = lev_a, h_a, "annealed"
+        else:
+            report["quantized_from"] = "rounded"
+        report["quantized"] = report[report["quantized_from"]]
+    else:
+        h_final, levels = h_cont, None
+    report.update({
+        "run_time_s": time.perf_counter() - t0,
+        "evaluations": sum(len(v) for v in history.values()),
+        "loss_history": history,
+        "level_step_m": step,
+        "height_bounds_m": [lower, upper],
+        "isolated_pixels": isolated_pixels(levels) if levels is not None else None,
+        "settings": asdict(settings),
+        "loss_spec": asdict(loss),
+        "target": target.summary(),
+        "camera": camera.to_dict(),
+        "shape": list(shape),
+        "pitch_m": pitch_m,
+        "sampling": engine.sampling,
+    })
+    design = Design(height_m=h_final, pitch_m=pitch_m, material=str(material),
+                    design_wavelength_m=design_wavelength_m,
+                    levels=None if levels is None else levels.astype(np.int16), aperture=support,
+                    metadata={"name": target.name, "target": target.summary(), "camera": camera.to_dict(),
+                              "optimizer": asdict(settings), "n_levels": settings.n_levels})
+    return DesignRun(design=design, continuous_height_m=h_cont, history=history, report=report)

@@ -1,0 +1,254 @@
+"""Lithography on a fine grid: how one binary mask turns into printed area coverage.
+
+Every function here works on *coverage* images: a float in 0..1 per fine pixel, the
+fraction of that (square) pixel covered by the printed opening. Working with area
+coverage instead of a binary image is what makes the simulated surface vary
+continuously with sub-pixel overlay, bias and blur, so that least-squares fits of those
+parameters see smooth residuals. Arrays are row-major, row 0 at the top.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+
+
+def upsample_mask(mask, upsample):
+    """Nearest-neighbour upsampling of a binary design mask to float32 coverage.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (rows, cols)
+    upsample : int
+        Fine pixels per design pixel along each axis.
+
+    Returns
+    -------
+    ndarray of float32, shape (rows * upsample, cols * upsample)
+        1 inside openings, 0 elsewhere; opening edges fall on fine-pixel boundaries.
+    """
+    mask = np.asarray(mask, dtype=np.float32)
+    rows, cols = mask.shape
+    fine = np.broadcast_to(mask[:, None, :, None], (rows, upsample, cols, upsample))
+    return fine.reshape(rows * upsample, cols * upsample)
+
+
+def grow(coverage, bias_px):
+    """Grow (bias > 0) or shrink (bias < 0) openings by ``bias_px`` fine pixels on every edge.
+
+    The growth uses a square structuring element, so a square opening of side L becomes a
+    square of side L + 2 b (area change b * perimeter + 4 b**2), as a uniform
+    over/under-exposure of a Manhattan layout does. Whole pixels are added with a
+    maximum filter; the fractional remainder adds that fraction of the next pixel, which
+    is the exact area coverage when the edges lie on pixel boundaries (call this before
+    any sub-pixel shift) and keeps the result continuous in ``bias_px``.
+
+    Parameters
+    ----------
+    coverage : ndarray of float, shape (rows, cols)
+    bias_px : float
+        Edge displacement in fine pixels (positive = wider openings).
+
+    Returns
+    -------
+    ndarray of float32
+    """
+    if bias_px == 0:
+        return coverage
+    if bias_px < 0:
+        return 1.0 - grow(1.0 - coverage, -bias_px)
+    whole = int(np.floor(bias_px))
+    frac = np.float32(bias_px - whole)
+    out = np.asarray(coverage, dtype=np.float32)
+    for axis in (0, 1):
+        if whole:
+            out = ndi.maximum_filter1d(out, 2 * whole + 1, axis=axis, mode="constant", cval=0.0)
+        if frac > 0:
+            outer = ndi.maximum_filter1d(out, 3, axis=axis, mode="constant", cval=0.0)
+            outer *= frac
+            out = np.maximum(out, outer, out=outer)
+    return out
+
+
+def move(coverage, shift_rc, rotation_rad, centre_rc):
+    """Move a coverage image by a translation and a counter-clockwise rotation.
+
+    Linear interpolation of a box-sampled image is its exact area coverage after a
+    sub-pixel translation, and a close one after the small rotations of mask overlay.
+
+    Parameters
+    ----------
+    coverage : ndarray of float, shape (rows, cols)
+    shift_rc : (float, float)
+        Translation in fine pixels along (row, column); row grows downward.
+    rotation_rad : float
+        Counter-clockwise rotation (x right, y up), about ``centre_rc``.
+    centre_rc : (float, float)
+        Rotation centre in fine-pixel index coordinates (row, column).
+
+    Returns
+    -------
+    ndarray of float32
+    """
+    shift_rc = np.asarray(shift_rc, dtype=float)
+    if rotation_rad == 0:
+        out = coverage
+        for axis in (0, 1):
+            out = _translate_axis(out, shift_rc[axis], axis)
+        return out
+    cos, sin = np.cos(rotation_rad), np.sin(rotation_rad)
+    # Output pixel o samples the input at R^-1 (o - c - t) + c. With row pointing down,
+    # a counter-clockwise rotation in (x, y-up) is [[cos, -sin], [sin, cos]] on (row, col).
+    inverse = np.array([[cos, sin], [-sin, cos]])
+    centre = np.asarray(centre_rc, dtype=float)
+    offset = centre - inverse @ (centre + shift_rc)
+    return ndi.affine_transform(coverage, inverse, offset=offset, order=1, mode="grid-constant",
+                                cval=0.0, prefilter=False)
+
+
+def _translate_axis(image, shift, axis):
+    """Linear-interpolation translation by ``shift`` pixels along ``axis``, zero fill.
+
+    ``out[o] = (1 - f) image[o - k] + f image[o - k - 1]`` with ``shift = k + f``; the same
+    as ``scipy.ndimage.shift(order=1)`` for one axis, several times faster on big images.
+    """
+    if shift == 0:
+        return image
+    k = int(np.floor(shift))
+    f = np.float32(shift - k)
+    out = np.zeros_like(image, dtype=np.float32)
+    for offset, weight in ((k, 1 - f), (k + 1, f)):
+        if weight == 0 or abs(offset) >= image.shape[axis]:
+            continue
+        dst = [slice(None), slice(None)]
+        src = [slice(None), slice(None)]
+        if offset >= 0:
+            dst[axis], src[axis] = slice(offset, None), slice(0, image.shape[axis] - offset)
+        else:
+            dst[axis], src[axis] = slice(0, offset), slice(-offset, None)
+        out[tuple(dst)] += weight * image[tuple(src)]
+    return out
+
+
+def expose(coverage, blur_px, threshold, upsample=1):
+    """Print a mask through a Gaussian aerial-image blur and a resist threshold.
+
+    The aerial image is the coverage blurred by a Gaussian of ``blur_px`` fine pixels; the
+    resist clears where it exceeds ``threshold``. The printed coverage of a pixel is
+    ``0.5 + (aerial - threshold) / |grad aerial|``, clipped to 0..1: the fraction of the
+    pixel on the cleared side of a locally straight contour, so the printed edge moves
+    continuously with the blur and the threshold. Isolated openings, whose aerial image
+    peaks lower, shrink more than clusters, and corners round.
+
+    Parameters
+    ----------
+    coverage : ndarray of float, shape (rows, cols)
+    blur_px : float
+        Gaussian sigma in fine pixels (0 = sharp image: returned unchanged).
+    threshold : float
+        Aerial-image level at which the resist clears, in (0, 1).
+    upsample : int
+        Fine pixels per design pixel; the image must start on a design-pixel boundary.
+        A wide blur is computed on blocks whose size divides it, so that the result
+        does not depend on where the simulated window starts.
+
+    Returns
+    -------
+    ndarray of float32
+    """
+    if blur_px == 0:
+        return coverage
+    # Even block sizes up to sigma / 2 keep the aerial image within ~4e-3 of the exact blur
+    # (edges within ~0.01 sigma); odd ones were measured several times worse.
+    blocks = [k for k in range(2, upsample + 1, 2) if upsample % k == 0 and k <= blur_px / 2]
+    aerial = blurred(coverage, blur_px, max(blocks, default=1))
+    grad_r, grad_c = np.gradient(aerial)
+    slope = np.hypot(grad_r, grad_c, out=grad_r)
+    # A flat aerial image far from the threshold prints as 0 or 1 whatever the guard.
+    np.maximum(slope, np.float32(1e-6), out=slope)
+    aerial -= np.float32(threshold)
+    aerial /= slope
+    aerial += np.float32(0.5)
+    return np.clip(aerial, 0.0, 1.0, out=aerial)
+
+
+def blurred(image, sigma_px, block=1):
+    """Gaussian blur with zero outside the array, cheap for wide kernels.
+
+    With ``block = k > 1`` the image is first block-averaged by a factor ``k``, blurred
+    with ``sqrt(sigma**2 - (k**2 - 1) / 12)`` (the block average itself adds the variance of
+    a box), and linearly interpolated back; for an even ``k <= sigma / 2`` the result is
+    within ~4e-3 of the exact blur (image range 1).
+
+    Parameters
+    ----------
+    image : ndarray of float, shape (rows, cols)
+    sigma_px : float
+    block : int
+        Block size ``k`` (1 = blur at full resolution).
+
+    Returns
+    -------
+    ndarray of float32
+    """
+    k = int(block)
+    rows, cols = image.shape
+    if k < 2 or rows < 4 * k or cols < 4 * k:
+        return ndi.gaussian_filter(image.astype(np.float32, copy=False), sigma_px, mode="constant", cval=0.0)
+    # Two zero blocks on every side give the interpolation samples beyond the edges.
+    pr, pc = -rows % k, -cols % k
+    padded = np.pad(image.astype(np.float32, copy=False), ((2 * k, pr + 2 * k), (2 * k, pc + 2 * k)))
+    # Block sum from k * k strided views: much faster than a 4-D reshape().mean().
+    coarse = np.zeros((padded.shape[0] // k, padded.shape[1] // k), dtype=np.float32)
+    for a in range(k):
+        for b in range(k):
+            coarse += padded[a::k, b::k]
+    coarse *= np.float32(1.0 / k ** 2)
+    sigma_c = np.sqrt(max(sigma_px ** 2 - (k ** 2 - 1) / 12.0, 0.0)) / k
+    coarse = ndi.gaussian_filter(coarse, sigma_c, mode="constant", cval=0.0)
+    # Coarse sample i is the mean of fine pixels (i - 2) k .. (i - 2) k + k - 1 of the image.
+    return interpolate_separable(coarse, (np.arange(rows) - (k - 1) / 2) / k + 2,
+                                 (np.arange(cols) - (k - 1) / 2) / k + 2)
+
+
+def interpolate_separable(coarse, row_coords, col_coords):
+    """Bilinear interpolation of ``coarse`` at the grid ``row_coords x col_coords``.
+
+    Coordinates are in coarse-sample index units; outside the array the edge value is
+    held (the callers keep their windows wide enough that this never matters).
+
+    Returns
+    -------
+    ndarray of float32, shape (len(row_coords), len(col_coords))
+    """
+    out = coarse.astype(np.float32, copy=False)
+    for axis, coords in ((0, row_coords), (1, col_coords)):
+        n = out.shape[axis]
+        coords = np.clip(np.asarray(coords, dtype=float), 0, n - 1)
+        i0 = np.minimum(np.floor(coords).astype(int), max(n - 2, 0))
+        i1 = np.minimum(i0 + 1, n - 1)
+        shape = [1, 1]
+        shape[axis] = -1
+        w = (coords - i0).astype(np.float32).reshape(shape)
+        low = np.take(out, i0, axis=axis)
+        high = np.take(out, i1, axis=axis)
+        high -= low
+        high *= w
+        high += low
+        out = high
+    return out
+
+
+def box_kernel(width_px):
+    """1-D box of a continuous width ``width_px`` (fine pixels), normalized to sum 1.
+
+    Tap t is the overlap of pixel ``[t - 0.5, t + 0.5]`` with ``[-width/2, width/2]``
+    divided by the width, so a sharp step between pixels, filtered by it, takes exactly
+    the values of a linear ramp of that width at the pixel centres, and the kernel changes
+    continuously with the width.
+    """
+    half = width_px / 2.0
+    n = int(np.ceil(half + 0.5))
+    taps = np.arange(-n, n + 1, dtype=float)
+    weights = np.clip(np.minimum(taps + 0.5, half) - np.maximum(taps - 0.5, -half), 0.0, None)
+    return weights / weights.sum()

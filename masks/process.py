@@ -1,0 +1,440 @@
+"""Process model: from design levels to the etched surface a profilometer would see.
+
+A 2**n-level element is made with n binary masks (see :mod:`masks.decompose`): mask j is
+open where bit j of the level is set and its etch removes ``d_j``. This module prints each
+mask with the fabrication effects named in CONTRIBUTING.md (``etch_depth``,
+``mask_overlay``, ``linewidth_bias``, ``proximity_blur``, ``sidewall_slope``,
+``etch_loading``, ``roughness``) and sums the etches on a fine grid.
+
+Conventions: SI units; height z up, 0 = unetched top, negative where etched; arrays
+row-major with row 0 at the top; overlay x toward increasing column, y up (toward
+decreasing row), rotation counter-clockwise about the centre of the whole design grid.
+
+The surface varies continuously with every parameter (area coverage, never pixel-snapped
+edges), because metrology and diagnosis fit these parameters with least squares.
+
+Approximations, in words:
+
+- the contact-gap aerial image is a Gaussian blur (the real one is a Fresnel pattern
+  with ripples; a Gaussian of sigma ~ sqrt(lambda g) / 2 captures shrinkage and corner
+  rounding, not the ripples);
+- linewidth bias grows every opening edge by the same amount with a square structuring
+  element (corners stay square);
+- the sidewall ramp has the same width for every etch (a fixed sidewall angle would give
+  deeper etches wider ramps), so it is applied once to the summed height; the etch order
+  therefore does not matter here, although in a real run a later etch over an earlier
+  step's sidewall does depend on it;
+- the local open fraction that drives etch loading is taken from the *designed* mask at
+  design-pixel resolution (Gaussian-averaged over ``loading_radius``), not the printed one;
+- outside the design array the wafer is unetched (masks closed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from doedesign.errors import DoeError
+
+from . import litho
+from .decompose import DEFAULT_DEPTHS_M, levels_to_masks
+
+log = logging.getLogger(__name__)
+
+# Effect names shared by masks, metrology and diagnosis (CONTRIBUTING.md).
+EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope",
+           "etch_loading", "roughness")
+
+# Extra design pixels of margin around a simulated region, beyond every effect's reach.
+_MARGIN_PX = 2
+# Gaussian tails are cut at this many sigma (the scipy default).
+_TRUNCATE = 4.0
+
+
+@dataclass
+class ProcessParams:
+    """Fabrication parameters of one wafer run, in SI units.
+
+    Attributes
+    ----------
+    etch_depth : ndarray, shape (n_masks,)
+        Actual depth of each mask's etch (m), mask order.
+    mask_overlay : ndarray, shape (n_masks, 3)
+        Per mask ``[dx_m, dy_m, rotation_rad]`` relative to mask 0 (row 0 is normally
+        zeros); x toward increasing column, y up (toward decreasing row), rotation
+        counter-clockwise about the centre of the design grid. None = no overlay error.
+    linewidth_bias : ndarray, shape (n_masks,)
+        Growth of every opening edge per mask (m); positive = openings wider. None = 0.
+    proximity_blur : float
+        Sigma of the Gaussian aerial-image blur through the contact gap (m); 0 = sharp.
+    resist_threshold : float
+        Aerial-image level at which the resist clears, in (0, 1); used only with blur.
+    sidewall_slope : float
+        Width of the etched step transition (m): a linear ramp ``d cot(theta)`` wide.
+    etch_loading : float
+        Fractional depth loss per unit local open fraction:
+        ``depth_j(x) = d_j * (1 - etch_loading * rho_j(x))``.
+    loading_radius : float
+        Gaussian sigma (m) over which the local open fraction ``rho_j`` is averaged.
+    roughness : float
+        Rms random height noise (m), white on the fine grid.
+    seed : int or None
+        Seed of the roughness noise (None = fresh noise each call).
+    """
+
+    etch_depth: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_DEPTHS_M, dtype=float))
+    mask_overlay: np.ndarray | None = None
+    linewidth_bias: np.ndarray | None = None
+    proximity_blur: float = 0.0
+    resist_threshold: float = 0.5
+    sidewall_slope: float = 0.0
+    etch_loading: float = 0.0
+    loading_radius: float = 50e-6
+    roughness: float = 0.0
+    seed: int | None = None
+
+    def __post_init__(self):
+        self.etch_depth = _float_array(self.etch_depth, "etch_depth")
+        if self.etch_depth.ndim != 1 or not 1 <= self.etch_depth.size <= 15:
+            raise DoeError(f"process parameter etch_depth must be a list of 1..15 depths (m), "
+                           f"got shape {self.etch_depth.shape}")
+        n = self.etch_depth.size
+        if self.mask_overlay is None:
+            self.mask_overlay = np.zeros((n, 3))
+        if self.linewidth_bias is None:
+            self.linewidth_bias = np.zeros(n)
+        self.mask_overlay = _float_array(self.mask_overlay, "mask_overlay")
+        self.linewidth_bias = _float_array(self.linewidth_bias, "linewidth_bias")
+        if self.mask_overlay.shape != (n, 3):
+            raise DoeError(f"process parameter mask_overlay must be shaped ({n}, 3) "
+                           f"[dx_m, dy_m, rotation_rad] per mask, got {self.mask_overlay.shape}")
+        if self.linewidth_bias.shape != (n,):
+            raise DoeError(f"process parameter linewidth_bias must hold {n} values (m), "
+                           f"got shape {self.linewidth_bias.shape}")
+        for name in ("proximity_blur", "resist_threshold", "sidewall_slope", "etch_loading",
+                     "loading_radius", "roughness"):
+            value = getattr(self, name)
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise DoeError(f"process parameter {name} must be a number, got {value!r}") from None
+            if not math.isfinite(value):
+                raise DoeError(f"process parameter {name} must be finite, got {value}")
+            setattr(self, name, value)
+        if np.any(self.etch_depth < 0):
+            raise DoeError(f"process parameter etch_depth must be >= 0 m, got {self.etch_depth.tolist()}")
+        for name in ("proximity_blur", "sidewall_slope", "roughness"):
+            if getattr(self, name) < 0:
+                raise DoeError(f"process parameter {name} must be >= 0 m, got {getattr(self, name)}")
+        if not 0 < self.resist_threshold < 1:
+            raise DoeError(f"process parameter resist_threshold must lie in (0, 1), got {self.resist_threshold}")
+        if self.loading_radius <= 0:
+            raise DoeError(f"process parameter loading_radius must be > 0 m, got {self.loading_radius}")
+        if self.seed is not None:
+            if isinstance(self.seed, bool) or not float(self.seed).is_integer():
+                raise DoeError(f"process parameter seed must be an integer or None, got {self.seed!r}")
+            self.seed = int(self.seed)
+
+    @property
+    def n_masks(self):
+        """Number of binary masks (length of ``etch_depth``)."""
+        return self.etch_depth.size
+
+    @classmethod
+    def ideal(cls, n_masks=4, depths_m=None):
+        """Perfect process: nominal depths, every effect off.
+
+        Parameters
+        ----------
+        n_masks : int
+            Number of masks; the default depths are ``DEFAULT_DEPTHS_M`` (4 masks) or
+            ``75 nm * 2**j`` for another count.
+        depths_m : sequence of float, optional
+            Etch depth of each mask (m); overrides ``n_masks``.
+        """
+        if depths_m is None:
+            n_masks = int(n_masks)
+            if n_masks == len(DEFAULT_DEPTHS_M):
+                depths_m = DEFAULT_DEPTHS_M
+            else:
+                depths_m = [DEFAULT_DEPTHS_M[0] * 2 ** j for j in range(max(n_masks, 0))]
+        return cls(etch_depth=np.array(depths_m, dtype=float))
+
+    def copy(self, **changes):
+        """A copy with some fields replaced (arrays are copied, never shared)."""
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        values.update(changes)
+        for name in ("etch_depth", "mask_overlay", "linewidth_bias"):
+            if values[name] is not None:
+                values[name] = np.array(values[name], dtype=float)
+        if "etch_depth" in changes and len(np.atleast_1d(changes["etch_depth"])) != self.n_masks:
+            # A new mask count invalidates the per-mask arrays not given explicitly.
+            for name in ("mask_overlay", "linewidth_bias"):
+                if name not in changes:
+                    values[name] = None
+        return type(self)(**values)
+
+    def to_dict(self):
+        """JSON-friendly dict keyed by field name; lengths in m, angles in rad."""
+        return {
+            "etch_depth": self.etch_depth.tolist(),
+            "mask_overlay": self.mask_overlay.tolist(),
+            "linewidth_bias": self.linewidth_bias.tolist(),
+            "proximity_blur": self.proximity_blur,
+            "resist_threshold": self.resist_threshold,
+            "sidewall_slope": self.sidewall_slope,
+            "etch_loading": self.etch_loading,
+            "loading_radius": self.loading_radius,
+            "roughness": self.roughness,
+            "seed": self.seed,
+        }
+
+    @classmethod
+    def from_dict(cls, d):
+        """Inverse of :meth:`to_dict`; missing keys take their defaults.
+
+        Raises
+        ------
+        DoeError
+            ``d`` is not a dict or has unknown keys.
+        """
+        if not isinstance(d, dict):
+            raise DoeError(f"process parameters must be a JSON object, got {type(d).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise DoeError(f"unknown process parameter(s) {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+
+@dataclass
+class SimulatedSurface:
+    """Etched surface on the fine grid of a design region.
+
+    Attributes
+    ----------
+    height_m : ndarray of float64, shape (H, W)
+        Height (m), z up, 0 = unetched top, negative where etched; row 0 at the top.
+    step_m : float
+        Fine-grid spacing (m), ``pitch_m / upsample``.
+    upsample : int
+        Fine pixels per design pixel along each axis.
+    region : tuple of int
+        ``(row0, row1, col0, col1)`` of the design that was simulated (half-open).
+    masks_printed : ndarray of float32, shape (n_masks, H, W)
+        Area coverage 0..1 of each mask's printed opening after lithography (overlay,
+        bias, blur and threshold; before the etch's sidewall, loading and roughness).
+    """
+
+    height_m: np.ndarray
+    step_m: float
+    upsample: int
+    region: tuple
+    masks_printed: np.ndarray
+
+    def design_coords(self):
+        """Fine-pixel centres in design-pixel units.
+
+        Returns
+        -------
+        rows, cols : ndarray of float, shapes (H,) and (W,)
+            Design-pixel coordinate of each fine row / column centre; design pixel (i, j)
+            is centred at (i, j) and spans +-0.5 around it.
+        """
+        row0, _, col0, _ = self.region
+        u = self.upsample
+        rows = row0 + (np.arange(self.height_m.shape[0]) + 0.5) / u - 0.5
+        cols = col0 + (np.arange(self.height_m.shape[1]) + 0.5) / u - 0.5
+        return rows, cols
+
+
+def fine_upsample(pitch_m, step_m):
+    """Fine samples per design pixel per axis, ``ceil(pitch_m / step_m)``."""
+    return max(int(math.ceil(pitch_m / step_m - 1e-9)), 1)
+
+
+def simulate_surface(levels, pitch_m, params=None, step_m=0.25e-6, region=None):
+    """Simulate the etched surface of (a region of) a multi-level element.
+
+    Parameters
+    ----------
+    levels : ndarray of int, shape (rows, cols)
+        Design levels 0 .. 2**n_masks - 1, row 0 at the top.
+    pitch_m : float
+        Design pixel pitch (m).
+    params : ProcessParams, optional
+        Process; default :meth:`ProcessParams.ideal` with 4 masks.
+    step_m : float
+        Requested fine-grid spacing (m); the actual one is ``pitch_m / upsample`` with
+        ``upsample = ceil(pitch_m / step_m)``.
+    region : (row0, row1, col0, col1), optional
+        Half-open design-pixel window to simulate (default: the whole design). Effects
+        reaching in from outside the window are included (the window is padded before
+        filtering), so the result does not depend on the crop.
+
+    Returns
+    -------
+    SimulatedSurface
+        Fine pixel (a, b) is centred at design coordinates
+        ``(row0 + (a + 0.5) / upsample - 0.5, col0 + (b + 0.5) / upsample - 0.5)``.
+
+    Raises
+    ------
+    DoeError
+        Non-integer or out-of-range levels, bad pitch/step/region, bad parameters.
+    """
+    if params is None:
+        params = ProcessParams.ideal()
+    if not isinstance(params, ProcessParams):
+        raise DoeError(f"params must be a ProcessParams, got {type(params).__name__}")
+    n = params.n_masks
+    levels = _check_levels(levels, n)
+    pitch_m = _positive(pitch_m, "pitch_m")
+    step_m = _positive(step_m, "step_m")
+    region = _check_region(region, levels.shape)
+    u = fine_upsample(pitch_m, step_m)
+    step = pitch_m / u
+    row0, row1, col0, col1 = region
+    centre_design = ((levels.shape[0] - 1) / 2.0, (levels.shape[1] - 1) / 2.0)
+
+    margin = _margin_px(params, pitch_m, region, centre_design)
+    window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
+    masks = levels_to_masks(_window(levels, window), n)
+    # Rotation centre in fine-pixel indices of the padded window.
+    centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
+                   (centre_design[1] - window[2] + 0.5) * u - 0.5)
+
+    log.debug("process model: region %s + %d px margin, %d fine px per design px (step %.4g m)",
+              region, margin, u, step)
+    depths = _depth_maps(levels, window, params, pitch_m, u)
+    crop = (slice(margin * u, (margin + row1 - row0) * u), slice(margin * u, (margin + col1 - col0) * u))
+    fine_shape = (masks.shape[1] * u, masks.shape[2] * u)
+    height = np.zeros(fine_shape)
+    etched = np.empty(fine_shape)
+    printed = np.empty((n, (row1 - row0) * u, (col1 - col0) * u), dtype=np.float32)
+    for j in range(n):
+        coverage = litho.upsample_mask(masks[j], u)
+        coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
+        dx, dy, rotation = params.mask_overlay[j]
+        coverage = litho.move(coverage, (-dy / step, dx / step), rotation, centre_fine)
+        coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
+        printed[j] = coverage[crop]
+        # In float64, so that the ideal surface is exact to double precision.
+        np.multiply(coverage, depths[j], out=etched)
+        height -= etched
+
+    if params.sidewall_slope > 0:
+        kernel = litho.box_kernel(params.sidewall_slope / step)
+        for axis in (0, 1):
+            height = ndi.correlate1d(height, kernel, axis=axis, mode="nearest")
+    height = np.ascontiguousarray(height[crop])
+    if params.roughness > 0:
+        rng = np.random.default_rng(params.seed)
+        height += params.roughness * rng.standard_normal(height.shape, dtype=np.float32)
+    return SimulatedSurface(height_m=height, step_m=step, upsample=u, region=region,
+                            masks_printed=printed)
+
+
+def _depth_maps(levels, window, params, pitch_m, u):
+    """Etch depth of each mask (m): a scalar, or a fine-grid map with etch loading."""
+    if params.etch_loading == 0:
+        return [np.float64(d) for d in params.etch_depth]
+    sigma_px = params.loading_radius / pitch_m
+    reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
+    wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
+    wide_masks = levels_to_masks(_window(levels, wide), params.n_masks).astype(np.float32)
+    rows = window[1] - window[0]
+    cols = window[3] - window[2]
+    # Fine pixel a of the window sits at design coordinate (a + 0.5) / u - 0.5 from the window
+    # start, i.e. at index reach + that in the wide array.
+    fine_r = reach + (np.arange(rows * u) + 0.5) / u - 0.5
+    fine_c = reach + (np.arange(cols * u) + 0.5) / u - 0.5
+    maps = []
+    for j in range(params.n_masks):
+        rho = ndi.gaussian_filter(wide_masks[j], sigma_px, mode="constant", cval=0.0, truncate=_TRUNCATE)
+        rho_fine = litho.interpolate_separable(rho, fine_r, fine_c)
+        rho_fine *= np.float32(-params.etch_loading * params.etch_depth[j])
+        rho_fine += np.float32(params.etch_depth[j])
+        maps.append(rho_fine)
+    return maps
+
+
+def _margin_px(params, pitch_m, region, centre_design):
+    """Design pixels of padding so that no effect reaching the region is cut off."""
+    row0, row1, col0, col1 = region
+    corners = np.array([[r - 0.5, c - 0.5] for r in (row0, row1) for c in (col0, col1)])
+    radius_m = np.max(np.hypot(corners[:, 0] - centre_design[0], corners[:, 1] - centre_design[1])) * pitch_m
+    overlay = np.hypot(params.mask_overlay[:, 0], params.mask_overlay[:, 1]) \
+        + np.abs(params.mask_overlay[:, 2]) * radius_m
+    reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias))
+             + _TRUNCATE * params.proximity_blur + params.sidewall_slope)
+    return _MARGIN_PX + int(math.ceil(reach / pitch_m))
+
+
+def _window(levels, window):
+    """Levels in a window that may extend beyond the design; level 0 (unetched) outside."""
+    r0, r1, c0, c1 = window
+    out = np.zeros((r1 - r0, c1 - c0), dtype=levels.dtype)
+    rows, cols = levels.shape
+    sr0, sr1, sc0, sc1 = max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols)
+    if sr1 > sr0 and sc1 > sc0:
+        out[sr0 - r0:sr1 - r0, sc0 - c0:sc1 - c0] = levels[sr0:sr1, sc0:sc1]
+    return out
+
+
+def _check_levels(levels, n_masks):
+    arr = np.asarray(levels)
+    if arr.ndim != 2 or arr.size == 0:
+        raise DoeError(f"levels must be a non-empty 2-D array, got shape {arr.shape}")
+    if np.issubdtype(arr.dtype, np.floating):
+        if not np.all(np.isfinite(arr)):
+            raise DoeError("levels contain NaN or infinite values")
+        if not np.all(arr == np.round(arr)):
+            raise DoeError("levels must be whole numbers (got fractional values)")
+        arr = arr.astype(np.int64)
+    elif arr.dtype == bool or not np.issubdtype(arr.dtype, np.integer):
+        raise DoeError(f"levels must be an integer array, got dtype {arr.dtype}")
+    lo, hi = int(arr.min()), int(arr.max())
+    if lo < 0 or hi >= 2 ** n_masks:
+        raise DoeError(f"levels must lie in 0..{2 ** n_masks - 1} for {n_masks} masks, found {lo}..{hi}")
+    return arr
+
+
+def _check_region(region, shape):
+    if region is None:
+        return (0, shape[0], 0, shape[1])
+    try:
+        values = [float(v) for v in region]
+    except (TypeError, ValueError):
+        raise DoeError(f"region must be (row0, row1, col0, col1), got {region!r}") from None
+    if len(values) != 4 or not all(v.is_integer() for v in values):
+        raise DoeError(f"region must be four integers (row0, row1, col0, col1), got {region!r}")
+    row0, row1, col0, col1 = (int(v) for v in values)
+    if not (0 <= row0 < row1 <= shape[0] and 0 <= col0 < col1 <= shape[1]):
+        raise DoeError(f"region {tuple(region)} is empty or outside the design of shape {shape}")
+    return (row0, row1, col0, col1)
+
+
+def _positive(value, name):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise DoeError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise DoeError(f"{name} must be a positive length in metres, got {value}")
+    return value
+
+
+def _float_array(value, name):
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise DoeError(f"process parameter {name} must be numeric, got {value!r}") from None
+    if not np.all(np.isfinite(arr)):
+        raise DoeError(f"process parameter {name} must be finite, got {arr.tolist()}")
+    return arr

@@ -1,0 +1,109 @@
+"""A profilometer height map with its lateral sampling and provenance.
+
+Orientation: ``height_m[0, 0]`` is the first pixel stored in the file, i.e. row 0 is
+the top row of the camera image and column 0 its left column (camera order). The
+readers never flip or transpose; registration to the design finds any flip or
+rotation of the part under the instrument.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from doedesign.errors import DoeError
+
+
+class MeasurementFileError(DoeError):
+    """A measurement file is missing, foreign, truncated or inconsistent.
+
+    The message names the file and the problem.
+    """
+
+
+@dataclass
+class Measurement:
+    """A measured surface height map.
+
+    Attributes
+    ----------
+    height_m : ndarray of float64, shape (rows, cols)
+        Surface height in metres, z up; NaN marks invalid pixels (no data). Row 0 is
+        the top row of the camera image, as stored in the file (camera order).
+    pixel_size_m : float
+        Lateral sampling (metres per pixel, square pixels) on the part.
+    metadata : dict
+        Provenance; keys present when the file has them: ``source_file``, ``format``,
+        ``wavelength_m``, ``magnification``, ``objective``, ``numerical_aperture``,
+        ``timestamp`` (ISO 8601, UTC), ``comment``, ``part_name``, ``phase_origin``
+        ``(cn_org_x, cn_org_y)`` (camera pixel of column 0 / row 0), and format details.
+    """
+
+    height_m: np.ndarray
+    pixel_size_m: float
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.height_m = np.asarray(self.height_m, dtype=np.float64)
+        if self.height_m.ndim != 2 or self.height_m.size == 0:
+            raise DoeError(f"height_m must be a non-empty 2-D array, got shape {self.height_m.shape}")
+        try:
+            self.pixel_size_m = float(self.pixel_size_m)
+        except (TypeError, ValueError):
+            raise DoeError(f"pixel_size_m must be a number, got {self.pixel_size_m!r}") from None
+        if not (math.isfinite(self.pixel_size_m) and self.pixel_size_m > 0):
+            raise DoeError(f"pixel_size_m must be positive and finite, got {self.pixel_size_m}")
+        self.metadata = dict(self.metadata)
+
+    @property
+    def shape(self):
+        """(rows, cols) of the height map."""
+        return self.height_m.shape
+
+    @property
+    def valid(self):
+        """Boolean mask of the pixels holding data."""
+        return np.isfinite(self.height_m)
+
+    def summary(self):
+        """Plain-JSON summary for ``doe inspect``.
+
+        Returns
+        -------
+        dict
+            ``kind`` ("measurement"), ``shape``, ``pixel_size_m``, ``invalid_fraction``,
+            ``height_min_m``, ``height_max_m``, ``height_rms_m`` (rms about the mean of
+            the valid pixels; the three are None when no pixel is valid),
+            ``metadata``.
+        """
+        valid = self.height_m[self.valid]
+        if valid.size:
+            hmin, hmax = float(valid.min()), float(valid.max())
+            rms = float(np.sqrt(np.mean((valid - valid.mean()) ** 2)))
+        else:
+            hmin = hmax = rms = None
+        return {
+            "kind": "measurement",
+            "shape": list(self.shape),
+            "pixel_size_m": self.pixel_size_m,
+            "invalid_fraction": float(1.0 - valid.size / self.height_m.size),
+            "height_min_m": hmin,
+            "height_max_m": hmax,
+            "height_rms_m": rms,
+            "metadata": _plain(self.metadata),
+        }
+
+
+def _plain(obj):
+    """Metadata as JSON-friendly Python values (tuples to lists, numpy to Python)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
