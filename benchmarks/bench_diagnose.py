@@ -112,8 +112,3 @@ def run(quick=False):
                          peer_value=None, ratio=None, limit=60.0,
                          notes=f"2 views, {camera.window_shape} window, {design.shape} DOE pixels; named {diag.named}"))
     return rows
-
-
-if __name__ == "__main__":
-    for row in run(quick=True):
-        print(row)

@@ -48,6 +48,10 @@ def build_parser():
 
 
 def main(argv=None):
+    import matplotlib
+
+    # Files only, no windows: the CLI never needs an interactive backend.
+    matplotlib.use("Agg")
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,

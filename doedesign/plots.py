@@ -1,14 +1,14 @@
-"""Figures shared by the CLI commands and the reports (matplotlib, Agg backend)."""
+"""Figures shared by the CLI commands and the reports.
+
+The backend is left to the caller (the ``doe`` CLI selects Agg; a notebook keeps its own).
+"""
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from .fileio import save_figure  # noqa: E402
+from .fileio import save_figure
 
 
 def height_map_figure(height_m, pitch_m, title="height map", ax=None):

@@ -80,9 +80,6 @@ def clear_aperture_m(design):
 
 def preview(levels, masks, path, title):
     """Figure of the level map and every mask (row 0 at the top, white = open/etched)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = masks.shape[0]

@@ -110,9 +110,6 @@ def _strict_json(obj):
 
 def _figures(comp, pixel_size_m, psf_cmp, out):
     """Level histogram, error maps, per-mask results and PSFs; returns the file names."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from doedesign.fileio import save_figure
