@@ -228,9 +228,6 @@ def evaluate(images, methods, seed=0):
 
 def figure(images, recs, path, image_name=None):
     """Fig. 2-like panel: reconstructions (top) and mean |dU|+|dV| error maps (bottom)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from skimage.color import rgb2luv
 

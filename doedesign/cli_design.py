@@ -41,7 +41,8 @@ TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a 
 --config run.toml may hold [camera] (Camera fields: aperture_diameter_m, focus_distance_m,
 sensor_distance_m, pixel_pitch_m, window_shape, axis_pixel, doe_side), [optimize]
 (size_px, pitch_m, material, design_wavelength_m, loss, and OptimizerSettings fields:
-algorithm, max_iter, ftol_rel, max_time_s, seed, init, height_range, anneal_iter, fab_weight)
+algorithm, max_iter, ftol_rel, max_time_s, seed, init, height_range, anneal_iter, fab_weight,
+reweight_rounds, reweight_alpha, reweight_iter)
 and [target] options for a built-in target. Command-line options override the file.
 
 The default is a reduced aperture (a 192 px = 1.04 mm circular pupil, the DOE on its left
@@ -69,12 +70,17 @@ def register(subparsers):
     p.add_argument("--algorithm", choices=ALGORITHMS, help="nlopt algorithm (default LD_LBFGS)")
     p.add_argument("--init", choices=INITS, help="initial height map (default per target)")
     p.add_argument("--init-design", help="start from this design file's heights")
-    p.add_argument("--loss", help='loss terms, e.g. "l1" or "l1=1,energy=0.5,peak=0.1" '
-                                  '(default l1; l1,energy for bayer and spots)')
+    p.add_argument("--loss", help='loss terms, e.g. "l1" or "l1=1,energy=0.5,peak=0.1,uniformity=1" '
+                                  '(terms l1, energy, l2, peak, uniformity; default l1; l1,energy for bayer and spots)')
     p.add_argument("--height-range", choices=HEIGHT_RANGES, help="height bounds (default process)")
     p.add_argument("--time-limit", type=float, help="seconds for the continuous stage (default 45)")
     p.add_argument("--anneal-iterations", type=int, help="evaluations per annealing stage (default 10)")
     p.add_argument("--fab-weight", type=float, help="weight of the one-pixel pillar/hole penalty (default 0)")
+    p.add_argument("--reweight-rounds", type=int,
+                   help="WGS-like rounds reweighting target pixels toward equal delivered/wanted ratios "
+                        "(spot arrays; default 0)")
+    p.add_argument("--reweight-alpha", type=float, help="exponent of the reweighting (default 1)")
+    p.add_argument("--reweight-iterations", type=int, help="evaluations per reweighting round (default --iterations)")
     p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
     p.set_defaults(func=cmd_design)
 
@@ -139,6 +145,9 @@ def cmd_design(args):
     if kind == "depth":
         # The seed focused the depth camera at 3.5 m.
         cam_section.setdefault("focus_distance_m", 3.5)
+    elif kind == "bayer":
+        # The Bayer target is at optical infinity: focus there, or the 5 m focus adds a 16 px blur.
+        cam_section.setdefault("focus_distance_m", math.inf)
     if args.full_aperture:
         cam_section["aperture_diameter_m"] = FULL_APERTURE_PX * pitch
     camera = _camera(cam_section, size, pitch, args.side, source)
@@ -159,7 +168,9 @@ def cmd_design(args):
     loss = LossSpec.parse(loss_text or DEFAULT_LOSS.get(kind, "l1"))
     for key, value in (("max_iter", args.iterations), ("seed", args.seed), ("algorithm", args.algorithm),
                        ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),
-                       ("anneal_iter", args.anneal_iterations), ("fab_weight", args.fab_weight)):
+                       ("anneal_iter", args.anneal_iterations), ("fab_weight", args.fab_weight),
+                       ("reweight_rounds", args.reweight_rounds), ("reweight_alpha", args.reweight_alpha),
+                       ("reweight_iter", args.reweight_iterations)):
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
@@ -192,7 +203,7 @@ def cmd_design(args):
 
 def quick_bayer_design(size_px=128, iterations=60, seed=0):
     """A small Bayer design for the study when no design file is given (reduced aperture)."""
-    camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M)
+    camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
     target = targets.bayer(camera)
     settings = OptimizerSettings(max_iter=iterations, seed=seed, anneal_iter=max(iterations // 6, 2))
     return design_doe(target, camera, DEFAULT_PITCH_M, (size_px, size_px), settings=settings).design

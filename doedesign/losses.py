@@ -14,6 +14,16 @@ Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
 - ``l2``: ``sum w r^2 / sum(target^2)``, relative squared error.
 - ``peak``: soft maximum of each plane, ``(sum psf^p)^(1/p) / mean target value``, scaled by
   the target's ``peak_penalty``; keeps HDR streaks from collapsing into a spot.
+- ``uniformity``: the squared coefficient of variation ``var(a) / mean(a)^2`` of the
+  delivered-to-wanted ratios ``a_i = psf_i / target_i`` over each plane's target pixels
+  (spot arrays: how unequal the spots are, whatever their absolute efficiency). Unlike
+  ``l2`` it does not pull toward a chosen absolute energy, so it can be added to ``energy``
+  without fixing the efficiency in advance.
+
+:func:`reweight_target` is the gradient analogue of weighted Gerchberg-Saxton (WGS): between
+optimization rounds each target pixel's loss weight is multiplied by
+``(mean ratio / its ratio)^alpha``, so pixels that get too little light count more in the next
+round (used by :func:`doedesign.optimize.design_doe` with ``reweight_rounds``).
 """
 
 from __future__ import annotations
@@ -24,7 +34,7 @@ import numpy as np
 
 from .errors import DoeError
 
-TERMS = ("l1", "energy", "l2", "peak")
+TERMS = ("l1", "energy", "l2", "peak", "uniformity")
 DEFAULT_EPS = 1e-6
 PEAK_POWER = 8
 
@@ -74,6 +84,57 @@ def peak_loss(psf, target, power=PEAK_POWER):
     return value, grad
 
 
+def _delivered_ratio(psf, target):
+    """``psf / target`` on the target pixels (0 elsewhere), the mask and its pixel count per plane."""
+    m = target.mask
+    a = np.where(m, psf / np.where(m, target.intensity, 1.0), 0.0)
+    return a, m, m.sum(axis=(-2, -1), keepdims=True)
+
+
+def uniformity_loss(psf, target):
+    """Squared coefficient of variation of ``psf / target`` over each plane's target pixels.
+
+    With ``a_i`` the ratios, ``mu`` their mean and ``V`` their variance over the ``M`` target
+    pixels, the value is ``V / mu^2`` (channel-weighted) and ``d/da_i = 2 ((a_i - mu) - V / mu)
+    / (M mu^2)``. A plane with a single target pixel contributes nothing.
+    """
+    a, m, count = _delivered_ratio(psf, target)
+    mu = np.maximum(a.sum(axis=(-2, -1), keepdims=True) / count, 1e-30)
+    dev = np.where(m, a - mu, 0.0)
+    var = np.sum(dev * dev, axis=(-2, -1), keepdims=True) / count
+    pw = _plane_weights(target)[..., None, None]
+    value = float(np.sum(pw * var / mu ** 2))
+    grad = np.where(m, pw * 2 * (dev - var / mu) / (count * mu ** 2) / np.where(m, target.intensity, 1.0), 0.0)
+    return value, grad
+
+
+def reweight_target(target, psf, alpha=1.0, floor=1e-3):
+    """A copy of ``target`` whose pixel weights favour the target pixels that got too little light.
+
+    The weight of each target pixel is multiplied by ``(mean(a) / a_i)^alpha`` with
+    ``a_i = psf_i / target_i`` (ratios below ``floor`` times the plane's mean are raised to
+    it, so a dark pixel cannot blow up the weights); the factors are scaled to mean 1 over
+    each plane's target pixels, and pixels outside the target keep their weights. This is the
+    weighting step of weighted Gerchberg-Saxton applied to the loss weights instead of the
+    target amplitudes.
+
+    Returns
+    -------
+    Target
+        With ``pixel_weight`` of the full (depths, wavelengths, rows, cols) shape.
+    """
+    if not (np.isfinite(alpha) and alpha > 0):
+        raise DoeError(f"reweighting exponent must be positive, got {alpha}")
+    a, m, count = _delivered_ratio(np.asarray(psf, dtype=float), target)
+    mu = a.sum(axis=(-2, -1), keepdims=True) / count
+    if np.any(mu <= 0):
+        raise DoeError(f"target {target.name!r}: no light on a plane's target pixels; cannot reweight")
+    factor = np.where(m, (mu / np.maximum(a, floor * mu)) ** alpha, 0.0)
+    factor = np.where(m, factor * count / factor.sum(axis=(-2, -1), keepdims=True), 1.0)
+    pw = np.broadcast_to(target.pixel_weight, target.intensity.shape) * factor
+    return target.with_weights(pixel=pw)
+
+
 @dataclass
 class LossSpec:
     """Weights of the loss terms (see the module docstring); zero drops a term."""
@@ -83,9 +144,10 @@ class LossSpec:
     l2: float = 0.0
     peak: float | None = None  # None: the target's own peak_penalty
     eps: float = DEFAULT_EPS
+    uniformity: float = 0.0
 
     def __post_init__(self):
-        for name in ("l1", "energy", "l2", "eps"):
+        for name in ("l1", "energy", "l2", "eps", "uniformity"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise DoeError(f"loss weight {name} must be a non-negative number, got {v}")
@@ -95,7 +157,7 @@ class LossSpec:
     @classmethod
     def parse(cls, text):
         """From ``"l1"`` or ``"l1=1,energy=0.5,peak=0.1"`` (weights default to 1 when given bare)."""
-        weights = {"l1": 0.0, "energy": 0.0, "l2": 0.0}
+        weights = {"l1": 0.0, "energy": 0.0, "l2": 0.0, "uniformity": 0.0}
         peak = None
         for part in str(text).split(","):
             part = part.strip()
@@ -130,7 +192,8 @@ def make_loss(target, spec=None):
         for weight, fn in ((spec.l1, lambda p: smooth_l1(p, target, spec.eps)),
                            (spec.energy, lambda p: energy_loss(p, target)),
                            (spec.l2, lambda p: l2_loss(p, target)),
-                           (peak_weight, lambda p: peak_loss(p, target))):
+                           (peak_weight, lambda p: peak_loss(p, target)),
+                           (spec.uniformity, lambda p: uniformity_loss(p, target))):
             if weight:
                 v, g = fn(psf)
                 total += weight * v

@@ -22,6 +22,14 @@ Pipeline (:func:`design_doe`)
    import masks.
 3. Optional fabrication regularizer (``fab_weight``) against one-pixel pillars and holes.
 
+Uniform multi-spot targets: ``reweight_rounds`` > 0 adds rounds after the continuous stage
+in which the target's pixel weights are updated from the current PSF,
+``w_i <- w_i (mean a / a_i)^reweight_alpha`` with ``a_i`` = delivered / wanted light
+(:func:`doedesign.losses.reweight_target`, the gradient analogue of weighted Gerchberg-Saxton),
+and the heights re-optimized for ``reweight_iter`` evaluations. The weights keep being updated
+before each annealing stage, so the quantized design stays balanced; the final weights are
+in the report. On targets with one pixel per plane (Bayer) the update does nothing.
+
 Metrics (energy on target per wavelength and depth, efficiency, L1) are reported for the
 continuous, the plainly rounded and the final quantized design.
 """
@@ -36,7 +44,7 @@ import numpy as np
 
 from .design import Design
 from .errors import DoeError
-from .losses import LossSpec, make_loss, target_metrics
+from .losses import LossSpec, make_loss, reweight_target, target_metrics
 from .materials import get_material
 from .progress import Progress
 from .psf import PSFEngine
@@ -220,6 +228,9 @@ class OptimizerSettings:
     quantize: bool = True
     anneal_iter: int = 20
     fab_weight: float = 0.0
+    reweight_rounds: int = 0
+    reweight_alpha: float = 1.0
+    reweight_iter: int | None = None  # None: max_iter
 
     def __post_init__(self):
         if self.algorithm not in ALGORITHMS:
@@ -232,6 +243,11 @@ class OptimizerSettings:
             raise DoeError(f"time limit must be positive, got {self.max_time_s}")
         if self.fab_weight < 0:
             raise DoeError("fab_weight must be >= 0")
+        if int(self.reweight_rounds) < 0 or not (np.isfinite(self.reweight_alpha) and self.reweight_alpha > 0):
+            raise DoeError(f"reweight_rounds must be >= 0 and reweight_alpha > 0, got {self.reweight_rounds} "
+                           f"and {self.reweight_alpha}")
+        if self.reweight_iter is not None and int(self.reweight_iter) < 1:
+            raise DoeError(f"reweight_iter must be at least 1, got {self.reweight_iter}")
 
 
 def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel=1e-7, max_time_s=None,
@@ -366,10 +382,11 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
                             design_wavelength_m=design_wavelength_m, material=material,
                             focus_depth_m=float(np.median(finite)) if finite.size else None)
     h0 = np.where(support, h0, 0.0)
-    target_loss = make_loss(target, loss)
+    # The reweighting rounds replace the target (its pixel weights) between stages.
+    state = {"target": target, "loss": make_loss(target, loss)}
 
     def objective(h, extra=None):
-        value, grad = engine.value_and_grad(h, target_loss)
+        value, grad = engine.value_and_grad(h, state["loss"])
         if settings.fab_weight:
             v, g = isolation_penalty(h, step)
             value += settings.fab_weight * v
@@ -385,6 +402,12 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         out = target_metrics(psf, target)
         out["loss"] = float(objective(h)[0])
         return out
+
+    def reweight(h):
+        if settings.reweight_rounds:
+            psf = engine.psf(h, views=("coded",)).psf[0]
+            state["target"] = reweight_target(state["target"], psf, settings.reweight_alpha)
+            state["loss"] = make_loss(state["target"], loss)
 
     # Only the pixels the coded view sees are free; the others stay at 0 (unetched).
     def on_support(fun):
@@ -407,6 +430,11 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         return full(x), hist
 
     h_cont, hist_cont = run_stage(objective, h0, settings.max_iter, settings.max_time_s, "design")
+    for r in range(int(settings.reweight_rounds)):
+        reweight(h_cont)
+        h_cont, hist = run_stage(objective, h_cont, settings.reweight_iter or settings.max_iter,
+                                 settings.max_time_s, f"reweight {r + 1}")
+        hist_cont = hist_cont + hist
     if settings.height_range == "wrap":
         lower, upper = height_bounds(step, settings.n_levels, "2pi")
         h_cont = -np.mod(-h_cont, settings.n_levels * step)
@@ -414,7 +442,6 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     report = {"continuous": metrics(h_cont)}
     levels, h_final = quantize_heights(h_cont, step, settings.n_levels)
     if settings.quantize:
-        report["rounded"] = metrics(h_final)
         h = h_cont
         scale = max(report["continuous"]["loss"], 1e-6)
         history["anneal"] = []
@@ -425,10 +452,13 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
                 v, g = level_penalty(x, step, support)
                 return scale * mu * v, scale * mu * g
 
+            reweight(h)
             h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, settings.anneal_iter, stage_time,
                                 f"anneal x{mu:g}")
             history["anneal"].extend(hist)
         lev_a, h_a = quantize_heights(h, step, settings.n_levels)
+        # Both candidates are scored with the same (final) weights.
+        report["rounded"] = metrics(h_final)
         report["annealed"] = metrics(h_a)
         if report["annealed"]["loss"] <= report["rounded"]["loss"]:
             levels, h_final, report["quantized_from"] = lev_a, h_a, "annealed"
@@ -446,6 +476,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         "isolated_pixels": isolated_pixels(levels) if levels is not None else None,
         "settings": asdict(settings),
         "loss_spec": asdict(loss),
+        "final_pixel_weight_range": [float(f(np.broadcast_to(state["target"].pixel_weight, target.intensity.shape)
+                                              [target.mask])) for f in (np.min, np.max)],
         "target": target.summary(),
         "camera": camera.to_dict(),
         "shape": list(shape),

@@ -99,20 +99,29 @@ class PSFResult:
     def load(cls, path):
         """Read a PSF ``.npz`` written by :meth:`save`."""
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, EOFError) as exc:
-            raise DoeError(f"{path}: not a PSF file: {exc}") from None
-        for key in ("psf", "views", "wavelengths_m", "depths_m", "pixel_pitch_m"):
-            if key not in data:
-                raise DoeError(f"{path}: missing field {key!r} of a PSF file")
+        data = read_psf_arrays(path, ("psf", "views", "wavelengths_m", "depths_m", "pixel_pitch_m"))
         psf = data["psf"]
         if psf.ndim != 5:
             raise DoeError(f"{path}: psf must be (views, depths, wavelengths, rows, cols), got shape {psf.shape}")
         return cls(psf=psf, views=tuple(str(v) for v in data["views"]), wavelengths_m=data["wavelengths_m"],
                    depths_m=data["depths_m"], pixel_pitch_m=float(data["pixel_pitch_m"]),
                    axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))))
+
+
+def read_psf_arrays(path, required, what="PSF file"):
+    """All arrays of a PSF ``.npz`` after checking the ``required`` fields; errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DoeError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise DoeError(f"{path}: not a {what} (.npz): {exc}") from None
+    for key in required:
+        if key not in data:
+            raise DoeError(f"{path}: missing field {key!r} of a {what}")
+    return data
 
 
 class PSFEngine:

@@ -106,16 +106,9 @@ def load_psf_stack(path):
     dict with ``psf`` (views, wavelengths, rows, cols), ``views``, ``wavelengths_m``,
     ``pixel_pitch_m``, ``depth_m`` (None when absent) and ``axis_pixel`` (None when absent).
     """
-    if not path.is_file():
-        raise DoeError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise DoeError(f"{path}: not a PSF stack (.npz): {exc}") from None
-    for key in ("psf", "wavelengths_m", "pixel_pitch_m"):
-        if key not in data:
-            raise DoeError(f"{path}: missing field {key!r} of a measured PSF stack")
+    from doedesign.psf import read_psf_arrays
+
+    data = read_psf_arrays(path, ("psf", "wavelengths_m", "pixel_pitch_m"), what="measured PSF stack")
     psf = np.asarray(data["psf"], dtype=float)
     wl = np.atleast_1d(np.asarray(data["wavelengths_m"], dtype=float))
     if psf.ndim == 5 and psf.shape[1] == 1:  # a PSFResult file of one source distance

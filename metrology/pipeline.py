@@ -78,11 +78,15 @@ def demo_camera(cfg):
 
 def design_step(cfg, camera, out):
     from doedesign import targets
+    from doedesign.cli_design import DEFAULT_INIT, DEFAULT_LOSS
+    from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
 
     target = targets.bayer(camera)
-    settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed)
-    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), settings=settings)
+    settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed,
+                                 init=DEFAULT_INIT["bayer"])
+    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(DEFAULT_LOSS["bayer"]),
+                     settings=settings)
     run.design.metadata["name"] = "bayer_demo"
     run.design.save(out / "design.npz")
     write_json(out / "design_report.json", run.report)

@@ -28,7 +28,7 @@ from scipy import ndimage
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, write_npz
 from doedesign.progress import Progress
-from doedesign.psf import VIEWS
+from doedesign.psf import VIEWS, read_psf_arrays
 
 log = logging.getLogger(__name__)
 
@@ -542,14 +542,7 @@ def save_stack(stack, path):
 def load_stack(path):
     """Read a PSF ``.npz`` (5-D from :func:`save_stack` / PSFResult, or 4-D views x wavelengths) as a stack."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise DoeError(f"{path}: not a PSF file: {exc}") from None
-    for key in ("psf", "views", "wavelengths_m", "pixel_pitch_m"):
-        if key not in data:
-            raise DoeError(f"{path}: missing field {key!r} of a PSF file")
+    data = read_psf_arrays(path, ("psf", "views", "wavelengths_m", "pixel_pitch_m"))
     psf, views = data["psf"], [str(v) for v in data["views"]]
     if psf.ndim == 5:
         if psf.shape[1] != 1:
