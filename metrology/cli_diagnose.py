@@ -35,6 +35,9 @@ def register(subparsers):
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
     p.add_argument("--upsample", type=int, default=5,
                    help="model samples per design pixel per axis (height maps; default 5)")
+    p.add_argument("--depths-nm", type=lambda t: [float(v) for v in t.split(",")], default=[75, 150, 300, 600],
+                   help="etch depths the process was asked for, one per mask (the ideal model; "
+                        "default 75,150,300,600 as in doe masks)")
     p.add_argument("--threshold", type=float, default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.set_defaults(func=run)
@@ -67,19 +70,19 @@ def run(args):
 
 
 def _heights(design, path, args, candidates):
-    from masks.decompose import binary_depths_m
-
-    from .compare import design_levels
+    from .compare import compare_measurement, design_levels, shift_registration
     from .diagnose import diagnose_heights
-    from .level import level_on_top
     from .readers import read_measurement
-    from .register import register, resample_to_design
+    from .register import resample_to_design
 
     if args.upsample < 1:
         raise DoeError(f"--upsample must be a positive integer, got {args.upsample}")
     meas = read_measurement(path)
-    levelled = level_on_top(meas.height_m).height_m
-    reg = register(levelled, design.height_m, design.pitch_m, meas.pixel_size_m)
+    # The comparison's preparation: despiked, levelled jointly on the registered levels, and
+    # registered with the edge fit's sub-pixel refinement of the whole pattern's position.
+    comp = compare_measurement(meas, design)
+    levelled = comp.height_m
+    reg = shift_registration(comp.registration, comp.edge_fit.shift_m[0], design.pitch_m)
     # Diagnose the window of the design best covered by the measurement.
     coverage = np.isfinite(resample_to_design(levelled, reg, upsample=1))
     if coverage.sum() < 64:
@@ -90,7 +93,7 @@ def _heights(design, path, args, candidates):
     c0 = int(np.clip(round(cols.mean() - size / 2), 0, design.shape[1] - size))
     region = (r0, r0 + size, c0, c0 + size)
     fine = resample_to_design(levelled, reg, upsample=args.upsample, region=region)
-    depths = binary_depths_m(design.height_2pi_m() / 16)
+    depths = [v * 1e-9 for v in args.depths_nm]
     diag = diagnose_heights(design_levels(design), design.pitch_m, fine, design.pitch_m / args.upsample,
                             region=region, region_px=size, depths_m=depths, candidates=candidates,
                             threshold=args.threshold)

@@ -17,7 +17,12 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     # The hidden 0.4 um x-overlay of the 600 nm mask is measured and named.
     overlay = report["comparison"]["overlay_um"][3]
     assert abs(overlay[0] - 0.4) < 0.15 and abs(overlay[1]) < 0.15
-    named = [s["effect"] for s in report["diagnosis"]["steps"]]
-    assert named and named[0] == "mask_overlay"
+    steps = report["diagnosis"]["steps"]
+    assert steps and steps[0]["effect"] == "mask_overlay"
+    # Named first, with the right mask and size (within 20 %).
+    assert abs(steps[0]["params"]["dx_mask3_m"] - 0.4e-6) < 0.08e-6
+    assert abs(steps[0]["params"]["dx_mask2_m"]) < 0.05e-6
+    # The overlay explains most of the initial residual.
+    assert steps[0]["residual_rms_after"] < 0.7 * report["diagnosis"]["initial_residual_rms"]
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
