@@ -116,6 +116,9 @@ def test_single_hidden_psf_effect(effect):
     _check(case, diag)
 
 
+UNSEPARABLE_AT_MODEL_GRID = {"instrument_blur", "sidewall_slope"}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(6))
 def test_random_sweep_height(seed):
@@ -124,6 +127,12 @@ def test_random_sweep_height(seed):
     pairs = [list(rng.choice(HEIGHT_EFFECTS, 2, replace=False)) for _ in range(2)]
     for effects in singles + pairs + [[]]:
         case, diag = _diagnose_height_case(effects, 10_000 + 97 * seed + len(effects))
+        if set(effects) == UNSEPARABLE_AT_MODEL_GRID:
+            # Known limit: at a ~1 um model grid a ramp and a blur give the same 3-tap edge
+            # kernel. The method must not claim success: it flags the residual or the ambiguity.
+            ambiguous = any(step.get("ambiguous_with") for step in diag.to_dict()["steps"])
+            assert diag.unexplained or ambiguous
+            continue
         _check(case, diag)
 
 
