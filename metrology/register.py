@@ -40,6 +40,10 @@ _PROJ_BIN_PX = 0.05
 _MAX_EDGE_POINTS = 600_000
 # A correct read-out correlates with the design near 1; below this nothing matched.
 MIN_MATCH_NCC = 0.5
+# A match this good ends the search over candidate lattice periods.
+GOOD_MATCH_NCC = 0.9
+# Comb peaks tried as the DOE pitch (the strongest first).
+SCALE_CANDIDATES = 4
 
 # The 8 array orientations: (transpose, flip_rows, flip_cols), applied in that order.
 ORIENTATIONS = tuple((t, fr, fc) for t in (False, True) for fr in (False, True) for fc in (False, True))
@@ -222,23 +226,42 @@ class _Comb:
         s = np.dot(self.hist, np.exp(-2j * np.pi * f * self.pos))
         return -np.angle(s) / (2 * np.pi * f)
 
-    def peak(self, f_lo, f_hi):
-        """Frequency (cycles per px) of the strongest peak in [f_lo, f_hi], refined."""
+    def candidates(self, f_lo, f_hi, count):
+        """Up to ``count`` local maxima of the comb spectrum in [f_lo, f_hi], strongest first."""
         n = sfft.next_fast_len(4 * self.hist.size)
         spec = np.abs(sfft.rfft(self.hist, n))
         freqs = np.arange(spec.size) / (n * _PROJ_BIN_PX)
-        band = (freqs >= f_lo) & (freqs <= f_hi)
-        if not band.any():
+        band = np.flatnonzero((freqs >= f_lo) & (freqs <= f_hi))
+        if band.size == 0:
             raise DoeError("registration: scale search range is empty")
-        f0 = freqs[band][np.argmax(spec[band])]
+        inner = band[(band > 0) & (band < spec.size - 1)]
+        maxima = inner[(spec[inner] >= spec[inner - 1]) & (spec[inner] >= spec[inner + 1])]
+        if maxima.size == 0:
+            maxima = band[[np.argmax(spec[band])]]
+        order = maxima[np.argsort(spec[maxima])[::-1]]
+        picked = []
+        for i in order:
+            if all(abs(freqs[i] - f) > 2 / self.extent for f in picked):
+                picked.append(freqs[i])
+            if len(picked) == count:
+                break
+        return picked
+
+    def peak(self, f_lo, f_hi):
+        """Frequency (cycles per px) of the strongest peak in [f_lo, f_hi], refined."""
+        n = sfft.next_fast_len(4 * self.hist.size)
+        f0 = self.candidates(f_lo, f_hi, 1)[0]
         half = 1.0 / (n * _PROJ_BIN_PX)
         res = optimize.minimize_scalar(lambda f: -self.amplitude(f), bounds=(f0 - half, f0 + half),
                                        method="bounded", options={"xatol": 1e-9})
         return float(res.x), float(-res.fun)
 
 
-def _lattice(rows, cols, gy, gx, w, f_range, theta0):
-    """Rotation, periods and tooth positions of the edge lattice along u and v."""
+def _lattice(rows, cols, gy, gx, w, f_range, theta0, f_start=None):
+    """Rotation, periods and tooth positions of the edge lattice along u and v.
+
+    ``f_start`` (cycles per px) restricts both combs to the peak nearest that frequency.
+    """
 
     def combs(theta):
         c, s = np.cos(theta), np.sin(theta)
@@ -247,6 +270,8 @@ def _lattice(rows, cols, gy, gx, w, f_range, theta0):
         return _Comb(u, (gx * c + gy * s) ** 2), _Comb(v, (-gx * s + gy * c) ** 2)
 
     cu, cv = combs(theta0)
+    if f_start is not None:
+        f_range = (f_start - 2 / min(cu.extent, cv.extent), f_start + 2 / min(cu.extent, cv.extent))
     fu, _ = cu.peak(*f_range)
     fv, _ = cv.peak(*f_range)
 
@@ -340,7 +365,33 @@ def register(height_m, design_height_m, pitch_m, pixel_size_m=None, scale_tolera
     else:
         f_range = (1 / 40, 1 / 2.2)
     theta0 = float(np.angle(np.sum(w * np.exp(4j * np.arctan2(gy, gx)))) / 4)
-    theta, (fu, u0), (fv, v0) = _lattice(rows, cols, gy, gx, w, f_range, theta0)
+    # A design built of zones also has comb sidebands near the pitch: try the strongest
+    # peaks and keep the lattice whose read-out matches the design best.
+    c0, s0 = np.cos(theta0), np.sin(theta0)
+    starts = _Comb(cols * c0 + rows * s0, (gx * c0 + gy * s0) ** 2).candidates(*f_range, SCALE_CANDIDATES)
+    best = None
+    for f_start in starts:
+        lattice = _lattice(rows, cols, gy, gx, w, f_range, theta0, f_start)
+        found = _match(h, design, pitch_m, *lattice)
+        if best is None or found[0] > best[0]:
+            best = found
+        if best[0] >= GOOD_MATCH_NCC:
+            break
+    score, reg, period_px = best
+    if reg is None:
+        raise DoeError(f"registration: the measured pattern does not match the design anywhere "
+                       f"(best normalized correlation {score:.2f}, need {MIN_MATCH_NCC}; lattice period "
+                       f"{period_px:.3f} px: if the file's pixel size is off by more than "
+                       f"{scale_tolerance:.0%}, give the right one)")
+    return reg
+
+
+def _match(h, design, pitch_m, theta, u_lattice, v_lattice):
+    """Read the measurement at every DOE-pixel centre of a lattice and match it to the design.
+
+    Returns (score, Registration or None when the score is too low, lattice period in px).
+    """
+    (fu, u0), (fv, v0) = u_lattice, v_lattice
     log.info("lattice: rotation %.4f deg, period %.4f x %.4f px", np.degrees(theta), 1 / fu, 1 / fv)
 
     # Read the design heights at the centre of every DOE pixel inside the field.
@@ -366,7 +417,7 @@ def register(height_m, design_height_m, pitch_m, pixel_size_m=None, scale_tolera
     readout_valid = inside & (den > 0.99)
     readout = np.where(readout_valid, num / np.maximum(den, 1e-12), 0.0)
     if readout_valid.sum() < 16:
-        raise DoeError("registration: the measured field holds fewer than 16 whole DOE pixels")
+        return -np.inf, None, 1 / fu
     # Crop to the rows/cols that hold data.
     keep_r = np.flatnonzero(readout_valid.any(axis=1))
     keep_c = np.flatnonzero(readout_valid.any(axis=0))
@@ -390,10 +441,7 @@ def register(height_m, design_height_m, pitch_m, pixel_size_m=None, scale_tolera
     score, o, (i0, j0) = best
     log.info("registration: orientation %s, offset (%d, %d), NCC %.3f", o, i0 - pad, j0 - pad, score)
     if not score >= MIN_MATCH_NCC:
-        raise DoeError(f"registration: the measured pattern does not match the design anywhere "
-                       f"(best normalized correlation {score:.2f}, need {MIN_MATCH_NCC}; lattice period "
-                       f"{1 / fu:.3f} px: if the file's pixel size is off by more than "
-                       f"{scale_tolerance:.0%}, give the right one)")
+        return score, None, 1 / fu
 
     # Three read-out pixels give the exact affine map: read-out index (a, b) sits at the
     # measurement point (pr, pc) and, after orientation o, at design (a' + i0, b' + j0).
@@ -407,9 +455,9 @@ def register(height_m, design_height_m, pitch_m, pixel_size_m=None, scale_tolera
         src.append([u * s + v * c, u * c - v * s, 1.0])
         dst.append([ap + i0 - pad, bp + j0 - pad])
     sol = np.linalg.solve(np.array(src), np.array(dst, float))
-    return Registration(matrix=sol[:2].T.copy(), offset=sol[2].copy(), pitch_m=float(pitch_m),
-                        design_shape=tuple(design.shape), measurement_shape=tuple(h.shape),
-                        match_ncc=score)
+    return score, Registration(matrix=sol[:2].T.copy(), offset=sol[2].copy(), pitch_m=float(pitch_m),
+                               design_shape=tuple(design.shape), measurement_shape=tuple(h.shape),
+                               match_ncc=score), 1 / fu
 
 
 def resample_to_design(height_m, registration, upsample=1, region=None):

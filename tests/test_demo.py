@@ -26,3 +26,16 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert steps[0]["residual_rms_after"] < 0.7 * report["diagnosis"]["initial_residual_rms"]
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
+
+
+def test_demo_measures_where_the_pattern_has_structure():
+    import numpy as np
+
+    from metrology.pipeline import busiest_field
+
+    levels = np.zeros((200, 200), int)
+    levels[20:180, 110:180] = np.random.default_rng(0).integers(0, 16, (160, 70))
+    r, c = busiest_field(levels, 40)
+    assert 110 <= c <= 180 and 20 <= r <= 180
+    # The field stays inside the element's inscribed circle.
+    assert np.hypot(r - 99.5, c - 99.5) <= 100 - 30
