@@ -24,7 +24,6 @@ metadata : str
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 
 from . import __version__
 from .errors import DesignFileError, DoeError
-from .fileio import atomic_path
+from .fileio import atomic_path, read_npz
 from .materials import get_material
 
 FORMAT_VERSION = 1
@@ -136,16 +135,7 @@ class Design:
     def load(cls, path):
         """Read and validate a design file; errors name the file and the field."""
         path = Path(path)
-        if not path.is_file():
-            raise DesignFileError(f"{path}: no such file")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {k: npz[k] for k in npz.files}
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-            raise DesignFileError(f"{path}: not a design file (.npz): {exc}") from None
-        missing = [k for k in REQUIRED if k not in data]
-        if missing:
-            raise DesignFileError(f"{path}: missing field(s) {', '.join(missing)}; a design needs {', '.join(REQUIRED)}")
+        data = read_npz(path, REQUIRED, "design file", DesignFileError)
         try:
             metadata = json.loads(str(data["metadata"]))
         except json.JSONDecodeError as exc:

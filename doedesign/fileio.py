@@ -51,6 +51,31 @@ def atomic_path(path, suffix=None):
             tmp.unlink()
 
 
+def read_npz(path, required, what, error=None):
+    """All arrays of an ``.npz`` after checking the ``required`` fields.
+
+    Errors (of class ``error``, default :class:`~doedesign.errors.DoeError`) name the file,
+    say it is not a ``what`` and list what is missing.
+    """
+    import zipfile
+
+    from .errors import DoeError
+
+    error = error or DoeError
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise error(f"{path}: not a {what} (.npz): {exc}") from None
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise error(f"{path}: missing field(s) {', '.join(missing)}; a {what} needs {', '.join(required)}")
+    return data
+
+
 def write_json(path, obj):
     """Write ``obj`` as indented JSON, atomically (numpy scalars and arrays allowed)."""
     with atomic_path(path, suffix=".json.tmp") as tmp:

@@ -34,7 +34,7 @@ import scipy.fft as sfft
 
 from .camera import Camera
 from .errors import DoeError, SamplingError
-from .fileio import write_npz
+from .fileio import read_npz, write_npz
 from .materials import get_material
 
 log = logging.getLogger(__name__)
@@ -110,18 +110,7 @@ class PSFResult:
 
 def read_psf_arrays(path, required, what="PSF file"):
     """All arrays of a PSF ``.npz`` after checking the ``required`` fields; errors name the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise DoeError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise DoeError(f"{path}: not a {what} (.npz): {exc}") from None
-    for key in required:
-        if key not in data:
-            raise DoeError(f"{path}: missing field {key!r} of a {what}")
-    return data
+    return read_npz(path, required, what)
 
 
 class PSFEngine:

@@ -23,6 +23,15 @@ class MeasurementFileError(DoeError):
     """
 
 
+def read_head(path, n_bytes):
+    """The first ``n_bytes`` of a measurement file; a clean error when it cannot be read."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n_bytes)
+    except OSError as exc:
+        raise MeasurementFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 @dataclass
 class Measurement:
     """A measured surface height map.

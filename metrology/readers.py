@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .measurement import Measurement, MeasurementFileError
+from .measurement import Measurement, MeasurementFileError, read_head
 from .zygo_ascii import read_asc, read_xyz
 from .zygo_dat import MAGIC, read_dat
 from .zygo_datx import HDF5_SIGNATURE, read_datx
@@ -45,11 +45,7 @@ def detect_format(path):
         The file is missing or neither its content nor its extension is known.
     """
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(64)
-    except OSError as exc:
-        raise MeasurementFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    head = read_head(path, 64)
     by_ext = EXTENSIONS.get(path.suffix.lower())
     by_magic = None
     if len(head) >= 4 and struct.unpack(">I", head[:4])[0] in MAGIC:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .measurement import Measurement, MeasurementFileError
+from .measurement import Measurement, MeasurementFileError, read_head
 
 log = logging.getLogger(__name__)
 
@@ -169,11 +169,7 @@ def read_datx(path, pixel_size_m=None):
     import h5py
 
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            signature = fh.read(8)
-    except OSError as exc:
-        raise MeasurementFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    signature = read_head(path, 8)
     if signature != HDF5_SIGNATURE:
         raise MeasurementFileError(f"{path}: not a .datx file (no HDF5 signature)")
     try:
