@@ -11,9 +11,15 @@ Tone: ``"dark"`` (dark field, the default) draws on each mask layer the area its
 field) draws the complement inside the element grid (the chrome that protects unetched
 pixels).
 
-Every export is read back with gdstk and each mask layer is rasterized on the pixel grid by
-:func:`rasterize_layer` (a scanline fill of the polygons read from the file, written apart
-from :mod:`masks.polygons`); the recomposed levels must equal the design's, else
+Writing: gdstk writes the library (die outline, aperture, labels, marks, references) with
+an empty element cell; the element's BOUNDARY records are built with numpy from the vertex
+arrays of :mod:`masks.polygons`, one mask layer at a time, and spliced into that cell
+(:func:`write_element_gds`), so no Python object is made per polygon.
+
+Every export is read back and each mask layer is rasterized on the pixel grid: GDSII by
+:func:`read_gds_boundaries` (a vectorized record reader, sharing nothing with the writer),
+OASIS by gdstk, then :func:`rasterize_points` (a scanline fill, written apart from
+:mod:`masks.polygons`); the recomposed levels must equal the design's, else
 :class:`DoeError` and no file.
 """
 
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,6 +52,7 @@ APERTURE_LAYER = 10
 DIE_LAYER = 11
 TEXT_LAYER = 20
 ELEMENT_CELL = "ELEMENT"
+WORKERS = 2  # threads for per-layer work
 
 
 @dataclass(frozen=True)
@@ -194,47 +202,71 @@ def rasterize_layer(polygons, grid):
     problems : list of str
         Off-grid vertices, non-Manhattan edges, vertices outside the grid, too many vertices.
     """
+    if not polygons:
+        return np.zeros(grid.shape, np.int32), []
+    counts = np.array([len(p) for p in polygons])
+    return rasterize_points(grid.to_index(np.concatenate(polygons)), counts, grid)
+
+
+def rasterize_points(idx, counts, grid):
+    """:func:`rasterize_layer` on flat arrays: ``idx`` (n, 2) (col, row) indices of the
+    vertices of all polygons (float: checked to lie on the grid; integer: taken as exact),
+    ``counts`` vertices per polygon."""
     rows, cols = grid.shape
     problems = []
-    coverage = np.zeros((rows + 1, cols + 1), np.int64)
-    if not polygons:
-        return coverage[:rows, :cols].astype(np.int32), problems
-    counts = np.array([len(p) for p in polygons])
+    counts = np.asarray(counts, np.int64)
+    if counts.size == 0:
+        return np.zeros(grid.shape, np.int32), problems
     if counts.max() > MAX_VERTICES:
         problems.append(f"{int((counts > MAX_VERTICES).sum())} polygons exceed {MAX_VERTICES} vertices")
-    idx = grid.to_index(np.concatenate(polygons))
-    rounded = np.rint(idx)
-    if np.abs(idx - rounded).max() > 1e-6:
-        problems.append(f"{int((np.abs(idx - rounded) > 1e-6).any(axis=1).sum())} vertices off the pixel grid")
-    pts = rounded.astype(np.int64)
+    if np.asarray(idx).dtype.kind in "iu":
+        pts = np.array(idx, np.int64)  # exact indices (a copy: clipped below)
+    else:
+        rounded = np.rint(idx)
+        if np.abs(idx - rounded).max() > 1e-6:
+            problems.append(f"{int((np.abs(idx - rounded) > 1e-6).any(axis=1).sum())} vertices off the pixel grid")
+        pts = rounded.astype(np.int64)
     if pts.min() < 0 or pts[:, 0].max() > cols or pts[:, 1].max() > rows:
         problems.append("vertices outside the element's pixel grid")
         pts[:, 0] = np.clip(pts[:, 0], 0, cols)
         pts[:, 1] = np.clip(pts[:, 1], 0, rows)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    nxt = np.arange(len(pts)) + 1
-    nxt[np.cumsum(counts) - 1] = starts  # each polygon closes on its first vertex
-    x, y = pts[:, 0], pts[:, 1]
-    xn, yn = x[nxt], y[nxt]
+    del idx
+    ends = np.cumsum(counts)
+    starts = ends - counts
+    x, y = pts[:, 0].astype(np.int32), pts[:, 1].astype(np.int32)
+    del pts
+    # each vertex's successor; each polygon closes on its first vertex
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    xn[ends - 1], yn[ends - 1] = x[starts], y[starts]
     diagonal = (x != xn) & (y != yn)
     if diagonal.any():
         problems.append(f"{int(diagonal.sum())} edges are not axis-parallel")
+    del diagonal
     # Orientation from the shoelace area: a polygon counts +1 inside whichever way it winds.
-    area2 = np.add.reduceat(x * yn - xn * y, starts)
-    orient = -np.sign(area2).repeat(counts)
-    vertical = (x == xn) & (y != yn)
-    w = (np.sign(yn - y) * orient)[vertical]
-    xc, lo, hi = x[vertical], np.minimum(y, yn)[vertical], np.maximum(y, yn)[vertical]
-    size = (rows + 1) * (cols + 1)
-    diff = (np.bincount(lo * (cols + 1) + xc, w, minlength=size)
-            - np.bincount(hi * (cols + 1) + xc, w, minlength=size))
-    coverage = np.cumsum(np.cumsum(diff.reshape(rows + 1, cols + 1), axis=0), axis=1)
-    return np.rint(coverage[:rows, :cols]).astype(np.int32), problems
+    area2 = np.add.reduceat(x.astype(np.int64) * yn - xn.astype(np.int64) * y, starts)
+    vertical = np.nonzero((x == xn) & (y != yn))[0]
+    polygon = np.searchsorted(ends, vertical, side="right")
+    w = np.sign(yn[vertical] - y[vertical]) * -np.sign(area2)[polygon]
+    xc = x[vertical].astype(np.int64)
+    lo = np.minimum(y[vertical], yn[vertical])
+    hi = np.maximum(y[vertical], yn[vertical])
+    del x, y, xn, yn, vertical, polygon
+    width = cols + 1
+    diff = np.bincount(np.concatenate([lo * width + xc, hi * width + xc]),
+                       np.concatenate([w, -w]), minlength=(rows + 1) * width)
+    coverage = np.rint(diff).astype(np.int32).reshape(rows + 1, width)
+    del diff
+    np.cumsum(coverage, axis=0, out=coverage)
+    np.cumsum(coverage, axis=1, out=coverage)
+    return np.ascontiguousarray(coverage[:rows, :cols]), problems
 
 
 def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
                 cell_name=ELEMENT_CELL):
     """Read an exported file back, rasterize every mask layer, recompose and compare levels.
+
+    GDSII files are read by :func:`read_gds_boundaries` (numpy, written apart from the
+    writer), OASIS files by gdstk.
 
     Returns
     -------
@@ -245,16 +277,32 @@ def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark
     """
     masks = np.asarray(masks, dtype=bool)
     layers = _check_layers(layers, masks.shape[0])
-    lib = read_library(path)
-    cells = {c.name: c for c in lib.cells}
+    read = _read_boundaries(path)
+    cells = read.cells
     if cell_name not in cells:
         return {"passed": False, "mismatched_pixels": int(masks[0].size),
                 "problems": [f"{path}: no cell {cell_name!r}"], "layers": []}
     cell = cells[cell_name]
     problems, per_layer, recovered = [], [], []
-    for j, layer in enumerate(layers):
-        polys = [p.points for p in cell.polygons if p.layer == layer and p.datatype == datatype]
-        coverage, probs = rasterize_layer(polys, grid)
+    x0, y0 = grid.origin_dbu
+
+    def one_layer(layer):
+        sel = np.nonzero((cell["layer"] == layer) & (cell["datatype"] == datatype))[0]
+        pts = read.points(cell_name, sel)
+        # database units -> pixel-corner indices, exactly, in integers
+        if grid.mirrored:
+            np.negative(pts[:, 0], out=pts[:, 0])
+        pts[:, 0] -= x0
+        np.subtract(y0, pts[:, 1], out=pts[:, 1])
+        off = int((pts % grid.pitch_dbu != 0).any(axis=1).sum())
+        pts //= grid.pitch_dbu
+        coverage, probs = rasterize_points(pts, cell["counts"][sel], grid)
+        del pts
+        return coverage, probs + ([f"{off} vertices off the pixel grid"] if off else [])
+
+    with ThreadPoolExecutor(WORKERS) as pool:
+        rasters = list(pool.map(one_layer, layers))
+    for j, (layer, (coverage, probs)) in enumerate(zip(layers, rasters)):
         problems += [f"layer {layer}: {p}" for p in probs]
         overlaps = int((coverage > 1).sum())
         if overlaps or (coverage < 0).any():
@@ -266,22 +314,56 @@ def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark
                           "overlapping_pixels": overlaps})
     mismatch = int((masks_to_levels(np.array(recovered)) != masks_to_levels(masks)).sum())
     (gx0, gy0), (gx1, gy1) = grid.bbox_um()
-    for other in lib.cells:
-        if other.name.startswith(ELEMENT_CELL):  # other dies' elements live in their own frame
-            continue
-        for poly in other.polygons:
-            if poly.layer in layers:
-                (px0, py0), (px1, py1) = poly.bounding_box()
-                if px0 < gx1 - 1e-4 and px1 > gx0 + 1e-4 and py0 < gy1 - 1e-4 and py1 > gy0 + 1e-4:
-                    problems.append(f"cell {other.name}: layer {poly.layer} geometry overlaps the element")
-                    break
+    for name, other in cells.items():
+        if name.startswith(ELEMENT_CELL) or other["counts"].size == 0:
+            continue  # other dies' elements live in their own frame
+        starts = np.cumsum(other["counts"]) - other["counts"]
+        um = read.points(name) * (PRECISION_M / UNIT_M)
+        lo = np.minimum.reduceat(um, starts, axis=0)
+        hi = np.maximum.reduceat(um, starts, axis=0)
+        hit = (np.isin(other["layer"], layers) & (lo[:, 0] < gx1 - 1e-4) & (hi[:, 0] > gx0 + 1e-4)
+               & (lo[:, 1] < gy1 - 1e-4) & (hi[:, 1] > gy0 + 1e-4))
+        if hit.any():
+            problems.append(f"cell {name}: layer {int(other['layer'][hit][0])} geometry overlaps the element")
     return {"passed": mismatch == 0 and not problems, "mismatched_pixels": mismatch,
             "layers": per_layer, "problems": problems}
 
 
+def _read_boundaries(path):
+    """:class:`GdsBoundaries` of a .gds (numpy reader) or .oas (gdstk) file."""
+    path = Path(path)
+    if not path.suffix.lower().startswith(".oas"):
+        read = read_gds_boundaries(path)
+        if abs(read.dbu_m - PRECISION_M) > 1e-6 * PRECISION_M:
+            raise DoeError(f"{path}: database unit {read.dbu_m:g} m, expected {PRECISION_M:g} m")
+        return read
+    cells = {}
+    for c in read_library(path).cells:
+        polys = c.polygons
+        pts = [p.points for p in polys]
+        counts = np.array([len(q) for q in pts], np.int64)
+        cells[c.name] = {
+            "layer": np.array([p.layer for p in polys], np.int64),
+            "datatype": np.array([p.datatype for p in polys], np.int64),
+            "counts": counts, "first": np.cumsum(counts) - counts,
+            "points": (np.rint(np.concatenate(pts) * (UNIT_M / PRECISION_M)).astype(np.int64)
+                       if pts else np.zeros((0, 2), np.int64))}
+    return GdsBoundaries(PRECISION_M, cells)
+
+
 def write_verified(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                   cell_name=ELEMENT_CELL):
+                   cell_name=ELEMENT_CELL, element_inline=True, progress=None):
     """Write ``lib`` to ``path`` (.gds, or .oas for OASIS), verify, then rename into place.
+
+    With ``element_inline`` (GDSII only) the element cell in ``lib`` is empty and its
+    polygons are streamed in by :func:`write_element_gds` (``progress`` advanced per mask);
+    otherwise ``lib`` holds them.
+
+    Returns
+    -------
+    dict
+        The verification (see :func:`verify_file`) plus ``file_size_bytes`` and, when the
+        element was streamed, its per-mask ``stats``.
 
     Raises
     ------
@@ -290,9 +372,13 @@ def write_verified(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, to
     """
     path = Path(path)
     oasis = path.suffix.lower() == ".oas"
+    stats = None
     with atomic_path(path, suffix=".oas" if oasis else ".gds") as tmp:
         if oasis:
             lib.write_oas(str(tmp))
+        elif element_inline:
+            stats = write_element_gds(lib, tmp, masks, grid, layers, datatype, tone, cell_name,
+                                      progress)
         else:
             lib.write_gds(str(tmp), max_points=MAX_VERTICES)
         result = verify_file(tmp, masks, grid, layers, datatype, tone, cell_name)
@@ -301,6 +387,8 @@ def write_verified(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, to
                            f"{result['mismatched_pixels']} mismatched pixels; "
                            + "; ".join(result["problems"][:5]))
     result["file_size_bytes"] = path.stat().st_size
+    if stats is not None:
+        result["stats"] = stats
     return result
 
 
@@ -354,19 +442,25 @@ def export_masks(path, masks, pitch_m, *, layers=DEFAULT_LAYERS, datatype=0, ton
                                   die_size_m=die_size_m, clear_aperture_m=clear_aperture_m,
                                   marks=marks)
     lib = gdstk.Library(name=_gds_name(name), unit=UNIT_M, precision=PRECISION_M)
-    with Progress(n_masks + 2, desc="doe masks") as bar:
-        elem, stats = element_cell(masks, grid, layers, datatype, tone, progress=bar)
-        lib.add(elem)
-        top = layout.die_cells(lib, elem, grid, settings)
-        lib.add(top)
-        bar.update(1, "writing and verifying")
-        outputs = [Path(path)] + ([Path(path).with_suffix(".oas")] if oasis else [])
-        verification = None
-        for out in outputs:
-            result = write_verified(lib, out, masks, grid, layers, datatype, tone)
-            verification = verification or result
-            log.info("%s: %d bytes, verified", out, result["file_size_bytes"])
+    # The element cell stays empty in the gdstk library: its polygons are streamed into the
+    # GDSII file (and only built as gdstk objects when an OASIS copy is asked for).
+    elem = gdstk.Cell(ELEMENT_CELL)
+    lib.add(elem)
+    top = layout.die_cells(lib, elem, grid, settings)
+    lib.add(top)
+    outputs = [Path(path)] + ([Path(path).with_suffix(".oas")] if oasis else [])
+    with Progress(n_masks + 1 + int(oasis), desc="doe masks") as bar:
+        verification = write_verified(lib, outputs[0], masks, grid, layers, datatype, tone,
+                                      progress=bar)
+        stats = verification.pop("stats")
+        log.info("%s: %d bytes, verified", outputs[0], verification["file_size_bytes"])
         bar.update(1, "verified")
+        if oasis:
+            full, _ = element_cell(masks, grid, layers, datatype, tone)
+            elem.add(*full.polygons)
+            result = write_verified(lib, outputs[1], masks, grid, layers, datatype, tone)
+            log.info("%s: %d bytes, verified", outputs[1], result["file_size_bytes"])
+            bar.update(1, "OASIS verified")
     for j, st in enumerate(stats):
         st.update(mask=j, etch_depth_nm=depths_m[j] * 1e9, etch_step=etch_order.index(j) + 1)
     return {
@@ -384,6 +478,253 @@ def export_masks(path, masks, pitch_m, *, layers=DEFAULT_LAYERS, datatype=0, ton
         "verification": {"mismatched_pixels": verification["mismatched_pixels"],
                          "passed": verification["passed"], "layers": verification["layers"]},
     }
+
+
+# GDSII record headers (length, record type, data type), big-endian; see the GDSII stream
+# format: BOUNDARY 0x0800, LAYER 0x0D02, DATATYPE 0x0E02, XY 0x1003, ENDEL 0x1100,
+# STRNAME 0x0606, ENDSTR 0x0700, BGNSTR 0x0502.
+_BOUNDARY, _LAYER, _DATATYPE, _XY, _ENDEL = 0x0800, 0x0D02, 0x0E02, 0x1003, 0x1100
+_STRNAME, _ENDSTR = 0x0606, 0x0700
+
+
+def boundary_records(pset, grid, layer, datatype=0):
+    """GDSII BOUNDARY elements for a :class:`PolygonSet`, as one big-endian byte string.
+
+    Each polygon is written as BOUNDARY, LAYER, DATATYPE, XY (its vertices in database
+    units, closed by repeating the first) and ENDEL, all built with numpy in one pass.
+    """
+    counts = np.diff(pset.offsets)
+    if counts.size == 0:
+        return b""
+    if counts.max() > MAX_VERTICES:
+        raise DoeError(f"layer {layer}: polygon with {int(counts.max())} vertices exceeds {MAX_VERTICES}")
+    x0, y0 = grid.origin_dbu
+    x = x0 + pset.vertices[:, 0] * grid.pitch_dbu
+    y = y0 - pset.vertices[:, 1] * grid.pitch_dbu
+    if grid.mirrored:
+        x = -x
+    # Words of 4 bytes per polygon: 5 header words, 2 per point (k + 1 points), 1 ENDEL.
+    words = 8 + 2 * counts
+    start = np.zeros(counts.size, np.int64)
+    np.cumsum(words[:-1], out=start[1:])
+    out = np.empty(int(words.sum()), np.uint32)
+    out[start] = (4 << 16) | _BOUNDARY
+    out[start + 1] = (6 << 16) | _LAYER
+    out[start + 2] = ((layer & 0xFFFF) << 16) | 6
+    out[start + 3] = (_DATATYPE << 16) | (datatype & 0xFFFF)
+    out[start + 4] = ((4 + 8 * (counts + 1)) << 16) | _XY
+    out[start + 7 + 2 * counts] = (4 << 16) | _ENDEL
+    poly = np.repeat(np.arange(counts.size), counts)
+    pos = start[poly] + 5 + 2 * (np.arange(len(poly)) - pset.offsets[poly])
+    out[pos] = x.astype(np.int32).view(np.uint32)
+    out[pos + 1] = y.astype(np.int32).view(np.uint32)
+    first = pset.offsets[:-1]
+    out[start + 5 + 2 * counts] = out[pos[first]]
+    out[start + 6 + 2 * counts] = out[pos[first] + 1]
+    return out.astype(">u4").tobytes()
+
+
+def _structure_end(data, name):
+    """Byte offset of the ENDSTR record of structure ``name`` in a GDSII byte string."""
+    pos, current, target = 0, None, name.encode()
+    while pos + 4 <= len(data):
+        length, rtype = int.from_bytes(data[pos:pos + 2], "big"), int.from_bytes(data[pos + 2:pos + 4], "big")
+        if length < 4:
+            break
+        if rtype == _STRNAME:
+            current = data[pos + 4:pos + length].rstrip(b"\0")
+        elif rtype == _ENDSTR and current == target:
+            return pos
+        pos += length
+    raise DoeError(f"structure {name!r} not found in the written library")
+
+
+def write_element_gds(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
+                      cell_name=ELEMENT_CELL, progress=None):
+    """Write ``lib`` (holding an empty element cell) with the element's polygons streamed in.
+
+    gdstk writes everything else (marks, aperture, labels, references); the element's
+    BOUNDARY records are built with numpy per mask layer and spliced into its structure,
+    so no Python object is made per polygon and one layer is in memory at a time.
+
+    Returns
+    -------
+    list of dict
+        Per mask: layer, datatype, polygons, vertices, max_vertices.
+    """
+    drawn = drawn_masks(masks, tone)
+    layers = _check_layers(layers, drawn.shape[0])
+    if drawn.shape[1:] != tuple(grid.shape):
+        raise DoeError(f"masks shaped {drawn.shape} do not match the pixel grid {grid.shape}")
+    path = Path(path)
+    skeleton_path = path.with_name(path.name + ".skeleton")
+    try:
+        lib.write_gds(str(skeleton_path), max_points=MAX_VERTICES)
+        skeleton = skeleton_path.read_bytes()
+    finally:
+        skeleton_path.unlink(missing_ok=True)
+    cut = _structure_end(skeleton, cell_name)
+    def one_layer(j):
+        pset = mask_polygons(drawn[j], MAX_VERTICES)
+        stat = {"layer": layers[j], "datatype": int(datatype), "polygons": pset.n_polygons,
+                "vertices": pset.n_vertices, "max_vertices": pset.max_vertices}
+        return boundary_records(pset, grid, layers[j], datatype), stat
+
+    stats = []
+    # numpy releases the GIL in its array loops: two layers at a time use both cores
+    with open(path, "wb") as f, ThreadPoolExecutor(WORKERS) as pool:
+        f.write(skeleton[:cut])
+        for j, (records, stat) in enumerate(pool.map(one_layer, range(len(layers)))):
+            f.write(records)
+            stats.append(stat)
+            if progress is not None:
+                progress.update(1, f"mask {j + 1}: {stat['polygons']} polygons")
+        f.write(skeleton[cut:])
+    return stats
+
+
+@dataclass
+class GdsBoundaries:
+    """BOUNDARY elements of one GDSII file, read with numpy (see :func:`read_gds_boundaries`).
+
+    Attributes
+    ----------
+    dbu_m : float
+        Database unit in metres (from the UNITS record).
+    cells : dict
+        Structure name -> dict of arrays ``layer``, ``datatype``, ``counts`` (points per
+        element, closing point dropped) and ``first`` (byte offset of each element's first
+        point in the file, or its index into a ``points`` array when read by gdstk);
+        :meth:`points` reads the vertices of chosen elements.
+    """
+
+    dbu_m: float
+    cells: dict
+    _words: tuple = ()  # big-endian int32 views of the file at byte offsets 0 and 2
+
+    def points(self, cell, select=None):
+        """Vertices (int64 (n, 2), database units) of the selected elements of ``cell``."""
+        c = self.cells[cell]
+        sel = np.arange(c["counts"].size) if select is None else np.asarray(select)
+        counts = c["counts"][sel]
+        first = c["first"][sel]
+        out = np.empty((int(counts.sum()), 2), np.int64)
+        ends = np.cumsum(counts)
+        if "points" in c:
+            out[:] = c["points"][np.repeat(first - (ends - counts), counts) + np.arange(out.shape[0])]
+            return out
+        # An element is a whole number of 4-byte words, so its points keep its alignment.
+        aligned_pt = np.repeat(first % 4 == 0, counts)
+        for aligned, words in zip((True, False), self._words):
+            pick = aligned_pt == aligned
+            if not pick.any():
+                continue
+            start = (first - (0 if aligned else 2)) // 4 - 2 * (ends - counts)
+            idx = (np.repeat(start, counts) + 2 * np.arange(out.shape[0]))[pick]
+            out[pick, 0] = words[idx]
+            out[pick, 1] = words[idx + 1]
+        return out
+
+
+def _real8(b):
+    """GDSII 8-byte real (excess-64, base-16 exponent, 56-bit mantissa)."""
+    v = int.from_bytes(b, "big")
+    sign = -1.0 if v >> 63 else 1.0
+    return sign * (v & ((1 << 56) - 1)) / float(1 << 56) * 16.0 ** (((v >> 56) & 0x7F) - 64)
+
+
+def read_gds_boundaries(path):
+    """Every BOUNDARY of a GDSII file, grouped by structure, with a vectorized record reader.
+
+    Candidate elements are found where a BOUNDARY header is followed by LAYER, DATATYPE, XY
+    and ENDEL headers at the offsets their lengths imply; a record-by-record walk from the
+    start of the file then accepts only candidates it lands on, jumping over each run of
+    back-to-back candidates in one step, so bytes that merely look like a header inside
+    coordinate data are never taken as one.
+
+    Raises
+    ------
+    DoeError
+        When the file is not a well-formed GDSII stream.
+    """
+    path = Path(path)
+    try:
+        raw = np.memmap(path, dtype=np.uint8, mode="r")
+    except (OSError, ValueError) as exc:
+        raise DoeError(f"{path}: cannot read as GDSII: {exc}") from None
+    size = raw.size - raw.size % 2
+    w = raw[:size].view(">u2")  # records start on even offsets
+    # int32 views at byte offsets 0 and 2 (mod 4) for aligned reads anywhere
+    v32 = tuple(raw[off:off + (size - off) // 4 * 4].view(">i4") for off in (0, 2))
+
+    def word32(p):  # big-endian int32 at even byte offsets p
+        out = np.empty(p.shape, np.int64)
+        odd = (p % 4) != 0
+        out[~odd] = v32[0][p[~odd] // 4]
+        out[odd] = v32[1][(p[odd] - 2) // 4]
+        return out
+
+    # BOUNDARY header bytes 00 04 08 00 at either alignment
+    key = np.frombuffer(b"\x00\x04\x08\x00", "<u4")[0]
+    cand = np.concatenate([np.nonzero(v.view("<u4") == key)[0] * 4 + off
+                           for off, v in zip((0, 2), v32)])
+    cand.sort()
+    cand = cand[cand + 24 <= size]
+    cand = cand[(word32(cand + 4) == (6 << 16 | _LAYER)) & (w[(cand + 10) // 2] == 6)
+                & (w[(cand + 12) // 2] == _DATATYPE) & (w[(cand + 18) // 2] == _XY)]
+    xy_len = w[(cand + 16) // 2].astype(np.int64)
+    ok = (xy_len >= 4 + 8 * 4) & ((xy_len - 4) % 8 == 0) & (cand + 20 + xy_len <= size)
+    cand, xy_len = cand[ok], xy_len[ok]
+    ok = word32(cand + 16 + xy_len) == (4 << 16 | _ENDEL)
+    cand, xy_len = cand[ok], xy_len[ok]
+    end = cand + 20 + xy_len
+    # runs of candidates each starting where the previous one ends
+    brk = np.ones(cand.size, bool)
+    brk[1:] = end[:-1] != cand[1:]
+    run = np.cumsum(brk) - 1
+    run_last = np.append(np.nonzero(brk)[0][1:] - 1, cand.size - 1)
+    accepted = np.zeros(cand.size, bool)
+    cell_of = np.full(cand.size, -1, np.int64)
+    names, dbu_m, current, pos = [], None, -1, 0
+    header = bytes(raw[:min(size, 4)])
+    while pos + 4 <= size:
+        i = int(np.searchsorted(cand, pos))
+        if i < cand.size and cand[i] == pos:
+            last = run_last[run[i]]
+            if current < 0:
+                raise DoeError(f"{path}: BOUNDARY outside any structure at byte {pos}")
+            accepted[i:last + 1] = True
+            cell_of[i:last + 1] = current
+            pos = int(end[last])
+            continue
+        length, rtype = int(w[pos // 2]), int(w[pos // 2 + 1])
+        if length < 4 or pos + length > raw.size:
+            raise DoeError(f"{path}: corrupt GDSII record at byte {pos}")
+        if rtype == _BOUNDARY:
+            raise DoeError(f"{path}: BOUNDARY at byte {pos} has records this reader does not "
+                           "expect (only LAYER, DATATYPE, XY)")
+        if rtype == _STRNAME:
+            names.append(bytes(raw[pos + 4:pos + length]).rstrip(b"\0").decode("ascii", "replace"))
+            current = len(names) - 1
+        elif rtype == _ENDSTR:
+            current = -1
+        elif rtype == 0x0305:  # UNITS: user unit, database unit in metres
+            dbu_m = _real8(bytes(raw[pos + 12:pos + 20]))
+        elif rtype == 0x0400:  # ENDLIB
+            break
+        pos += length
+    if header[2:4] != b"\x00\x02" or dbu_m is None:
+        raise DoeError(f"{path}: not a GDSII stream (no HEADER/UNITS record)")
+    cand, xy_len, cell_of = cand[accepted], xy_len[accepted], cell_of[accepted]
+    layer = w[(cand + 8) // 2].astype(np.int16)
+    datatype = w[(cand + 14) // 2].astype(np.int16)
+    counts = (xy_len - 4) // 8 - 1  # the closing point repeats the first
+    cells = {}
+    for k, name in enumerate(names):
+        sel = np.nonzero(cell_of == k)[0]
+        cells[name] = {"layer": layer[sel].astype(np.int64), "datatype": datatype[sel].astype(np.int64),
+                       "counts": counts[sel], "first": cand[sel] + 20}
+    return GdsBoundaries(dbu_m, cells, v32)
 
 
 def _check_layers(layers, n_masks):

@@ -217,3 +217,132 @@ def test_verification_failure_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(DoeError, match="verification failed"):
         export_masks(tmp_path / "bad.gds", levels_to_masks(_levels("random", (30, 30))), PITCH)
     assert list(tmp_path.iterdir()) == []
+
+
+def _shoelace_area(polys):
+    return sum(abs(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1])) / 2
+               for p in polys)
+
+
+@pytest.mark.parametrize("case, corners", [("edge", 4 + 4 + 3), ("corner_above", 6 + 4 + 2),
+                                           ("corner_below", 6 + 4 + 2)])
+def test_hole_joined_by_keyhole_cut(case, corners):
+    # one component with one hole -> one polygon: outer + hole corners + the cut's vertices
+    # (3 when the cut ends inside an edge, 2 when it ends at a concave corner)
+    mask = np.zeros((10, 12), bool)
+    if case == "edge":
+        mask[0:10, 0:10] = True
+    elif case == "corner_above":
+        mask[0:3, 0:10] = True
+        mask[3:8, 2:10] = True
+    else:
+        mask[0:3, 2:10] = True
+        mask[3:8, 0:10] = True
+    mask[3:5, 5:7] = False
+    ps = mask_polygons(mask)
+    assert ps.n_polygons == 1 and ps.n_vertices == corners
+    p = ps.vertices
+    q = np.roll(p, -1, axis=0)
+    assert np.all((p[:, 0] == q[:, 0]) | (p[:, 1] == q[:, 1]))
+    assert _shoelace_area(ps.split()) == mask.sum()
+    assert np.array_equal(_pixel_scan(ps.split(), mask.shape), mask)
+
+
+@pytest.mark.parametrize("density", [0.3, 0.5, 0.62, 0.8])
+def test_full_merge_random_masks(density):
+    from scipy import ndimage
+
+    rng = np.random.default_rng(int(density * 100))
+    mask = rng.random((70, 90)) < density
+    # nested rings (islands inside holes inside islands), kept apart from the random pixels
+    mask[19:51, 19:51] = False
+    mask[20:50, 20:50] = True
+    mask[24:46, 24:46] = False
+    mask[28:42, 28:42] = True
+    mask[31:39, 31:39] = False
+    ps = mask_polygons(mask)
+    polys = ps.split()
+    assert ps.max_vertices <= 199
+    for p in polys:
+        q = np.roll(p, -1, axis=0)
+        assert np.all((p[:, 0] == q[:, 0]) | (p[:, 1] == q[:, 1])), "diagonal edge"
+    assert _shoelace_area(polys) == mask.sum()  # no overlaps, no gaps
+    assert np.array_equal(_pixel_scan(polys, mask.shape), mask)
+    labels, n_comp = ndimage.label(mask)
+    if density <= 0.5:
+        # every 4-connected component is small: exactly one polygon each, holes included
+        assert ps.n_polygons == n_comp
+    else:
+        assert ps.n_polygons >= n_comp
+
+
+def test_reader_ignores_header_lookalikes_in_coordinates(tmp_path):
+    from masks.gds import read_gds_boundaries
+
+    # coordinates whose bytes spell a complete fake BOUNDARY element (header, LAYER 1,
+    # DATATYPE 0, XY of 4 points, ENDEL) inside a real polygon's XY record
+    fake = [(0x00040800, 0x00060D02), (0x00010006, 0x0E020000), ((36 << 16) | 0x1003, 7),
+            (1, 2), (3, 4), (5, 6), (7, 0x00041100), (9, 10)]
+    lib = gdstk.Library(unit=1e-6, precision=1e-9)
+    cell = gdstk.Cell("C")
+    cell.add(gdstk.Polygon(np.array(fake, float) * 1e-3, layer=5, datatype=3))
+    cell.add(gdstk.rectangle((0, 0), (2, 1), layer=7))
+    lib.add(cell)
+    path = tmp_path / "fake.gds"
+    lib.write_gds(str(path))
+    read = read_gds_boundaries(path)
+    assert read.dbu_m == pytest.approx(1e-9)
+    c = read.cells["C"]
+    assert c["layer"].tolist() == [5, 7] and c["datatype"].tolist() == [3, 0]
+    assert c["counts"].tolist() == [8, 4]
+    pts = read.points("C")
+    assert np.array_equal(pts[:8], np.array(fake))
+    assert sorted(map(tuple, pts[8:].tolist())) == [(0, 0), (0, 1000), (2000, 0), (2000, 1000)]
+
+
+def test_reader_matches_gdstk_and_klayout_on_export(tmp_path):
+    from masks.gds import read_gds_boundaries
+
+    masks = levels_to_masks(_levels("random", (80, 70), seed=5))
+    path = tmp_path / "r.gds"
+    export_masks(path, masks, PITCH, tone="dark", clear_aperture_m=0.3e-3)
+    read = read_gds_boundaries(path)
+    lib = read_library(path)
+    for c in lib.cells:
+        ours = read.cells[c.name]
+        assert ours["counts"].size == len(c.polygons)
+        theirs = sorted((p.layer, p.datatype, tuple(np.rint(p.points * 1000).astype(int).ravel()))
+                        for p in c.polygons)
+        pts = read.points(c.name)
+        first = np.cumsum(ours["counts"]) - ours["counts"]
+        mine = sorted((int(ly), int(dt), tuple(pts[f:f + k].ravel()))
+                      for ly, dt, f, k in zip(ours["layer"], ours["datatype"], first, ours["counts"]))
+        assert mine == theirs
+    db = pytest.importorskip("klayout.db")
+    ly = db.Layout()
+    ly.read(str(path))
+    elem = ly.cell("ELEMENT")
+    p = int(round(PITCH * 1e9))
+    for j in range(4):
+        area = db.Region(elem.begin_shapes_rec(ly.layer(j + 1, 0))).area()
+        assert area == int(masks[j].sum()) * p * p
+
+
+def test_verify_catches_byte_level_corruption(tmp_path):
+    from masks.gds import verify_file
+
+    masks = levels_to_masks(_levels("rings", (40, 50)))
+    path = tmp_path / "c.gds"
+    export_masks(path, masks, PITCH)
+    grid = PixelGrid.centred((40, 50), PITCH)
+    data = bytearray(path.read_bytes())
+    # first element of the ELEMENT cell: shift its first x by 1 nm (off the pixel grid)
+    at = data.index(b"ELEMENT")
+    at = data.index(bytes([0, 4, 8, 0]), at) + 20
+    x = int.from_bytes(data[at:at + 4], "big", signed=True) + 1
+    data[at:at + 4] = x.to_bytes(4, "big", signed=True)
+    bad = tmp_path / "bad.gds"
+    bad.write_bytes(bytes(data))
+    assert verify_file(path, masks, grid)["passed"]
+    res = verify_file(bad, masks, grid)
+    assert not res["passed"] and any("off the pixel grid" in p for p in res["problems"])
