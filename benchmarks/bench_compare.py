@@ -25,8 +25,8 @@ from doedesign.camera import Camera
 from doedesign.cli import main
 from doedesign.design import Design
 from masks.process import ProcessParams
-from metrology import compare, level, register
-from metrology.writers import write_measurement
+from metrology.matching import compare, level, register
+from metrology.formats.writers import write_measurement
 
 log = logging.getLogger(__name__)
 PITCH = 5.4e-6

@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from metrology.diagnose import PsfProblem, diagnose_heights, run_diagnosis
-from metrology.effects import effects_for
-from metrology.synthetic import (HEIGHT_EFFECTS, PSF_EFFECTS, make_height_case, make_psf_case, parameter_errors,
+from metrology.diagnosis.diagnose import PsfProblem, diagnose_heights, run_diagnosis
+from metrology.diagnosis.effects import effects_for
+from metrology.diagnosis.synthetic import (HEIGHT_EFFECTS, PSF_EFFECTS, make_height_case, make_psf_case, parameter_errors,
                                  psf_test_setup)
 
 log = logging.getLogger(__name__)

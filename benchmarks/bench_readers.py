@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from metrology.readers import read_measurement
-from metrology.writers import write_asc, write_dat, write_datx, write_xyz
+from metrology.formats.readers import read_measurement
+from metrology.formats.writers import write_asc, write_dat, write_datx, write_xyz
 
 WAVELENGTH_M = 632.8e-9
 

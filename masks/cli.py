@@ -127,7 +127,7 @@ def run_masks(args):
     report["quantization"] = qreport
     preview(levels, masks, out / "masks.png", name)
     write_json(out / "report.json", report)
-    from doedesign.cli import print_json
+    from doedesign.cli.common import print_json
 
     print_json({k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")})
     return 0

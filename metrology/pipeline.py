@@ -78,7 +78,7 @@ def demo_camera(cfg):
 
 def design_step(cfg, camera, out):
     from doedesign import targets
-    from doedesign.cli_design import DEFAULT_INIT, DEFAULT_LOSS
+    from doedesign.cli.design import DEFAULT_INIT, DEFAULT_LOSS
     from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
 
@@ -120,8 +120,8 @@ def masks_step(design_path, out):
 def fabricate_and_measure(design, cfg, out):
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
-    from metrology import compare, register
-    from metrology.writers import write_datx
+    from metrology.matching import compare, register
+    from metrology.formats.writers import write_datx
 
     rng = np.random.default_rng(cfg.seed)
     n_masks = 4

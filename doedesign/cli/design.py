@@ -1,0 +1,270 @@
+"""``doe design`` and ``doe evaluate-bayer``: optimize a DOE for a target; the Bayer study."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import bayer, targets
+from ..camera import Camera
+from ..design import Design
+from ..errors import DoeError
+from ..fileio import write_json
+from ..losses import LossSpec
+from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OptimizerSettings, design_doe
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PITCH_M = 5.4e-6
+DEFAULT_SIZE_PX = 192
+FULL_APERTURE_PX = 1600
+DEFAULT_INIT = {"bayer": "zeros", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
+                "spots": "random", "image": "random"}
+# L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a
+# real sensor is still stray light; spot targets add the energy-on-target term.
+DEFAULT_LOSS = {"bayer": "l1,energy", "spots": "l1,energy"}
+
+DESIGN_HELP = """\
+TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a TOML file of
+[[target]] tables (schema: python -c "import doedesign.targets as t; help(t)"), e.g.
+
+  [[target]]
+  kind = "bayer"            # bayer | hdr-streak | hyperspectral | depth | spots | image
+  rggb = true               # kind-specific options; wavelengths_nm = [...], depths_m = [...]
+  energy = 1.0
+
+--config run.toml may hold [camera] (Camera fields: aperture_diameter_m, focus_distance_m,
+sensor_distance_m, pixel_pitch_m, window_shape, axis_pixel, doe_side), [optimize]
+(size_px, pitch_m, material, design_wavelength_m, loss, and OptimizerSettings fields:
+algorithm, max_iter, ftol_rel, max_time_s, seed, init, height_range, anneal_iter, fab_weight,
+reweight_rounds, reweight_alpha, reweight_iter)
+and [target] options for a built-in target. Command-line options override the file.
+
+The default is a reduced aperture (a 192 px = 1.04 mm circular pupil, the DOE on its left
+half) so a run takes about a minute on 2 cores; its PSF is about 8x wider than the camera's.
+For the real element use --full-aperture (1600 px, 8.64 mm, minutes per 100 iterations).
+Heights are written z up, 0 = unetched top, etched pixels negative; arrays row 0 at the top.
+"""
+
+
+def register(subparsers):
+    p = subparsers.add_parser("design", help="optimize a 16-level DOE for a target PSF",
+                              description="Optimize a DOE height map for a target PSF with nlopt and analytic "
+                                          "gradients, then quantize it to the 16 process levels.",
+                              epilog=DESIGN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("target", help="built-in target name or a target TOML file")
+    p.add_argument("--config", help="run configuration TOML ([camera], [optimize], [target])")
+    p.add_argument("--out", required=True, help="design file to write (.npz); report.json goes beside it")
+    p.add_argument("--size", type=int, help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
+    p.add_argument("--full-aperture", action="store_true",
+                   help=f"the camera's full 8.64 mm aperture: {FULL_APERTURE_PX} px at 5.4 um")
+    p.add_argument("--iterations", type=int, help="continuous-stage evaluations (default 100)")
+    p.add_argument("--wavelengths", help="nm, e.g. 656,589,486 or 400:700:10 (built-in targets)")
+    p.add_argument("--side", choices=("left", "right", "full"), help="aperture half carrying the DOE (default left)")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--algorithm", choices=ALGORITHMS, help="nlopt algorithm (default LD_LBFGS)")
+    p.add_argument("--init", choices=INITS, help="initial height map (default per target)")
+    p.add_argument("--init-design", help="start from this design file's heights")
+    p.add_argument("--loss", help='loss terms, e.g. "l1" or "l1=1,energy=0.5,peak=0.1,uniformity=1" '
+                                  '(terms l1, energy, l2, peak, uniformity; default l1; l1,energy for bayer and spots)')
+    p.add_argument("--height-range", choices=HEIGHT_RANGES, help="height bounds (default process)")
+    p.add_argument("--time-limit", type=float, help="seconds for the continuous stage (default 45)")
+    p.add_argument("--anneal-iterations", type=int, help="evaluations per annealing stage (default 10)")
+    p.add_argument("--fab-weight", type=float, help="weight of the one-pixel pillar/hole penalty (default 0)")
+    p.add_argument("--reweight-rounds", type=int,
+                   help="WGS-like rounds reweighting target pixels toward equal delivered/wanted ratios "
+                        "(spot arrays; default 0)")
+    p.add_argument("--reweight-alpha", type=float, help="exponent of the reweighting (default 1)")
+    p.add_argument("--reweight-iterations", type=int, help="evaluations per reweighting round (default --iterations)")
+    p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
+    p.set_defaults(func=cmd_design)
+
+    q = subparsers.add_parser("evaluate-bayer", help="the Bayer colour-sorting study (seed Table 1)",
+                              description=bayer.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("--design", help="a Bayer design file (default: a quick built-in optimization)")
+    q.add_argument("--out", required=True, help="output directory (table.json, fig2.png)")
+    q.add_argument("--images", default=",".join(bayer.IMAGES), help="skimage.data images (default %(default)s)")
+    q.add_argument("--crop", type=int, help="centred square crop of each image in pixels (speed)")
+    q.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    q.add_argument("--quick-size", type=int, default=128, help="DOE size of the built-in optimization")
+    q.add_argument("--quick-iterations", type=int, default=60, help="evaluations of the built-in optimization")
+    q.add_argument("--no-doe", action="store_true", help="skip the optimized-DOE row")
+    q.set_defaults(func=cmd_evaluate_bayer)
+
+
+def _read_toml(path):
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise DoeError(f"{path}: no such file")
+    try:
+        return tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise DoeError(f"{path}: not valid TOML: {exc}") from None
+
+
+def _camera(section, size_px, pitch_m, side, source):
+    opts = dict(section)
+    opts.setdefault("aperture_diameter_m", size_px * pitch_m)
+    if side:
+        opts["doe_side"] = side
+    unknown = set(opts) - set(Camera.__dataclass_fields__)
+    if unknown:
+        raise DoeError(f"{source}: unknown [camera] key(s) {', '.join(sorted(unknown))}")
+    if "focus_distance_m" in opts and str(opts["focus_distance_m"]).lower() == "inf":
+        opts["focus_distance_m"] = math.inf
+    return Camera.from_dict(opts)
+
+
+def cmd_design(args):
+    from ..psf import parse_wavelengths_nm
+
+    config = _read_toml(args.config) if args.config else {}
+    source = args.config or "configuration"
+    opt = dict(config.get("optimize", {}))
+    size = args.size or int(opt.pop("size_px", DEFAULT_SIZE_PX))
+    opt.pop("size_px", None)
+    if args.full_aperture:
+        size = FULL_APERTURE_PX
+    if size < 8:
+        raise DoeError(f"--size {size}: a DOE needs at least 8 x 8 pixels")
+    pitch = float(opt.pop("pitch_m", DEFAULT_PITCH_M))
+    material = str(opt.pop("material", "fused_silica"))
+    design_wl = float(opt.pop("design_wavelength_m", 550e-9))
+    loss_text = args.loss or opt.pop("loss", None)
+    opt.pop("loss", None)
+    is_file = args.target.endswith(".toml") or Path(args.target).is_file()
+    kind = "file" if is_file else args.target
+    cam_section = dict(config.get("camera", {}))
+    if kind == "depth":
+        # The seed focused the depth camera at 3.5 m.
+        cam_section.setdefault("focus_distance_m", 3.5)
+    elif kind == "bayer":
+        # The Bayer target is at optical infinity: focus there, or the 5 m focus adds a 16 px blur.
+        cam_section.setdefault("focus_distance_m", math.inf)
+    if args.full_aperture:
+        cam_section["aperture_diameter_m"] = FULL_APERTURE_PX * pitch
+    camera = _camera(cam_section, size, pitch, args.side, source)
+    if is_file:
+        if args.wavelengths:
+            raise DoeError(f"{args.target}: set wavelengths_nm in the target file, not with --wavelengths")
+        spec = _read_toml(args.target)
+        target = targets.from_dict(spec, camera=camera, base_dir=Path(args.target).parent, source=args.target)
+        kind = target.meta.get("kind", "file")
+    else:
+        if args.target not in targets.KINDS or args.target == "image":
+            raise DoeError(f"target {args.target!r}: give a built-in name "
+                           f"({', '.join(k for k in targets.KINDS if k != 'image')}) or a TOML file")
+        options = dict(config.get("target", {}))
+        if args.wavelengths:
+            options["wavelengths_nm"] = list(parse_wavelengths_nm(args.wavelengths) * 1e9)
+        target = targets.from_dict({"target": {"kind": args.target, **options}}, camera=camera, source=source)
+    loss = LossSpec.parse(loss_text or DEFAULT_LOSS.get(kind, "l1"))
+    for key, value in (("max_iter", args.iterations), ("seed", args.seed), ("algorithm", args.algorithm),
+                       ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),
+                       ("anneal_iter", args.anneal_iterations), ("fab_weight", args.fab_weight),
+                       ("reweight_rounds", args.reweight_rounds), ("reweight_alpha", args.reweight_alpha),
+                       ("reweight_iter", args.reweight_iterations)):
+        if value is not None:
+            opt[key] = value
+    opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
+    opt.setdefault("max_time_s", 45.0)
+    opt.setdefault("anneal_iter", 10)
+    if args.no_quantize:
+        opt["quantize"] = False
+    unknown = set(opt) - set(OptimizerSettings.__dataclass_fields__)
+    if unknown:
+        raise DoeError(f"{source}: unknown [optimize] key(s) {', '.join(sorted(unknown))}")
+    settings = OptimizerSettings(**opt)
+    init = None
+    if args.init_design:
+        init = Design.load(args.init_design).height_m
+    run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init)
+    out = Path(args.out)
+    run.design.save(out)
+    report_path = out.parent / "report.json"
+    write_json(report_path, {"design": str(out), **run.report})
+    from .common import print_json
+
+    summary = {"design": str(out), "report": str(report_path), "target": target.name,
+               "run_time_s": round(run.report["run_time_s"], 2),
+               "efficiency_continuous": run.report["continuous"]["efficiency"]}
+    if "quantized" in run.report:
+        summary["efficiency_quantized"] = run.report["quantized"]["efficiency"]
+    print_json(summary)
+    return 0
+
+
+def quick_bayer_design(size_px=128, iterations=60, seed=0):
+    """A small Bayer design for the study when no design file is given (reduced aperture)."""
+    camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
+    target = targets.bayer(camera)
+    settings = OptimizerSettings(max_iter=iterations, seed=seed, anneal_iter=max(iterations // 6, 2))
+    return design_doe(target, camera, DEFAULT_PITCH_M, (size_px, size_px), settings=settings).design
+
+
+def cmd_evaluate_bayer(args):
+    from ..psf import compute_psf
+
+    t0 = time.perf_counter()
+    names = [n.strip() for n in args.images.split(",") if n.strip()]
+    if not names:
+        raise DoeError("--images: no image names given")
+    if args.crop is not None and args.crop < 16:
+        raise DoeError(f"--crop {args.crop}: use at least 16 pixels")
+    images = bayer.load_images(names, crop=args.crop)
+    doe_psf, axis, doe_info = None, (256, 256), None
+    if not args.no_doe:
+        if args.design:
+            design = Design.load(args.design)
+            source = args.design
+        else:
+            design = quick_bayer_design(args.quick_size, args.quick_iterations, args.seed)
+            source = f"built-in quick optimization ({args.quick_size} px, {args.quick_iterations} evaluations)"
+        cam_dict = design.metadata.get("camera")
+        camera = Camera.from_dict(cam_dict) if cam_dict else Camera()
+        res = compute_psf(design, camera, wavelengths_m=bayer_wavelengths(design), depths_m=[np.inf],
+                          views=("coded",))
+        doe_psf, axis = res.psf[0, 0], camera.axis_pixel
+        doe_info = {"source": source, "energy_in_window": res.energy_in_window[0, 0].tolist(),
+                    "energy_on_target_pixel": [float(doe_psf[c, axis[0] + dr, axis[1] + dc])
+                                               for c, (dr, dc) in enumerate(bayer.TARGET_OFFSETS)],
+                    "quantized": design.levels is not None}
+    methods = bayer.standard_methods(doe_psf, axis)
+    table, per_image, recs = bayer.evaluate(images, methods, seed=args.seed)
+    out = Path(args.out)
+    gain_u = table["proposed_target"]["u_db"] - table["ideal_nearest"]["u_db"]
+    gain_v = table["proposed_target"]["v_db"] - table["ideal_nearest"]["v_db"]
+    notes = (f"Images: skimage.data {', '.join(names)} (the paper used BSDS500, not shipped). "
+             f"Proposed target vs ideal nearest neighbour: U {gain_u:+.1f} dB, V {gain_v:+.1f} dB, RGB "
+             f"{table['proposed_target']['rgb_db'] - table['ideal_nearest']['rgb_db']:+.1f} dB, L "
+             f"{table['proposed_target']['l_db'] - table['ideal_nearest']['l_db']:+.1f} dB "
+             "(paper: U +1.9, V +2.1, RGB 0, L -0.1). The chroma gain here is larger and the absolute PSNRs "
+             "differ: our nearest neighbour copies each 2x2 cell's R, G(1,0), B to the cell, the bilinear "
+             "baseline uses normalized convolution, LUV peaks are the sRGB-gamut extents, and these images "
+             "hold more fine colour detail than the paper's average; the paper does not give its "
+             "reconstruction or PSNR peaks. proposed_doe uses the optimized, quantized element's coded-view "
+             "PSF (light outside the window lost, gain-corrected so lost light raises noise).")
+    write_json(out / "table.json", {**table, "notes": notes, "per_image": per_image, "paper_table1": bayer.PAPER_TABLE1,
+                                    "images": names, "crop": args.crop, "noise_sigma_255": 1.0, "seed": args.seed,
+                                    "doe": doe_info, "run_time_s": time.perf_counter() - t0})
+    bayer.figure(images, recs, out / "fig2.png")
+    from .common import print_json
+
+    print_json({"table": str(out / "table.json"), "figure": str(out / "fig2.png"),
+                **{k: {m: round(v, 2) for m, v in row.items()} for k, row in table.items()}})
+    return 0
+
+
+def bayer_wavelengths(design):
+    """R, G, B wavelengths of a Bayer design (from its metadata, else 656/589/486 nm)."""
+    wls = design.metadata.get("target", {}).get("wavelengths_nm")
+    if wls and len(wls) == 3:
+        return np.asarray(wls, dtype=float) * 1e-9
+    return np.asarray(targets.RGB_WAVELENGTHS_M)

@@ -1,0 +1,1 @@
+"""The ``doe`` subcommands of the metrology package: compare, calibrate, diagnose, demo."""

@@ -1,0 +1,337 @@
+"""``doe calibrate``: dual-pixel crosstalk calibration and measured PSF stacks."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from doedesign.errors import DoeError
+from doedesign.fileio import save_figure, write_json, write_npz
+from doedesign.psf import parse_wavelengths_nm
+
+import metrology.calibration.dualpixel as dp
+import metrology.calibration.psfstack as ps
+
+log = logging.getLogger(__name__)
+
+FRAME_SUFFIXES = (".tif", ".tiff", ".npy") + dp.RAW_SUFFIXES
+CAPTURE_HELP = """\
+Capture naming (a directory): for each wavelength NNN in nm, NNNnm_sum.EXT (the sum frame) and
+NNNnm_view.EXT (the stored single-photodiode frame), EXT one of .tif .tiff .npy or a camera raw
+(.cr2, .dng, ...; needs rawpy); optionally NNNnm_spectrum.csv (two columns: wavelength in nm,
+intensity) with the band's measured spectrum, and dark_sum.EXT / dark_view.EXT (a dark capture).
+Example: 450nm_sum.tif 450nm_view.tif 460nm_sum.tif ...
+Or a list file (.txt/.csv): one capture per line, "WAVELENGTH_NM SUM_PATH VIEW_PATH [SPECTRUM_PATH]",
+an optional "dark SUM_PATH VIEW_PATH" line, '#' comments; paths relative to the list file;
+wavelengths strictly increasing. Frames are row-major, row 0 at the top of the sensor.
+Output (in --out): psf_stack.npz (the tool's PSF file: psf (views, depths=1, wavelengths, rows, cols),
+views coded/uncoded, normalized to the uncoded view's whole-frame total), psf_network.npy
+((2, H, W, C), uncoded view first), report.json, comparison.npz with --predicted, PNG plots."""
+
+
+def register(subparsers):
+    cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk and measured PSF calibration")
+    sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT")
+
+    p = sub.add_parser("crosstalk", help="crosstalk ratios from white-wall captures with half the aperture blocked",
+                       description="Per Bayer channel and column, the share of each view's light leaking to the "
+                                   "other, from a capture with the left and one with the right aperture half blocked.")
+    p.add_argument("--left-blocked", nargs=2, required=True, metavar=("SUM", "VIEW"),
+                   help="sum and stored-view frames with the left aperture half blocked")
+    p.add_argument("--right-blocked", nargs=2, required=True, metavar=("SUM", "VIEW"),
+                   help="sum and stored-view frames with the right aperture half blocked")
+    p.add_argument("--out", required=True, help="calibration .npz to write")
+    p.add_argument("--png", help="plot of the ratios across the columns")
+    _frame_options(p)
+    p.add_argument("--smoothing", type=float, default=None,
+                   help="spline smoothing penalty (default: generalized cross-validation)")
+    p.set_defaults(func=run_crosstalk)
+
+    p = sub.add_parser("psf", help="calibrated PSF stack from narrowband point-source captures",
+                       description="Split, crosstalk-compensate, background-subtract, centre, normalize and crop "
+                                   "narrowband PSF captures; optionally extrapolate and compare with predictions.",
+                       epilog=CAPTURE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--captures", required=True, help="directory of captures or a list file (see below)")
+    p.add_argument("--wavelengths-nm", help="wavelengths to use, e.g. 450:700:10 or 450,550 (default: all found)")
+    p.add_argument("--crosstalk", help="calibration .npz from 'doe calibrate crosstalk'")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--doe-side", choices=("left", "right"), default="right",
+                   help="aperture half carrying the DOE (the seed's measurements: right)")
+    p.add_argument("--coded-view", choices=dp.VIEW_NAMES,
+                   help="which frame view is coded (needed without --crosstalk, overrides it otherwise)")
+    p.add_argument("--pixel-pitch-um", type=float, default=5.4, help="sensor pixel pitch (5.4)")
+    p.add_argument("--window", default="512,512", help="window rows,cols (512,512)")
+    p.add_argument("--axis-pixel", default=None, help="window pixel of the axis row,col (default: window centre)")
+    p.add_argument("--axis", default=None, help="frame pixel row,col of the optical axis (default: uncoded peak)")
+    p.add_argument("--background", choices=ps.BACKGROUNDS, default="border",
+                   help="background estimate when no dark capture is given (border median)")
+    p.add_argument("--normalization", choices=ps.NORMALIZATIONS, default="uncoded",
+                   help="uncoded: both views over the uncoded whole-frame total (keeps the coded efficiency)")
+    p.add_argument("--predicted", help="predicted PSF .npz (from 'doe psf' or a measured-height PSF) to compare with")
+    p.add_argument("--extrapolate-nm", help="wavelengths to extrapolate from the shortest measured band "
+                                            "(e.g. 400:440:10); needs --predicted holding them")
+    p.add_argument("--orders", default="0,1,2", help="diffraction orders to locate (grating-like DOEs; '' to skip)")
+    _frame_options(p)
+    p.set_defaults(func=run_psf)
+
+
+def _frame_options(p):
+    p.add_argument("--cfa", default="RGGB", help="Bayer pattern of the sensor's top-left 2x2 cell (RGGB), "
+                                                 "or 'none' for monochrome frames")
+    p.add_argument("--saturation", type=float, default=None, help="raw saturation level (default: from the data)")
+    p.add_argument("--black-level", type=float, default=0.0, help="raw black level of each frame (0)")
+
+
+def _pair(values, name):
+    try:
+        parts = [int(v) for v in str(values).split(",")]
+        if len(parts) != 2:
+            raise ValueError
+    except ValueError:
+        raise DoeError(f"{name} must be two integers like 256,256, got {values!r}") from None
+    return tuple(parts)
+
+
+# -- crosstalk -------------------------------------------------------------------------------------------
+def run_crosstalk(args):
+    from doedesign.cli.common import print_json
+
+    if args.cfa.lower() == "none":
+        raise DoeError("crosstalk calibration works per Bayer channel; give the sensor's --cfa pattern")
+    left = tuple(dp.load_frame(f) for f in args.left_blocked)
+    right = tuple(dp.load_frame(f) for f in args.right_blocked)
+    cal = dp.calibrate_crosstalk(left, right, args.cfa, args.smoothing, args.saturation, args.black_level,
+                                 names=(f"left-blocked capture {args.left_blocked[0]}",
+                                        f"right-blocked capture {args.right_blocked[0]}"))
+    cal.metadata["files"] = {"left_blocked": args.left_blocked, "right_blocked": args.right_blocked}
+    cal.save(args.out)
+    if args.png:
+        save_figure(_crosstalk_figure(cal), args.png)
+    print_json({"calibration": str(args.out), "stored_view_half": cal.stored_view_half,
+                "mean_ratio": cal.summary(), "columns": cal.width})
+    return 0
+
+
+def _crosstalk_figure(cal):
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
+    cols = np.arange(cal.width)
+    colours = ("tab:red", "tab:green", "tab:olive", "tab:blue")
+    for vi, ax in enumerate(axes):
+        for ci, ch in enumerate(dp.CHANNELS):
+            ok = np.isfinite(cal.raw_ratio[vi, ci])
+            ax.plot(cols[ok], 100 * cal.raw_ratio[vi, ci, ok], ".", ms=2, color=colours[ci], alpha=0.4)
+            ax.plot(cols, 100 * cal.ratio[vi, ci], color=colours[ci], label=ch)
+        ax.set_title(f"{dp.VIEW_NAMES[vi]} view leaking to the other")
+        ax.set_xlabel("sensor column (0 = left)")
+    axes[0].set_ylabel("crosstalk (% of the view's light)")
+    axes[0].legend()
+    return fig
+
+
+# -- PSF stacks ---------------------------------------------------------------------------------------------
+def find_captures(spec, wavelengths_m=None):
+    """Capture files from a directory or list file (convention in ``CAPTURE_HELP``).
+
+    Returns (wavelengths_m, [(sum_path, view_path, spectrum_path or None)], dark pair or None).
+    """
+    spec = Path(spec)
+    if spec.is_dir():
+        found, dark = {}, {}
+        for f in sorted(spec.iterdir()):
+            m = re.fullmatch(r"(\d+(?:\.\d+)?)nm_(sum|view|spectrum)(\.\w+)", f.name, flags=re.IGNORECASE)
+            d = re.fullmatch(r"dark_(sum|view)(\.\w+)", f.name, flags=re.IGNORECASE)
+            if m and (m.group(3).lower() in FRAME_SUFFIXES or m.group(2).lower() == "spectrum"):
+                found.setdefault(float(m.group(1)), {})[m.group(2).lower()] = f
+            elif d and d.group(2).lower() in FRAME_SUFFIXES:
+                dark[d.group(1).lower()] = f
+        wl_nm = sorted(found) if wavelengths_m is None else [float(np.round(w * 1e9, 3)) for w in wavelengths_m]
+        missing = [w for w in wl_nm if not {"sum", "view"} <= set(found.get(w, {}))]
+        if missing:
+            raise DoeError(f"{spec}: no capture (NNNnm_sum + NNNnm_view) for {', '.join(f'{w:g}' for w in missing)} nm")
+        files = [(found[w]["sum"], found[w]["view"], found[w].get("spectrum")) for w in wl_nm]
+        if dark and set(dark) != {"sum", "view"}:
+            raise DoeError(f"{spec}: a dark capture needs both dark_sum and dark_view")
+        return ps.check_wavelengths(np.array(wl_nm) * 1e-9, str(spec)), files, \
+            ((dark["sum"], dark["view"]) if dark else None)
+    if not spec.is_file():
+        raise DoeError(f"{spec}: no such capture directory or list file")
+    wl_nm, files, dark = [], [], None
+    for n, line in enumerate(spec.read_text().splitlines(), 1):
+        parts = line.split("#")[0].replace(",", " ").split()
+        if not parts:
+            continue
+        paths = [spec.parent / p for p in parts[1:]]
+        if parts[0].lower() == "dark" and len(paths) == 2:
+            dark = tuple(paths)
+            continue
+        try:
+            wl = float(parts[0])
+            if len(paths) not in (2, 3):
+                raise ValueError
+        except ValueError:
+            raise DoeError(f"{spec}, line {n}: expected 'WAVELENGTH_NM SUM VIEW [SPECTRUM]', "
+                           f"got {line.strip()!r}") from None
+        wl_nm.append(wl)
+        files.append((paths[0], paths[1], paths[2] if len(paths) == 3 else None))
+    wl = ps.check_wavelengths(np.array(wl_nm) * 1e-9, str(spec))
+    if wavelengths_m is not None:
+        missing = [w for w in wavelengths_m if np.abs(wl - w).min() > ps.WAVELENGTH_TOLERANCE_M]
+        if missing:
+            raise DoeError(f"{spec}: no capture listed for {', '.join(f'{w * 1e9:g}' for w in missing)} nm")
+        keep = [int(np.argmin(np.abs(wl - w))) for w in wavelengths_m]
+        wl, files = wl[keep], [files[i] for i in keep]
+    return wl, files, dark
+
+
+def _load_spectra(paths, band_wl):
+    """Spectra on the first file's wavelength grid, or (None, None) when none is given."""
+    if all(p is None for p in paths):
+        return None, None
+    if any(p is None for p in paths):
+        missing = [f"{w * 1e9:g}" for w, p in zip(band_wl, paths) if p is None]
+        raise DoeError(f"band spectra given for some wavelengths but not for {', '.join(missing)} nm")
+    grid, spectra = None, []
+    for p in paths:
+        try:
+            data = np.loadtxt(p, delimiter=None if p.suffix.lower() != ".csv" else ",", ndmin=2)
+        except (OSError, ValueError) as exc:
+            raise DoeError(f"{p}: cannot read spectrum (two columns: wavelength nm, intensity): {exc}") from None
+        if data.shape[1] < 2 or data.shape[0] < 3:
+            raise DoeError(f"{p}: a spectrum needs two columns (wavelength nm, intensity) and 3+ rows")
+        wl = ps.check_wavelengths(data[:, 0] * 1e-9, str(p))
+        if grid is None:
+            grid = wl
+        spectra.append(np.interp(grid, wl, data[:, 1], left=0.0, right=0.0))
+    return grid, np.array(spectra)
+
+
+def _views_of(sum_path, view_path, args, cal, coded_name):
+    """Coded and uncoded monochrome views of one capture."""
+    s, v = dp.load_frame(sum_path), dp.load_frame(view_path)
+    stored, other, sat = dp.split_views(s, v, args.saturation, args.black_level, name=str(sum_path))
+    if cal is not None:
+        if cal.width != s.shape[1]:
+            raise DoeError(f"{sum_path}: {s.shape[1]} columns but the crosstalk calibration has {cal.width}")
+        stored, other = dp.compensate_crosstalk(stored, other, cal, saturated=sat, name=str(sum_path))
+    if sat.any():
+        log.warning("%s: %d saturated pixels", sum_path, int(sat.sum()))
+    coded, uncoded = (stored, other) if coded_name == "stored" else (other, stored)
+    return coded, uncoded
+
+
+def run_psf(args):
+    from doedesign.cli.common import print_json
+
+    out = Path(args.out)
+    wavelengths = parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None
+    if wavelengths is not None:
+        ps.check_wavelengths(wavelengths, "--wavelengths-nm")
+    wl, files, dark_files = find_captures(args.captures, wavelengths)
+    cal = dp.CrosstalkCalibration.load(args.crosstalk) if args.crosstalk else None
+    if args.coded_view:
+        coded_name = args.coded_view
+    elif cal is not None:
+        coded_name = dp.coded_view_name(cal.stored_view_half, args.doe_side)
+    else:
+        raise DoeError("without --crosstalk, say which frame view is coded with --coded-view stored|other")
+    cfa = None if args.cfa.lower() == "none" else args.cfa
+    if cal is not None and cfa is not None and cfa.upper() != cal.cfa_pattern:
+        raise DoeError(f"--cfa {cfa} differs from the calibration's pattern {cal.cfa_pattern}")
+    window = _pair(args.window, "--window")
+    axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
+    centre = _pair(args.axis, "--axis") if args.axis else None
+
+    captures, gains = [], []
+    for sum_path, view_path, _ in files:
+        coded, uncoded = _views_of(sum_path, view_path, args, cal, coded_name)
+        if cfa is not None:
+            # Narrowband light: equalize the CFA channels' responses, taken from the uncoded view.
+            g = dp.mosaic_channel_gains(uncoded, cfa)
+            coded, uncoded = dp.apply_channel_gains(coded, g, cfa), dp.apply_channel_gains(uncoded, g, cfa)
+            gains.append(g.tolist())
+        captures.append((coded, uncoded))
+    darks = None
+    if dark_files is not None:
+        darks = np.stack(_views_of(*dark_files, args, cal, coded_name))
+    spec_wl, spectra = _load_spectra([f[2] for f in files], wl)
+    stack = ps.build_stack(captures, wl, args.pixel_pitch_um * 1e-6, window, axis_pixel, centre, darks,
+                           args.background, args.normalization, spec_wl, spectra,
+                           names=[str(f[0]) for f in files])
+    stack.info["channel_gains"] = gains
+    report = {"captures": str(args.captures), "wavelengths_nm": (wl * 1e9).tolist(), "coded_view": coded_name,
+              "crosstalk": args.crosstalk, "normalization": args.normalization,
+              "normalization_note": ("both views divided by the uncoded view's whole-frame total: window sums are the "
+                                     "share of each half-aperture's light in the window, coded relative to uncoded")
+              if args.normalization == "uncoded" else "each view divided by its own whole-frame total",
+              "window": list(window), "axis_pixel": list(axis_pixel), "layout": "row 0 at the top",
+              "per_wavelength": stack.info}
+    if stack.spectra is not None:
+        stats = stack.band_stats()
+        report["band_centroid_nm"] = (stats[:, 0] * 1e9).tolist()
+        report["band_fwhm_nm"] = (stats[:, 1] * 1e9).tolist()
+    predicted = None
+    if args.predicted:
+        predicted = ps.load_stack(args.predicted)
+    if args.extrapolate_nm:
+        if predicted is None:
+            raise DoeError("--extrapolate-nm needs --predicted PSFs at those wavelengths (order positions)")
+        stack = ps.extrapolate_orders(stack, predicted, parse_wavelengths_nm(args.extrapolate_nm))
+        report["extrapolation"] = stack.info["extrapolation"]
+    orders = tuple(int(v) for v in args.orders.split(",") if v.strip()) if args.orders else ()
+    figures = [_stack_figure(stack, out / "psf_stack.png")]
+    if predicted is not None:
+        comparison, difference = ps.compare_stacks(stack, predicted, orders, name="predicted")
+        report["comparison"] = comparison
+        write_npz(out / "comparison.npz", difference=difference, measured=stack.psf,
+                  predicted=stack.psf - difference, views=np.array(ps.VIEWS), wavelengths_m=stack.wavelengths_m,
+                  pixel_pitch_m=np.float64(stack.pixel_pitch_m), axis_pixel=np.asarray(stack.axis_pixel))
+        if orders:
+            figures.append(_orders_figure(comparison, out / "orders.png"))
+    ps.save_stack(stack, out / "psf_stack.npz")
+    ps.save_network_npy(stack, out / "psf_network.npy")
+    report["outputs"] = [str(out / n) for n in ("psf_stack.npz", "psf_network.npy")] + [str(f) for f in figures]
+    write_json(out / "report.json", report)
+    print_json({"out": str(out), "wavelengths_nm": (stack.wavelengths_m * 1e9).round(3).tolist(),
+                "measured": stack.measured.tolist(),
+                "energy_in_window": {v: stack.energy_in_window[i].round(5).tolist() for i, v in enumerate(ps.VIEWS)}})
+    return 0
+
+
+def _stack_figure(stack, path):
+    import matplotlib.pyplot as plt
+
+    pick = np.unique(np.linspace(0, stack.wavelengths_m.size - 1, min(stack.wavelengths_m.size, 6)).round().astype(int))
+    fig, axes = plt.subplots(2, pick.size, figsize=(2.6 * pick.size, 5.2), squeeze=False)
+    for j, i in enumerate(pick):
+        for vi, view in enumerate(ps.VIEWS):
+            img = np.clip(stack.psf[vi, i], 0, None)
+            ax = axes[vi, j]
+            ax.imshow(np.log10(img + img.max() * 1e-5 + 1e-30), cmap="magma", origin="upper")
+            tag = "" if stack.measured[i] else " (extrap.)"
+            ax.set_title(f"{view} {stack.wavelengths_m[i] * 1e9:.0f} nm{tag}", fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("measured PSFs, log10 (row 0 at the top)")
+    return save_figure(fig, path)
+
+
+def _orders_figure(comparison, path):
+    import matplotlib.pyplot as plt
+
+    rows = comparison["wavelengths"]
+    wl = [r["wavelength_nm"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for k, m in enumerate(rows[0]["orders"]):
+        line, = ax.plot(wl, [100 * r["order_energies"]["measured"][k] for r in rows], "o-", label=f"order {m} measured")
+        ax.plot(wl, [100 * r["order_energies"]["predicted"][k] for r in rows], "--", color=line.get_color(),
+                label=f"order {m} predicted")
+    ax.set_xlabel("wavelength (nm)")
+    ax.set_ylabel("energy near the order (% of a half-aperture)")
+    ax.legend(fontsize=7)
+    return save_figure(fig, path)

@@ -1,0 +1,54 @@
+"""``doe inspect``: a summary of a design file or of any measurement file the readers know."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from doedesign.cli.common import print_json
+from doedesign.design import Design
+from metrology.formats import readers
+
+
+def is_design_file(path):
+    """True when ``path`` is a ``.npz`` with the design file's required fields."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz" or not path.is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {"height_m", "pitch_m", "metadata"} <= set(npz.files)
+    except Exception:  # not a zip: the measurement readers report the problem
+        return False
+
+
+def inspect_file(path, pixel_size_m=None):
+    """Summary dictionary of a design or a measurement file."""
+    if is_design_file(path):
+        return Design.load(path).summary()
+    return readers.read_measurement(path, pixel_size_m=pixel_size_m).summary()
+
+
+def cmd_inspect(args):
+    summary = inspect_file(args.file, args.pixel_size_m)
+    if args.json:
+        print_json(summary)
+    else:
+        for key, value in summary.items():
+            if key != "metadata":
+                print(f"{key:>20}: {value}")
+    return 0
+
+
+
+
+def register(sub):
+    p = sub.add_parser("inspect", help="summarize a design or measurement file",
+                       description="Summarize a design (.npz) or a profilometer measurement (.dat, .datx, .xyz, "
+                                   ".asc, .csv, .npy, .npz, .tif).")
+    p.add_argument("file")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--pixel-size-m", type=float, default=None,
+                   help="lateral pixel size for files that do not carry one (.npy, TIFF without tags)")
+    p.set_defaults(func=cmd_inspect)

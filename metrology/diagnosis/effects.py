@@ -1,0 +1,446 @@
+"""The effect registry: named, parametrized departures of the real part from the ideal model.
+
+Each :class:`Effect` has a name, parameters with physical units and bounds, a function that
+applies it to the model, a one-sentence explanation, and the *stage* of the forward model it
+acts on. The diagnosis (:mod:`metrology.diagnosis.diagnose`) fits every candidate's parameters to a
+measurement and keeps those that earn their parameters.
+
+Stages, in the order the forward model applies them:
+
+height domain (a height map on the fine model grid, row 0 at the top)
+    ``"process"``  ``apply(params: ProcessParams, values) -> ProcessParams`` (masks stage model)
+    ``"surface"``  ``apply(height_m, values, step_m) -> height_m`` (instrument artefacts)
+PSF domain (a PSF stack shaped (views, wavelengths, rows, cols))
+    ``"height"``   ``apply(height_m, values) -> height_m`` (the DOE heights before the optics)
+    ``"optics"``   ``apply(render, values, info) -> render`` where ``render(height_m,
+                   wavelengths_m, depth_m)`` returns the stack; effects wrap it (defocus,
+                   spectral bandwidth). ``info`` holds ``focus_distance_m`` and ``depth_m``.
+    ``"sensor"``   ``apply(stack, values, info) -> stack`` on the measured views (crosstalk,
+                   background); ``info`` holds ``views`` (of ``stack``), ``full`` (the stack of
+                   every view before sensor effects) and ``full_views``.
+
+Users add their own effect from a script::
+
+    @register_effect(name="my_tilt", domain="height", stage="surface",
+                     params=[Parameter("slope", "rad", -1e-3, 1e-3, 1e-4)],
+                     description="A residual plane the levelling missed.")
+    def my_tilt(height_m, values, step_m):
+        ...
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.ndimage as ndi
+from scipy.special import erf
+
+from doedesign.errors import DoeError
+
+DOMAINS = ("height", "psf")
+STAGES = {"height": ("process", "surface"), "psf": ("height", "optics", "sensor")}
+KINDS = ("fabrication", "artefact", "calibration")
+# Peak of sigma^2 d/dx G_sigma(x) for a unit step, at x = sigma: 1 / sqrt(2 pi e). Batwing
+# amplitudes are quoted as the peak overshoot as a fraction of the step height.
+_DOG_PEAK = 1.0 / np.sqrt(2.0 * np.pi * np.e)
+
+
+class EffectError(DoeError):
+    """An effect is unknown, badly defined, or given the wrong number of values."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted parameter of an effect.
+
+    Parameters
+    ----------
+    name : str
+        Name with its unit where it helps (``shift_m``).
+    unit : str
+        Physical unit shown in reports (``"m"``, ``"rad"``, ``"1"`` for a fraction).
+    lower, upper : float
+        Bounds of the fit.
+    scale : float
+        Typical size; the fit works in units of ``scale`` (its ``x_scale``).
+    null : float
+        The value at which the effect vanishes (the ideal model).
+    """
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    scale: float
+    null: float = 0.0
+
+    def __post_init__(self):
+        if not (self.lower <= self.null <= self.upper) or not self.scale > 0:
+            raise EffectError(f"parameter {self.name}: need lower <= null <= upper and scale > 0")
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A named effect: parameters, the function applying it, and what it means.
+
+    Attributes
+    ----------
+    name : str
+    domain : {"height", "psf"}
+    stage : str
+        Where in the forward model ``apply`` acts (see the module docstring).
+    params : tuple of Parameter
+    apply : callable
+        Signature depends on ``stage`` (module docstring).
+    description : str
+        One sentence a user reads in the report.
+    kind : {"fabrication", "artefact", "calibration"}
+        ``"artefact"`` marks a measurement artefact, never to be blamed on fabrication.
+    order : int
+        Order within a stage (lower first).
+    """
+
+    name: str
+    domain: str
+    stage: str
+    params: tuple
+    apply: object
+    description: str
+    kind: str = "fabrication"
+    order: int = 0
+    start: tuple | None = field(default=None)
+    per_channel: bool = False
+
+    def __post_init__(self):
+        if self.domain not in DOMAINS:
+            raise EffectError(f"effect {self.name}: domain must be one of {DOMAINS}, got {self.domain!r}")
+        if self.stage not in STAGES[self.domain]:
+            raise EffectError(f"effect {self.name}: stage of a {self.domain} effect must be one of "
+                              f"{STAGES[self.domain]}, got {self.stage!r}")
+        if self.kind not in KINDS:
+            raise EffectError(f"effect {self.name}: kind must be one of {KINDS}, got {self.kind!r}")
+        if not callable(self.apply):
+            raise EffectError(f"effect {self.name}: apply must be callable")
+        object.__setattr__(self, "params", tuple(self.params))
+        if not self.params:
+            raise EffectError(f"effect {self.name}: needs at least one parameter")
+
+    @property
+    def n_params(self):
+        return len(self.params)
+
+    def for_channels(self, channels):
+        """This effect with its parameters repeated per channel (``per_channel`` effects).
+
+        Parameters
+        ----------
+        channels : list of str
+            Channel labels, e.g. ``"coded_550nm"``; one copy of every parameter per channel.
+        """
+        if not self.per_channel:
+            return self
+        params = [Parameter(f"{p.name}_{c}", p.unit, p.lower, p.upper, p.scale, p.null)
+                  for c in channels for p in self.params]
+        start = None if self.start is None else tuple(self.start) * len(channels)
+        return Effect(self.name, self.domain, self.stage, params, self.apply, self.description,
+                      self.kind, self.order, start, per_channel=False)
+
+    def null_values(self):
+        """Parameter values of the ideal model (the effect absent)."""
+        return np.array([p.null for p in self.params], dtype=float)
+
+    def start_values(self):
+        """Where a fit starts: ``start`` if given (for effects degenerate at null), else null."""
+        return np.array(self.start, dtype=float) if self.start is not None else self.null_values()
+
+    def bounds(self):
+        return (np.array([p.lower for p in self.params], dtype=float),
+                np.array([p.upper for p in self.params], dtype=float))
+
+    def scales(self):
+        return np.array([p.scale for p in self.params], dtype=float)
+
+    def check(self, values):
+        """Values as a float array of the right length (raises :class:`EffectError`)."""
+        v = np.atleast_1d(np.asarray(values, dtype=float))
+        if v.shape != (self.n_params,):
+            raise EffectError(f"effect {self.name} takes {self.n_params} values "
+                              f"({', '.join(p.name for p in self.params)}), got {v.size}")
+        return v
+
+    def describe(self):
+        """Dictionary for reports."""
+        return {"name": self.name, "domain": self.domain, "stage": self.stage, "kind": self.kind,
+                "description": self.description,
+                "params": [{"name": p.name, "unit": p.unit, "lower": p.lower, "upper": p.upper}
+                           for p in self.params]}
+
+
+REGISTRY: dict = {}
+
+
+def register_effect(effect=None, *, replace=False, **kwargs):
+    """Add an effect to the registry; usable as a function or as a decorator.
+
+    ``register_effect(Effect(...))`` registers an effect object.
+    ``@register_effect(name=..., domain=..., stage=..., params=[...], description=...)``
+    decorates the ``apply`` function.
+
+    Parameters
+    ----------
+    effect : Effect, optional
+    replace : bool
+        Allow replacing an existing effect of the same name.
+    **kwargs
+        The :class:`Effect` fields except ``apply`` (decorator form).
+
+    Returns
+    -------
+    Effect, or a decorator returning the decorated function unchanged.
+    """
+    def add(eff):
+        if eff.name in REGISTRY and not replace:
+            raise EffectError(f"an effect named {eff.name!r} is already registered (pass replace=True)")
+        REGISTRY[eff.name] = eff
+        return eff
+
+    if effect is not None:
+        if not isinstance(effect, Effect):
+            raise EffectError(f"register_effect needs an Effect, got {type(effect).__name__}")
+        return add(effect)
+
+    def decorator(func):
+        add(Effect(apply=func, **kwargs))
+        return func
+
+    return decorator
+
+
+def unregister_effect(name):
+    """Remove a (user) effect from the registry."""
+    REGISTRY.pop(name, None)
+
+
+def get_effect(name):
+    try:
+        return REGISTRY[name]
+    except KeyError:
+        raise EffectError(f"unknown effect {name!r}; registered: {', '.join(sorted(REGISTRY))}") from None
+
+
+def effects_for(domain, names=None):
+    """Registered effects of ``domain`` (optionally only ``names``), in forward-model order."""
+    if domain not in DOMAINS:
+        raise EffectError(f"domain must be one of {DOMAINS}, got {domain!r}")
+    if names is None:
+        chosen = [e for e in REGISTRY.values() if e.domain == domain]
+    else:
+        chosen = [get_effect(n) for n in names]
+        for e in chosen:
+            if e.domain != domain:
+                raise EffectError(f"effect {e.name!r} belongs to the {e.domain} domain, not {domain}")
+    stages = STAGES[domain]
+    return sorted(chosen, key=lambda e: (stages.index(e.stage), e.order))
+
+
+# -- array helpers ---------------------------------------------------------------------------
+def _gaussian_taps(sigma_m, step_m):
+    """Pixel-integrated Gaussian and Gaussian-second-derivative taps (per axis).
+
+    For pixel-averaged heights ``h_k`` the blurred value at pixel ``j`` is
+    ``sum_k h_k * integral over pixel k of G(x_j - x)``: taps ``Phi((m + 1/2) s / sigma) -
+    Phi((m - 1/2) s / sigma)``; likewise ``G'(m s + s/2) - G'(m s - s/2)`` for ``G''``. They tend
+    to the identity as sigma -> 0 (continuous for a least-squares fit) and do not depend on
+    the size of the map (an FFT filter's band edge does).
+    """
+    half = int(np.ceil(5.0 * sigma_m / step_m)) + 1
+    edges = (np.arange(-half, half + 2) - 0.5) * step_m
+    cdf = 0.5 * (1.0 + erf(edges / (np.sqrt(2.0) * sigma_m)))
+    smooth = np.diff(cdf)
+    dens = np.exp(-0.5 * (edges / sigma_m) ** 2) / (np.sqrt(2.0 * np.pi) * sigma_m)
+    first = -edges / sigma_m ** 2 * dens  # G'(x)
+    second = np.diff(first)  # integral of G'' over each pixel (1/m^2 * m)
+    return smooth / smooth.sum(), second
+
+
+def gaussian_blur(height_m, sigma_m, step_m):
+    """Gaussian blur of standard deviation ``sigma_m`` of a pixel-averaged map (separable)."""
+    h = np.asarray(height_m, dtype=float)
+    if sigma_m <= 0:
+        return h
+    smooth, _ = _gaussian_taps(sigma_m, step_m)
+    out = ndi.correlate1d(h, smooth, axis=0, mode="nearest")
+    return ndi.correlate1d(out, smooth, axis=1, mode="nearest")
+
+
+def batwing_profile(height_m, amplitude, sigma_m, step_m):
+    """Edge overshoot of a white-light interferometer: ``-a sigma^2 lap(G_sigma * h) / peak``.
+
+    Across a step of height H the added profile is a derivative of Gaussian of width
+    ``sigma_m``: an overshoot of ``amplitude * H`` at the top corner and an undershoot as deep
+    at the bottom corner, zero on flat areas.
+    """
+    h = np.asarray(height_m, dtype=float)
+    if sigma_m <= 0 or amplitude == 0:
+        return np.zeros_like(h)
+    smooth, second = _gaussian_taps(sigma_m, step_m)
+    lap = (ndi.correlate1d(ndi.correlate1d(h, second, axis=0, mode="nearest"), smooth, axis=1, mode="nearest")
+           + ndi.correlate1d(ndi.correlate1d(h, smooth, axis=0, mode="nearest"), second, axis=1, mode="nearest"))
+    return -amplitude * sigma_m ** 2 / _DOG_PEAK * lap
+
+
+# -- built-in height-domain effects ----------------------------------------------------------
+def _etch_depth(params, values):
+    depths = np.asarray(params.etch_depth, dtype=float) * (1.0 + values)
+    return params.copy(etch_depth=tuple(depths))
+
+
+def _mask_overlay(params, values):
+    overlay = np.array(params.mask_overlay, dtype=float, copy=True)
+    overlay[1:, 0] += values[0::2]
+    overlay[1:, 1] += values[1::2]
+    return params.copy(mask_overlay=overlay)
+
+
+def _linewidth_bias(params, values):
+    return params.copy(linewidth_bias=np.asarray(params.linewidth_bias, dtype=float) + values)
+
+
+def _proximity_blur(params, values):
+    return params.copy(proximity_blur=float(values[0]))
+
+
+def _sidewall_slope(params, values):
+    return params.copy(sidewall_slope=float(values[0]))
+
+
+def _etch_loading(params, values):
+    return params.copy(etch_loading=float(values[0]))
+
+
+def _instrument_blur(height_m, values, step_m):
+    return gaussian_blur(height_m, float(values[0]), step_m)
+
+
+def _batwing(height_m, values, step_m):
+    return height_m + batwing_profile(height_m, float(values[0]), float(values[1]), step_m)
+
+
+_UM = 1e-6
+_BUILTIN_HEIGHT = [
+    Effect("etch_depth", "height", "process",
+           [Parameter(f"depth_error_mask{j}", "1", -0.3, 0.3, 0.02) for j in range(4)], _etch_depth,
+           "Each mask's etch went deeper or shallower than its target by a fraction: the 16 level "
+           "heights stop being multiples of one step."),
+    Effect("mask_overlay", "height", "process",
+           [Parameter(f"{ax}_mask{j}_m", "m", -3 * _UM, 3 * _UM, 0.2 * _UM) for j in (1, 2, 3) for ax in ("dx", "dy")],
+           _mask_overlay,
+           "A mask was printed shifted against the first one (x toward +column, y up): one-signed slivers "
+           "of that mask's depth appear on opposite edges of its features."),
+    Effect("linewidth_bias", "height", "process",
+           [Parameter(f"bias_mask{j}_m", "m", -1.5 * _UM, 1.5 * _UM, 0.1 * _UM) for j in range(4)], _linewidth_bias,
+           "A mask's openings printed wider (positive) or narrower than drawn, from exposure dose or "
+           "development: same-sign slivers on every edge of its features."),
+    Effect("proximity_blur", "height", "process",
+           [Parameter("sigma_m", "m", 0.0, 4 * _UM, 0.5 * _UM)], _proximity_blur,
+           "The contact-print gap blurs the mask's aerial image before the resist threshold: corners round "
+           "and small isolated features shrink.", start=(0.8 * _UM,)),
+    Effect("sidewall_slope", "height", "process",
+           [Parameter("ramp_width_m", "m", 0.0, 3 * _UM, 0.3 * _UM)], _sidewall_slope,
+           "The etch leaves sloped sidewalls: steps become ramps of a finite width.", start=(1.5 * _UM,)),
+    Effect("etch_loading", "height", "process",
+           [Parameter("loading", "1", -0.5, 0.5, 0.02)], _etch_loading,
+           "The etch rate depends on the local open fraction of the mask: depth follows pattern density."),
+    Effect("instrument_blur", "height", "surface",
+           [Parameter("sigma_m", "m", 0.0, 3 * _UM, 0.2 * _UM)], _instrument_blur,
+           "Measurement artefact: the profilometer's finite lateral resolution (about 0.8 um at NA 0.4) "
+           "smooths every step.", kind="artefact", order=20, start=(0.4 * _UM,)),
+    Effect("batwing", "height", "surface",
+           [Parameter("amplitude", "1", -1.0, 1.0, 0.05), Parameter("sigma_m", "m", 0.1 * _UM, 3 * _UM, 0.2 * _UM, 0.1 * _UM)],
+           _batwing,
+           "Measurement artefact: a white-light interferometer overshoots at steps shorter than its coherence "
+           "length, a signed edge spike proportional to the step height.", kind="artefact", order=10,
+           start=(0.05, 0.6 * _UM)),
+]
+for _e in _BUILTIN_HEIGHT:
+    register_effect(_e)
+
+
+# -- built-in PSF-domain effects -------------------------------------------------------------
+# Gauss-Hermite nodes for averaging over a Gaussian source spectrum (exact for polynomials of
+# degree 5 in wavelength, enough for a smear of a few pixels).
+_GH_NODES, _GH_WEIGHTS = np.polynomial.hermite_e.hermegauss(3)
+_GH_WEIGHTS = _GH_WEIGHTS / _GH_WEIGHTS.sum()
+FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+def _depth_scale(height_m, values):
+    return height_m * (1.0 + float(values[0]))
+
+
+def _defocus(render, values, info):
+    inv = 1.0 / info["depth_m"] + float(values[0])
+    depth = np.inf if inv <= 0 else 1.0 / inv
+
+    def shifted(height_m, wavelengths_m, depth_m):
+        return render(height_m, wavelengths_m, depth)
+
+    return shifted
+
+
+def _source_bandwidth(render, values, info):
+    sigma = float(values[0]) / FWHM_PER_SIGMA
+    if sigma <= 0:
+        return render
+
+    def averaged(height_m, wavelengths_m, depth_m):
+        wl = np.asarray(wavelengths_m, dtype=float)
+        samples = (wl[None, :] + sigma * _GH_NODES[:, None]).ravel()
+        stack = render(height_m, samples, depth_m)
+        stack = stack.reshape(stack.shape[0], _GH_NODES.size, wl.size, *stack.shape[-2:])
+        return np.tensordot(stack, _GH_WEIGHTS, axes=([1], [0]))
+
+    return averaged
+
+
+def _dual_pixel_crosstalk(stack, values, info):
+    views, full, full_views = list(info["views"]), info["full"], list(info["full_views"])
+    if "coded" not in views:
+        return stack
+    c = float(values[0])
+    out = stack.copy()
+    out[views.index("coded")] = ((1.0 - c) * full[full_views.index("coded")]
+                                 + c * full[full_views.index("uncoded")])
+    return out
+
+
+def _background(stack, values, info):
+    return stack + np.asarray(values, dtype=float).reshape(stack.shape[:2])[..., None, None]
+
+
+_BUILTIN_PSF = [
+    Effect("dual_pixel_crosstalk", "psf", "sensor",
+           [Parameter("fraction", "1", 0.0, 0.5, 0.02)], _dual_pixel_crosstalk,
+           "The dual-pixel sensor leaks a fraction of the uncoded view's light into the coded view.",
+           kind="calibration", start=(0.02,)),
+    Effect("source_bandwidth", "psf", "optics",
+           [Parameter("fwhm_m", "m", 0.0, 60e-9, 3e-9)], _source_bandwidth,
+           "The calibration source is not monochromatic: each PSF is averaged over a band of wavelengths, "
+           "smearing diffraction orders radially.", kind="calibration", start=(4e-9,)),
+    Effect("defocus", "psf", "optics",
+           [Parameter("inverse_distance_change_per_m", "1/m", -0.19, 5.0, 0.1)], _defocus,
+           "The point source was not where the camera is focused (or the sensor moved): a change of "
+           "1/distance adds a spherical phase that blurs the PSF symmetrically.", kind="calibration",
+           start=(0.3,)),
+    Effect("depth_scale", "psf", "height",
+           [Parameter("scale_error", "1", -0.3, 0.3, 0.02)], _depth_scale,
+           "All heights are off by one factor (index or depth calibration): light moves into the zero "
+           "and second orders.", kind="fabrication"),
+    Effect("background", "psf", "sensor",
+           [Parameter("offset", "1", -1e-3, 1e-3, 1e-6)], _background,
+           "A constant offset per view and wavelength (dark level, stray light), as a fraction of the "
+           "channel's light per pixel.", kind="calibration", per_channel=True, order=10),
+]
+for _e in _BUILTIN_PSF:
+    register_effect(_e)

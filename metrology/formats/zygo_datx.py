@@ -1,0 +1,234 @@
+"""Zygo Mx ``.datx`` files (HDF5).
+
+The surface dataset is found through the ``/MetaData`` table of (Source, Link,
+Destination) strings: Root -> Measurement -> {guid}, {guid} -> Surface -> {guid2},
+{guid2} -> Path -> ``/Data/Surface/{guid2}``. Files without a usable table are
+searched at ``/Data/Surface/*`` and then ``/Measurement/Surface``.
+
+Attributes of the surface dataset (each a 1-element array) give the unit (Fringes,
+NanoMeters, MicroMeters, ...; NoUnits is not a height map), the no-data value, the
+wavelength, the interferometric scale factor S and obliquity factor O (a value in
+fringes is ``value * S * O * wavelength`` metres) and ``X Converter``, a compound
+whose numeric ``Parameters`` field holds the pixel size in metres at index 1.
+
+Only the surface dataset and its attributes are read: some files hold small side
+datasets compressed with a vendor filter h5py cannot decode. The array keeps camera
+order (row 0 at the top of the camera image).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
+
+log = logging.getLogger(__name__)
+
+# Length units of the surface data, in metres. "Fringes" is handled separately.
+LENGTH_UNITS_M = {
+    "Meters": 1.0,
+    "MilliMeters": 1e-3,
+    "MicroMeters": 1e-6,
+    "NanoMeters": 1e-9,
+    "Angstroms": 1e-10,
+}
+FRINGES = "Fringes"
+NOT_HEIGHT_UNITS = ("NoUnits",)
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _decode(value):
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace").strip("\0 ")
+    if isinstance(value, np.ndarray) and value.dtype.kind in "SUO" and value.size == 1:
+        return _decode(value.reshape(-1)[0])
+    return str(value).strip("\0 ") if isinstance(value, str) else value
+
+
+def _attr(attrs, name, default=None):
+    """First element of a 1-element attribute (decoded when text), or ``default``."""
+    if name not in attrs:
+        return default
+    value = np.asarray(attrs[name])
+    if value.dtype.names:
+        return value.reshape(-1)[0] if value.size else default
+    value = value.reshape(-1)
+    if value.size == 0:
+        return default
+    item = value[0]
+    return _decode(item) if isinstance(item, (bytes, str, np.bytes_, np.str_)) else item.item()
+
+
+def converter_parameters(record):
+    """The numeric parameter array of an ``X Converter`` / ``Y Converter`` record.
+
+    The field is taken by name (``Parameters``) when present, otherwise as the first
+    field, by position, holding at least two numbers: files differ in extra fields.
+    """
+    names = record.dtype.names or ()
+    order = (["Parameters"] if "Parameters" in names else []) + list(range(len(names)))
+    for key in order:
+        value = np.asarray(record[key])
+        if value.dtype.kind in "fiu" and value.size >= 2:
+            return value.reshape(-1).astype(np.float64)
+    return None
+
+
+def _numbers(value):
+    """The numbers of an attribute (plain or compound) as a list; text fields are skipped."""
+    value = np.asarray(value).reshape(-1)
+    items = list(value[0]) if value.dtype.names and value.size else list(value)
+    out = []
+    for item in items:
+        try:
+            out.append(float(item))
+        except (TypeError, ValueError):
+            continue
+    return out
+
+
+def _metadata_table(f):
+    """Map (source, link) -> destination from ``/MetaData``; {} when absent or odd."""
+    if "MetaData" not in f or not hasattr(f["MetaData"], "dtype"):
+        return {}
+    table = f["MetaData"][()]
+    names = table.dtype.names
+    if not names or len(names) < 3:
+        return {}
+    src, link, dst = (("Source", "Link", "Destination") if {"Source", "Link", "Destination"} <= set(names)
+                      else names[:3])
+    return {(_decode(row[src]), _decode(row[link])): _decode(row[dst]) for row in table.reshape(-1)}
+
+
+def _first_dataset(group):
+    keys = sorted(k for k in group.keys() if hasattr(group[k], "shape"))
+    if len(keys) > 1:
+        log.warning("%s holds %d surfaces; reading %s", group.name, len(keys), keys[0])
+    return group[keys[0]] if keys else None
+
+
+def find_surface(f, path):
+    """The surface dataset of an open ``.datx`` and how it was found.
+
+    Returns
+    -------
+    (h5py.Dataset, str)
+        The dataset and one of "metadata", "data_surface", "measurement_surface".
+    """
+    table = _metadata_table(f)
+    measurement = table.get(("Root", "Measurement"))
+    surface = table.get((measurement, "Surface")) if measurement else None
+    if surface:
+        target = table.get((surface, "Path"), f"/Data/Surface/{surface}")
+        if target in f and hasattr(f[target], "shape"):
+            return f[target], "metadata"
+        log.warning("%s: /MetaData points to %s, which is missing; searching the usual places", path, target)
+    if "Data/Surface" in f and not hasattr(f["Data/Surface"], "shape"):
+        dset = _first_dataset(f["Data/Surface"])
+        if dset is not None:
+            return dset, "data_surface"
+    if "Measurement/Surface" in f:
+        obj = f["Measurement/Surface"]
+        dset = obj if hasattr(obj, "shape") else _first_dataset(obj)
+        if dset is not None:
+            return dset, "measurement_surface"
+    raise MeasurementFileError(f"{path}: no surface dataset (looked through /MetaData, /Data/Surface/*, "
+                               "/Measurement/Surface)")
+
+
+def _positive(path, name, value):
+    if value is None or not np.isfinite(value) or value <= 0:
+        raise MeasurementFileError(f"{path}: surface attribute '{name}' is {value}; "
+                                   "cannot convert fringes to height")
+    return float(value)
+
+
+def read_datx(path, pixel_size_m=None):
+    """Read a Zygo Mx ``.datx`` height map.
+
+    Parameters
+    ----------
+    path : str or Path
+    pixel_size_m : float, optional
+        Lateral sampling when the file's X Converter lacks it; overrides it when given.
+
+    Returns
+    -------
+    Measurement
+        Heights in metres, camera order, NaN where the file has no data.
+
+    Raises
+    ------
+    MeasurementFileError
+        Not HDF5, no surface dataset, unit NoUnits or unknown, missing attributes
+        needed for the conversion, a surface that is not 2-D.
+    """
+    import h5py
+
+    path = Path(path)
+    signature = read_head(path, 8)
+    if signature != HDF5_SIGNATURE:
+        raise MeasurementFileError(f"{path}: not a .datx file (no HDF5 signature)")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise MeasurementFileError(f"{path}: cannot open as HDF5 (truncated or damaged?): {exc}") from None
+    with f:
+        try:
+            dset, found = find_surface(f, path)
+            return _read_surface(path, dset, found, pixel_size_m)
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            # h5py reports damaged chunks and undecodable filters this way.
+            raise MeasurementFileError(f"{path}: cannot read the surface data: {exc}") from None
+
+
+def _read_surface(path, dset, found, pixel_size_m):
+    attrs = dset.attrs
+    unit = _attr(attrs, "Unit")
+    if unit is None:
+        raise MeasurementFileError(f"{path}: surface {dset.name} has no 'Unit' attribute")
+    if unit in NOT_HEIGHT_UNITS:
+        raise MeasurementFileError(f"{path}: surface {dset.name} has unit '{unit}': not a height map")
+    if unit != FRINGES and unit not in LENGTH_UNITS_M:
+        raise MeasurementFileError(f"{path}: surface {dset.name} has unknown unit '{unit}' "
+                                   f"(known: {FRINGES}, {', '.join(LENGTH_UNITS_M)})")
+    if len(dset.shape) != 2 or 0 in dset.shape:
+        raise MeasurementFileError(f"{path}: surface {dset.name} has shape {dset.shape}; expected 2-D")
+    wavelength = _attr(attrs, "Wavelength")
+    scale = _attr(attrs, "Interferometric Scale Factor")
+    obliquity = _attr(attrs, "Obliquity Factor", 1.0)
+    data = dset[()].astype(np.float64, copy=False)
+    no_data = _attr(attrs, "No Data")
+    invalid = ~np.isfinite(data)
+    if no_data is not None and np.isfinite(no_data):
+        invalid |= data >= no_data
+    if unit == FRINGES:
+        factor = (_positive(path, "Interferometric Scale Factor", scale)
+                  * _positive(path, "Obliquity Factor", obliquity)
+                  * _positive(path, "Wavelength", wavelength))
+    else:
+        factor = LENGTH_UNITS_M[unit]
+    data *= factor
+    data[invalid] = np.nan
+    params = converter_parameters(attrs["X Converter"][()].reshape(-1)[0]) if "X Converter" in attrs else None
+    pixel = pixel_size_m if pixel_size_m is not None else (params[1] if params is not None else None)
+    if pixel is None or not pixel > 0:
+        raise MeasurementFileError(f"{path}: no lateral pixel size in the X Converter; pass pixel_size_m")
+    metadata = {
+        "source_file": str(path),
+        "format": "mx_datx",
+        "surface_path": dset.name,
+        "surface_found_by": found,
+        "unit": unit,
+        "wavelength_m": None if wavelength is None else float(wavelength),
+        "intf_scale_factor": None if scale is None else float(scale),
+        "obliquity_factor": None if obliquity is None else float(obliquity),
+        "no_data": None if no_data is None else float(no_data),
+    }
+    if "Coordinates" in attrs:
+        metadata["coordinates"] = _numbers(attrs["Coordinates"])
+    log.info("%s: datx surface %s (%s), unit %s", path, dset.name, found, unit)
+    return Measurement(data, pixel, metadata)

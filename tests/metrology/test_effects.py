@@ -1,0 +1,124 @@
+"""The effect registry: built-in names, user registration, and each effect against physics."""
+
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from metrology.diagnosis import effects as fx
+from metrology.diagnosis.effects import Effect, EffectError, Parameter, get_effect, register_effect
+
+BUILTIN = {"etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope", "etch_loading",
+           "instrument_blur", "batwing", "dual_pixel_crosstalk", "source_bandwidth", "defocus", "depth_scale",
+           "background"}
+
+
+def test_builtin_names_domains_and_artefacts():
+    assert BUILTIN <= set(fx.REGISTRY)
+    assert {e.name for e in fx.effects_for("height")} >= {"etch_depth", "mask_overlay", "linewidth_bias",
+                                                          "proximity_blur", "sidewall_slope", "etch_loading",
+                                                          "instrument_blur", "batwing"}
+    assert {e.name for e in fx.effects_for("psf")} >= {"dual_pixel_crosstalk", "source_bandwidth", "defocus",
+                                                       "depth_scale", "background"}
+    artefacts = {n for n in BUILTIN if get_effect(n).kind == "artefact"}
+    assert artefacts == {"instrument_blur", "batwing"}
+    for name in BUILTIN:
+        e = get_effect(name)
+        assert e.description.endswith(".") and len(e.description) > 30
+        lo, hi = e.bounds()
+        assert np.all(lo <= e.null_values()) and np.all(e.null_values() <= hi)
+        assert np.all(lo <= e.start_values()) and np.all(e.start_values() <= hi)
+
+
+def test_user_registration_decorator_and_object():
+    @register_effect(name="test_piston_tilt", domain="height", stage="surface",
+                     params=[Parameter("slope", "rad", -1e-3, 1e-3, 1e-4)],
+                     description="A residual slope the levelling missed.")
+    def tilt(height_m, values, step_m):
+        return height_m + values[0] * step_m * np.arange(height_m.shape[1])[None, :]
+
+    try:
+        e = get_effect("test_piston_tilt")
+        out = e.apply(np.zeros((2, 3)), e.check([1e-4]), 1e-6)
+        assert np.allclose(out[1], [0, 1e-10, 2e-10])
+        with pytest.raises(EffectError, match="already registered"):
+            register_effect(e)
+        assert "test_piston_tilt" in {x.name for x in fx.effects_for("height")}
+    finally:
+        fx.unregister_effect("test_piston_tilt")
+    with pytest.raises(EffectError, match="unknown effect"):
+        get_effect("test_piston_tilt")
+    with pytest.raises(EffectError, match="stage"):
+        Effect("bad", "height", "sensor", [Parameter("a", "1", 0, 1, 0.1)], lambda *a: None, "Bad.")
+    with pytest.raises(EffectError, match="takes 4 values"):
+        get_effect("etch_depth").check([0.1])
+
+
+def test_instrument_blur_of_a_step_is_an_erf():
+    step_m, sigma = 0.02e-6, 0.8e-6
+    x = (np.arange(800) - 399.5) * step_m
+    h = np.tile(np.where(x > 0, 1.0, 0.0), (8, 1))
+    out = fx.gaussian_blur(h, sigma, step_m)[4]
+    expect = 0.5 * (1 + erf(x / (sigma * np.sqrt(2))))
+    centre = np.abs(x) < 4e-6
+    assert np.max(np.abs(out[centre] - expect[centre])) < 2e-3
+
+
+def test_batwing_is_signed_edge_overshoot_proportional_to_step():
+    step_m, sigma, amp = 0.02e-6, 0.6e-6, 0.2
+    x = (np.arange(1000) - 499.5) * step_m
+    for height in (100e-9, 600e-9):
+        h = np.tile(np.where(x > 0, height, 0.0), (4, 1))
+        b = fx.batwing_profile(h, amp, sigma, step_m)[2]
+        # Overshoot of amp * H on the high side at x = sigma, undershoot as deep on the low side.
+        assert b.max() == pytest.approx(amp * height, rel=0.01)
+        assert x[np.argmax(b)] == pytest.approx(sigma, abs=2 * step_m)
+        assert b.min() == pytest.approx(-amp * height, rel=0.01)
+        assert np.max(np.abs(b[np.abs(x) > 6 * sigma])) < 1e-4 * height
+
+
+def test_process_effects_change_the_right_parameters():
+    from masks.process import ProcessParams, simulate_surface
+
+    p = ProcessParams.ideal()
+    q = get_effect("etch_depth").apply(p, np.array([0, 0, 0, 0.06]))
+    assert np.allclose(q.etch_depth, [75e-9, 150e-9, 300e-9, 600e-9 * 1.06])
+    levels = np.full((12, 12), 8)
+    h = simulate_surface(levels, 5.4e-6, q, step_m=1.08e-6).height_m
+    assert h[30, 30] == pytest.approx(-636e-9, rel=1e-9)
+    q = get_effect("mask_overlay").apply(p, np.array([0, 0, 0, 0, 0.4e-6, -0.1e-6]))
+    assert np.allclose(q.mask_overlay[3, :2], [0.4e-6, -0.1e-6]) and not np.any(q.mask_overlay[:3])
+    q = get_effect("linewidth_bias").apply(p, np.full(4, 0.3e-6))
+    assert np.allclose(q.linewidth_bias, 0.3e-6)
+
+
+def test_psf_sensor_effects_closed_form():
+    full = np.stack([np.full((2, 3, 3), 1.0), np.full((2, 3, 3), 3.0)])  # coded 1, uncoded 3
+    info = {"views": ("coded",), "full": full, "full_views": ("coded", "uncoded")}
+    out = get_effect("dual_pixel_crosstalk").apply(full[:1], np.array([0.12]), info)
+    assert np.allclose(out, 0.88 * 1 + 0.12 * 3)
+    bg = get_effect("background").for_channels(["a", "b"])
+    assert bg.n_params == 2 and bg.params[1].name == "offset_b"
+    out = bg.apply(full[:1], np.array([1e-3, 2e-3]), info)
+    assert np.allclose(out[0, 1] - full[0, 1], 2e-3)
+
+
+def test_defocus_and_bandwidth_wrap_the_renderer():
+    seen = {}
+
+    def render(h, wl, depth):
+        seen["depth"] = depth
+        wl = np.asarray(wl)
+        # Linear in wavelength per channel: a symmetric band averages to the centre value.
+        return np.broadcast_to((wl * 1e9)[None, :, None, None], (2, wl.size, 2, 2)).copy()
+
+    get_effect("defocus").apply(render, np.array([0.1]), {"depth_m": 5.0})(None, [550e-9], 5.0)
+    assert seen["depth"] == pytest.approx(1 / 0.3)
+    get_effect("defocus").apply(render, np.array([-0.2]), {"depth_m": 5.0})(None, [550e-9], 5.0)
+    assert seen["depth"] == np.inf
+    avg = get_effect("source_bandwidth").apply(render, np.array([20e-9]), {})(None, [500e-9, 600e-9], 5.0)
+    assert np.allclose(avg[0, :, 0, 0], [500, 600])
+    # The Gauss-Hermite rule has the variance of the Gaussian spectrum: sigma = FWHM / 2.355.
+    var = np.sum(fx._GH_WEIGHTS * (fx._GH_NODES * 20e-9 / fx.FWHM_PER_SIGMA) ** 2)
+    assert np.sqrt(var) == pytest.approx(20e-9 / 2.3548, rel=1e-3)
+    h = np.ones((3, 3))
+    assert np.allclose(get_effect("depth_scale").apply(h, np.array([0.05])), 1.05)
