@@ -5,10 +5,12 @@ Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
 ``(loss, dloss_dpsf)``. Per-plane terms are averaged with the target's channel weights
 (normalized to sum 1), so the numbers compare across targets with different band counts.
 
-- ``l1``: the seed's L1 distance (supplement Eq. 2). Its kink at zero has no gradient, so
-  it is smoothed as ``sum w (sqrt(r^2 + eps^2) - eps)`` with ``r = psf - target``; ``eps``
-  (a fraction of the light per pixel) sets where it turns quadratic: well below the target
-  values, so the optimum is the L1 optimum to within ``eps`` per pixel.
+- ``l1``: the seed's L1 distance (supplement Eq. 2). On the target pixels its kink at zero
+  has no gradient, so it is smoothed there as ``sum w (sqrt(r^2 + eps^2) - eps)`` with
+  ``r = psf - target``; ``eps`` (a fraction of the light per pixel) sets where it turns
+  quadratic: well below the target values, so the optimum is the L1 optimum to within ``eps``
+  per pixel. Off the target ``r = psf >= 0`` (a pixel-integrated intensity), so ``|r| = psf``
+  exactly, which is smooth and needs no smoothing: that part is ``w`` times the light there.
 - ``energy``: ``1 - sum(psf * mask * w) / sum(target)``: the light missing from the target
   pixels (a single spot's value is one minus its diffraction efficiency).
 - ``l2``: ``sum w r^2 / sum(target^2)``, relative squared error.
@@ -24,6 +26,15 @@ Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
 optimization rounds each target pixel's loss weight is multiplied by
 ``(mean ratio / its ratio)^alpha``, so pixels that get too little light count more in the next
 round (used by :func:`doedesign.optimize.design_doe` with ``reweight_rounds``).
+
+Losses that read few pixels
+---------------------------
+:func:`make_loss` returns a :class:`Loss`. When its terms need only the target pixels and the
+window's total energy (``energy``, ``uniformity``, and ``l1`` with one off-target pixel weight
+per plane; not ``l2`` or ``peak``), ``Loss.reads`` names those pixels (:class:`PixelReads`) and
+``Loss.sparse(values, energy)`` evaluates the same loss from them alone. The PSF engine then
+computes only those pixels and the energy (:meth:`doedesign.psf.PSFEngine.value_and_grad`), so
+Bayer, spot and similar targets never build the whole window. ``reads`` is None otherwise.
 """
 
 from __future__ import annotations
@@ -45,11 +56,12 @@ def _plane_weights(target):
 
 
 def smooth_l1(psf, target, eps=DEFAULT_EPS):
-    """Smoothed L1 distance ``sum w (sqrt(r^2 + eps^2) - eps)``, channel-weighted."""
+    """L1 distance, channel-weighted: ``w (sqrt(r^2 + eps^2) - eps)`` on the target, ``w psf`` off it."""
     r = psf - target.intensity
     s = np.sqrt(r * r + eps * eps)
     w = target.pixel_weight * _plane_weights(target)[..., None, None]
-    return float(np.sum(w * (s - eps))), w * r / s
+    m = target.mask
+    return float(np.sum(np.where(m, w * (s - eps), w * psf))), np.where(m, w * r / s, w)
 
 
 def energy_loss(psf, target):
@@ -98,13 +110,20 @@ def uniformity_loss(psf, target):
     pixels, the value is ``V / mu^2`` (channel-weighted) and ``d/da_i = 2 ((a_i - mu) - V / mu)
     / (M mu^2)``. A plane with a single target pixel contributes nothing.
     """
-    a, m, count = _delivered_ratio(psf, target)
-    mu = np.maximum(a.sum(axis=(-2, -1), keepdims=True) / count, 1e-30)
+    return _uniformity(psf, target.intensity, target.mask, _plane_weights(target), axis=(-2, -1))
+
+
+def _uniformity(values, intensity, m, plane_weight, axis):
+    """:func:`uniformity_loss` on ``values`` whose pixel axes are ``axis`` (full window or a pixel list)."""
+    axis = tuple(np.atleast_1d(axis))
+    a = np.where(m, values / np.where(m, intensity, 1.0), 0.0)
+    count = m.sum(axis=axis, keepdims=True)
+    mu = np.maximum(a.sum(axis=axis, keepdims=True) / count, 1e-30)
     dev = np.where(m, a - mu, 0.0)
-    var = np.sum(dev * dev, axis=(-2, -1), keepdims=True) / count
-    pw = _plane_weights(target)[..., None, None]
+    var = np.sum(dev * dev, axis=axis, keepdims=True) / count
+    pw = plane_weight.reshape(plane_weight.shape + (1,) * len(axis))
     value = float(np.sum(pw * var / mu ** 2))
-    grad = np.where(m, pw * 2 * (dev - var / mu) / (count * mu ** 2) / np.where(m, target.intensity, 1.0), 0.0)
+    grad = np.where(m, pw * 2 * (dev - var / mu) / (count * mu ** 2) / np.where(m, intensity, 1.0), 0.0)
     return value, grad
 
 
@@ -180,19 +199,49 @@ class LossSpec:
         return cls(peak=peak, **weights)
 
 
-def make_loss(target, spec=None):
-    """The loss ``psf -> (value, dvalue_dpsf)`` of ``target`` under the weights ``spec``."""
-    spec = spec or LossSpec()
-    peak_weight = target.peak_penalty if spec.peak is None else spec.peak
+@dataclass(frozen=True)
+class PixelReads:
+    """What a loss reads of the coded PSF: a few window pixels and perhaps the window's energy.
 
-    def loss(psf):
+    ``rows``, ``cols``: (row, col) of each pixel read (row 0 at the top), the same for every
+    depth and wavelength; ``energy``: whether the loss needs each plane's window total.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    energy: bool
+
+
+# Largest number of distinct window rows (and columns) a loss may read through the few-pixel
+# path: the engine evaluates the field on every (row, column) pair of those lines.
+MAX_READ_LINES = 8
+
+
+class Loss:
+    """The loss ``psf -> (value, dvalue_dpsf)`` of a target under a :class:`LossSpec`.
+
+    Attributes
+    ----------
+    reads : PixelReads or None
+        Set when the loss depends only on a few pixels and the window energy; then
+        :meth:`sparse` gives the same value from those alone.
+    """
+
+    def __init__(self, target, spec=None):
+        self.target = target
+        self.spec = spec or LossSpec()
+        self.peak_weight = target.peak_penalty if self.spec.peak is None else self.spec.peak
+        self.reads = self._reads()
+
+    def __call__(self, psf):
+        target, spec = self.target, self.spec
         if psf.shape != target.intensity.shape:
             raise DoeError(f"PSF of shape {psf.shape} does not match the target {target.intensity.shape}")
         total, grad = 0.0, np.zeros_like(psf)
         for weight, fn in ((spec.l1, lambda p: smooth_l1(p, target, spec.eps)),
                            (spec.energy, lambda p: energy_loss(p, target)),
                            (spec.l2, lambda p: l2_loss(p, target)),
-                           (peak_weight, lambda p: peak_loss(p, target)),
+                           (self.peak_weight, lambda p: peak_loss(p, target)),
                            (spec.uniformity, lambda p: uniformity_loss(p, target))):
             if weight:
                 v, g = fn(psf)
@@ -200,7 +249,70 @@ def make_loss(target, spec=None):
                 grad += weight * g
         return total, grad
 
-    return loss
+    def _reads(self):
+        spec, target = self.spec, self.target
+        if spec.l2 or self.peak_weight:
+            return None
+        mask = target.mask
+        union = mask.any(axis=(0, 1))
+        rows, cols = np.nonzero(union)
+        if np.unique(rows).size > MAX_READ_LINES or np.unique(cols).size > MAX_READ_LINES:
+            return None
+        if spec.l1:
+            pw = np.broadcast_to(target.pixel_weight, mask.shape)
+            off = np.where(mask, np.nan, pw).reshape(mask.shape[:2] + (-1,))
+            first = np.nanmax(off, axis=-1, keepdims=True)
+            if np.any(np.nanmax(np.abs(off - first), axis=-1) > 0):
+                return None  # off-target weights vary within a plane: the energy alone cannot carry them
+            self._off_weight = first[..., 0]
+        self._mask = mask[..., rows, cols]
+        self._intensity = target.intensity[..., rows, cols]
+        self._weight = np.broadcast_to(target.pixel_weight, mask.shape)[..., rows, cols]
+        return PixelReads(rows=rows, cols=cols, energy=bool(spec.l1))
+
+    def sparse(self, values, energy):
+        """The loss from the pixels in :attr:`reads` and the window energies.
+
+        Parameters
+        ----------
+        values : ndarray (depths, wavelengths, pixels)
+            The PSF at ``reads.rows``, ``reads.cols``.
+        energy : ndarray (depths, wavelengths)
+            Each plane's window total (ignored unless ``reads.energy``).
+
+        Returns
+        -------
+        loss : float
+        dvalues : ndarray like ``values``
+        denergy : ndarray like ``energy``
+        """
+        spec, m = self.spec, self._mask
+        pw = _plane_weights(self.target)
+        total, dval, den = 0.0, np.zeros_like(values), np.zeros_like(energy)
+        if spec.l1:
+            r = values - self._intensity
+            s = np.sqrt(r * r + spec.eps * spec.eps)
+            w = self._weight * pw[..., None]
+            off = self._off_weight * pw
+            on_sum = np.sum(np.where(m, values, 0.0), axis=-1)
+            total += spec.l1 * float(np.sum(np.where(m, w * (s - spec.eps), 0.0)) + np.sum(off * (energy - on_sum)))
+            dval += spec.l1 * np.where(m, w * r / s - off[..., None], 0.0)
+            den += spec.l1 * off
+        if spec.energy:
+            wanted = self.target.energy
+            g = np.where(m, -(pw / wanted)[..., None] * self._weight, 0.0)
+            total += spec.energy * float(np.sum(pw) + np.sum(g * values))
+            dval += spec.energy * g
+        if spec.uniformity:
+            v, g = _uniformity(values, self._intensity, m, pw, axis=-1)
+            total += spec.uniformity * v
+            dval += spec.uniformity * g
+        return total, dval, den
+
+
+def make_loss(target, spec=None):
+    """The loss ``psf -> (value, dvalue_dpsf)`` of ``target`` under the weights ``spec`` (a :class:`Loss`)."""
+    return Loss(target, spec)
 
 
 def target_metrics(psf, target):

@@ -335,7 +335,7 @@ def coded_support(camera, pitch_m, shape):
 
 
 def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
-               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1):
+               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1, full_window=False):
     """Optimize a DOE for ``target`` and quantize it to the process levels.
 
     Parameters
@@ -352,6 +352,9 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         A user starting height map (overrides ``settings.init``).
     callback : callable, optional
         ``callback(evaluation, loss, height_m)``; True stops the current stage.
+    full_window : bool
+        Compute the whole sensor window at every evaluation even when the loss reads only a
+        few pixels and the window energy (same result, slower; for checks and benchmarks).
 
     Returns
     -------
@@ -386,7 +389,7 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     state = {"target": target, "loss": make_loss(target, loss)}
 
     def objective(h, extra=None):
-        value, grad = engine.value_and_grad(h, state["loss"])
+        value, grad = engine.value_and_grad(h, state["loss"], full_window=full_window)
         if settings.fab_weight:
             v, g = isolation_penalty(h, step)
             value += settings.fab_weight * v

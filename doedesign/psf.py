@@ -36,6 +36,7 @@ from .camera import Camera
 from .errors import DoeError, SamplingError
 from .fileio import read_npz, write_npz
 from .materials import get_material
+from .psf_reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
 
 log = logging.getLogger(__name__)
 
@@ -227,16 +228,26 @@ class PSFEngine:
         (r0, r1, c0, c1), amp = self._views[view]
         phase = np.zeros(amp.shape)
         if view == "coded":
-            full = np.zeros(self.grid_shape)
-            oy, ox = self._offset
-            full[oy:oy + self.shape[0], ox:ox + self.shape[1]] = height_m
-            if self.q > 1:
-                full = np.repeat(np.repeat(full, self.q, axis=0), self.q, axis=1)
-            phase += self.material.phase(full[r0:r1, c0:c1], wavelength)
+            q, (oy, ox) = self.q, self._offset
+            # Design pixels covering the box (the grid around the design is unetched, height 0).
+            d0, d1 = max(r0 // q - oy, 0), min(-(-r1 // q) - oy, self.shape[0])
+            e0, e1 = max(c0 // q - ox, 0), min(-(-c1 // q) - ox, self.shape[1])
+            part = height_m[d0:d1, e0:e1]
+            if q > 1:
+                part = np.repeat(np.repeat(part, q, axis=0), q, axis=1)
+            y0, x0 = (d0 + oy) * q - r0, (e0 + ox) * q - c0
+            sy = slice(max(y0, 0), min(y0 + part.shape[0], r1 - r0))
+            sx = slice(max(x0, 0), min(x0 + part.shape[1], c1 - c0))
+            phase[sy, sx] = self.material.phase(part[sy.start - y0:sy.stop - y0, sx.start - x0:sx.stop - x0],
+                                                wavelength)
         opd = self._opd[float(depth)]
         if opd is not None:
             phase += 2 * np.pi / wavelength * opd[r0:r1, c0:c1]
-        return amp * np.exp(1j * phase)
+        t = np.empty(amp.shape, dtype=complex)
+        np.cos(phase, out=t.real)
+        np.sin(phase, out=t.imag)
+        t *= amp
+        return t
 
     def _kernels(self, view, wavelength):
         """Kernels from autocorrelation lags to pixel-integrated intensity, per axis.
@@ -262,15 +273,22 @@ class PSFEngine:
         self._kernel_cache[key] = out
         return out
 
-    def _axis_kernel(self, n_pix, axis, lags, lz):
+    def _axis_nodes(self, n_pix, axis, max_lag, lz):
+        """Sensor pixel centres along one axis and the Gauss-Legendre rule within a pixel.
+
+        Nodes enough for the fastest fringe across one pixel (phase span up to
+        ``2 pi |k| f a`` for lag ``k``); the one rule of both the full window and the pixel reads.
+        """
         pix = self.camera.pixel_pitch_m
         centres = (np.arange(n_pix) - axis) * pix
-        freq = self.step_m / lz  # fringe frequency per lag (cycles per metre on the sensor)
-        # Nodes enough for the fastest fringe across one pixel (phase span up to 2 pi |k| f a).
-        span = 2 * np.pi * np.abs(lags).max() * freq * pix
+        span = 2 * np.pi * max_lag * (self.step_m / lz) * pix
         nodes, weights = np.polynomial.legendre.leggauss(int(np.ceil(span / 2)) + 8)
-        u = nodes * pix / 2
-        env = np.sinc(self.step_m * (centres[:, None] + u[None, :]) / lz) ** 2 * (weights * pix / 2)
+        return centres, nodes * pix / 2, weights * pix / 2
+
+    def _axis_kernel(self, n_pix, axis, lags, lz):
+        centres, u, w = self._axis_nodes(n_pix, axis, np.abs(lags).max(), lz)
+        freq = self.step_m / lz  # fringe frequency per lag (cycles per metre on the sensor)
+        env = np.sinc(freq * (centres[:, None] + u[None, :])) ** 2 * w
         within = np.exp(-2j * np.pi * freq * np.outer(u, lags))
         return np.exp(-2j * np.pi * freq * np.outer(centres, lags)) * (env @ within)
 
@@ -327,8 +345,13 @@ class PSFEngine:
                          depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
                          axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
 
-    def value_and_grad(self, height_m, loss_fn):
+    def value_and_grad(self, height_m, loss_fn, full_window=False):
         """Loss of the coded PSF and its exact (adjoint) gradient with respect to the heights.
+
+        A loss with a ``reads`` attribute (:class:`doedesign.losses.PixelReads`, as
+        :func:`doedesign.losses.make_loss` sets for losses of a few pixels and the window
+        energy) is evaluated from those pixels alone (:mod:`doedesign.psf_reads`), unless
+        ``full_window`` asks for the whole window; both give the same loss and gradient.
 
         Parameters
         ----------
@@ -336,6 +359,8 @@ class PSFEngine:
         loss_fn : callable
             ``loss_fn(psf)`` with ``psf`` shaped (depths, wavelengths, rows, cols); returns
             ``(loss, dloss_dpsf)`` with the derivative shaped like ``psf``.
+        full_window : bool
+            Compute the whole window even when the loss reads only a few pixels.
 
         Returns
         -------
@@ -343,6 +368,9 @@ class PSFEngine:
         grad : ndarray, shape ``self.shape``, d loss / d height (per metre).
         """
         h = self._check_height(height_m)
+        reads = getattr(loss_fn, "reads", None)
+        if reads is not None and not full_window:
+            return self._value_and_grad_reads(h, loss_fn, reads)
         nd, nw = self.depths_m.size, self.wavelengths_m.size
         psf = np.empty((nd, nw) + self.camera.window_shape)
         saved = {}
@@ -361,12 +389,69 @@ class PSFEngine:
             d_half = scale * (kern_y.T @ dpsf[di, wi] @ kern_x)
             d_half[1:] *= 0.5
             grad_pupil += float(self.material.phase(1.0, wl)) * self._phase_gradient(t, d_half)
+        return float(loss), self._height_gradient(grad_pupil)
+
+    def _height_gradient(self, grad_pupil):
+        """d loss / d height on the design grid from d loss / d height on the coded view's samples."""
+        (r0, r1, c0, c1), _ = self._views["coded"]
         grad = np.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q))
         grad[r0:r1, c0:c1] = grad_pupil
         if self.q > 1:
             grad = grad.reshape(self.grid_shape[0], self.q, self.grid_shape[1], self.q).sum(axis=(1, 3))
         oy, ox = self._offset
-        return float(loss), grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
+        return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
+
+    def _read_axes(self, wavelength, rows, cols, energy):
+        """Cached :class:`~doedesign.psf_reads.ReadAxis` pair for the coded view."""
+        key = ("reads", float(wavelength), tuple(rows), tuple(cols), bool(energy))
+        if key in self._kernel_cache:
+            return self._kernel_cache[key]
+        (r0, r1, c0, c1), _ = self._views["coded"]
+        cam = self.camera
+        lz = wavelength * cam.sensor_distance_m
+        out = []
+        for n, n_pix, axis, lines in ((r1 - r0, cam.window_shape[0], cam.axis_pixel[0], rows),
+                                      (c1 - c0, cam.window_shape[1], cam.axis_pixel[1], cols)):
+            centres, u, w = self._axis_nodes(n_pix, axis, n - 1, lz)
+            lag_sum = self._axis_kernel(n_pix, axis, np.arange(-(n - 1), n), lz).sum(axis=0) if energy else None
+            out.append(read_axis(centres[np.asarray(lines)], u, w, self.step_m / lz, n, lag_sum))
+        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
+            self._kernel_cache.pop(next(iter(self._kernel_cache)))
+        self._kernel_cache[key] = tuple(out)
+        return self._kernel_cache[key]
+
+    def _value_and_grad_reads(self, h, loss_fn, reads):
+        """:meth:`value_and_grad` for a loss of a few pixels and the window energy (see :mod:`.psf_reads`)."""
+        rows, r_idx = np.unique(np.asarray(reads.rows, dtype=int), return_inverse=True)
+        cols, c_idx = np.unique(np.asarray(reads.cols, dtype=int), return_inverse=True)
+        nd, nw = self.depths_m.size, self.wavelengths_m.size
+        values = np.empty((nd, nw, r_idx.size))
+        energy = np.zeros((nd, nw))
+        saved = {}
+        for di, depth in enumerate(self.depths_m):
+            for wi, wl in enumerate(self.wavelengths_m):
+                t = self._pupil("coded", h, wl, depth)
+                ay, ax = self._read_axes(wl, rows, cols, reads.energy)
+                scale = self.step_m ** 2 / (wl * self.camera.sensor_distance_m) ** 2 / np.sum(np.abs(t) ** 2)
+                grid, field = read_pixels(t, ay, ax, scale)
+                values[di, wi] = grid[r_idx, c_idx]
+                v = apply_energy_operator(t, ay, ax) if reads.energy else None
+                if v is not None:
+                    energy[di, wi] = scale * np.vdot(t, v).real
+                saved[di, wi] = (t, field, v, scale)
+        loss, dvalues, denergy = loss_fn.sparse(values, energy)
+        (r0, r1, c0, c1), _ = self._views["coded"]
+        grad_pupil = np.zeros((r1 - r0, c1 - c0))
+        for (di, wi), (t, field, v, scale) in saved.items():
+            wl = self.wavelengths_m[wi]
+            ay, ax = self._read_axes(wl, rows, cols, reads.energy)
+            dgrid = np.zeros((rows.size, cols.size))
+            np.add.at(dgrid, (r_idx, c_idx), dvalues[di, wi])
+            g = read_pixels_adjoint(dgrid, field, ay, ax, scale)
+            if v is not None:
+                g += (denergy[di, wi] * scale) * v
+            grad_pupil += float(self.material.phase(1.0, wl)) * 2.0 * np.imag(t.conj() * g)
+        return float(loss), self._height_gradient(grad_pupil)
 
     def _phase_gradient(self, t, d_half):
         """d loss / d phase of each pupil sample from d loss / d C (lags ky >= 0)."""
