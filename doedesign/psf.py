@@ -132,10 +132,14 @@ class PSFEngine:
     doe_oversample : int
         Pupil samples per DOE pixel per axis, for sampling the smooth defocus term finely;
         the DOE profile itself is piecewise constant and exact at any value.
+    precision : {"double", "single"}
+        Arithmetic of :meth:`psf`'s transforms. "single" (complex64) is about twice as fast for
+        long wavelength stacks, at a few 1e-7 of the peak (benchmarks/bench_psf.py measures
+        it); gradients are always computed in double precision.
     """
 
     def __init__(self, camera: Camera, pitch_m, shape, material="fused_silica", wavelengths_m=(550e-9,),
-                 depths_m=None, doe_oversample=1):
+                 depths_m=None, doe_oversample=1, precision="double"):
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
         self.camera = camera
@@ -151,6 +155,9 @@ class PSFEngine:
         if np.any(self.depths_m <= 0) or np.any(np.isnan(self.depths_m)):
             raise DoeError(f"point-source distances must be positive, got {self.depths_m}")
         self.material.n(self.wavelengths_m)  # raises for wavelengths outside the material's range
+        if precision not in ("double", "single"):
+            raise DoeError(f"precision must be 'double' or 'single', got {precision!r}")
+        self.precision = precision
         self.q = int(doe_oversample)
         if self.q < 1:
             raise DoeError("doe_oversample must be a positive integer")
@@ -172,6 +179,7 @@ class PSFEngine:
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
         self._kernel_cache = {}
+        self._work = {}
 
     # -- geometry -----------------------------------------------------------------------------
     def _sample_radius2(self):
@@ -256,10 +264,11 @@ class PSFEngine:
         by Gauss-Legendre quadrature, exact for the piecewise-constant pupil. Row kernels hold
         lags ky >= 0 with the Hermitian fold (factor 2 for ky > 0).
         """
-        key = (view, float(wavelength))
+        (r0, r1, c0, c1), _ = self._views[view]
+        # The kernels depend on the box's size only: views of equal width share them.
+        key = (r1 - r0, c1 - c0, float(wavelength))
         if key in self._kernel_cache:
             return self._kernel_cache[key]
-        (r0, r1, c0, c1), _ = self._views[view]
         cam = self.camera
         lz = wavelength * cam.sensor_distance_m
         ky = np.arange(r1 - r0)
@@ -297,20 +306,39 @@ class PSFEngine:
         return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
 
     def _autocorrelation(self, t):
-        """Lags ky = 0..a-1 and kx = -(b-1)..(b-1) of sum_m t[m + k] conj(t[m])."""
-        a, b = t.shape
-        shape = self._fft_shape(t)
-        spec = sfft.fft2(t, s=shape, workers=-1)
-        corr = sfft.ifft2(spec * spec.conj(), workers=-1)
-        cols = np.r_[shape[1] - (b - 1):shape[1], 0:b]
-        return corr[:a][:, cols]
+        """Lags ky = 0..a-1 and kx = -(b-1)..(b-1) of sum_m t[m + k] conj(t[m]).
 
-    def _view_psf(self, view, height_m, wavelength, depth):
+        The zero-padded spectrum is taken along the short axis first (the padding rows cost
+        nothing); the autocorrelation is Hermitian, the inverse transform of the real power
+        spectrum, so a real-input transform gives it: ``C[k] = conj(R[k]) / N`` for kx >= 0 and
+        ``C[ky, -kx] = R[-ky, kx] / N``.
+        """
+        a, b = t.shape
+        ly, lx = self._fft_shape(t)
+        spec = sfft.fft(t, n=lx, axis=1, workers=-1)
+        spec = sfft.fft(spec, n=ly, axis=0, workers=-1, overwrite_x=True)
+        power = spec.real ** 2
+        power += spec.imag ** 2
+        del spec
+        r = sfft.rfft2(power, workers=-1)
+        r /= ly * lx
+        pos = r[:a, :b].conj()
+        neg = r[-np.arange(a) % ly, b - 1:0:-1]
+        return np.concatenate([neg, pos], axis=1)
+
+    def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
         t = self._pupil(view, height_m, wavelength, depth)
         kern_y, kern_x, const = self._kernels(view, wavelength)
         scale = const / np.sum(np.abs(t) ** 2)
-        psf = scale * (kern_y @ self._autocorrelation(t) @ kern_x.T).real
-        return psf, (t, kern_y, kern_x, scale)
+        if precision == "single":
+            t, ky, kx = t.astype(np.complex64), kern_y.astype(np.complex64), kern_x.astype(np.complex64)
+        else:
+            ky, kx = kern_y, kern_x
+        half = ky @ self._autocorrelation(t)
+        # Only the real part of the last product is wanted: two real products instead of one complex.
+        psf = half.real @ kx.real.T
+        psf -= half.imag @ kx.imag.T
+        return scale * psf.astype(float, copy=False), (t, kern_y, kern_x, scale)
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
@@ -329,16 +357,17 @@ class PSFEngine:
                 raise DoeError(f"unknown view {v!r}; views are {VIEWS}")
         rows, cols = self.camera.window_shape
         out = np.empty((len(views), self.depths_m.size, self.wavelengths_m.size, rows, cols))
-        for vi, view in enumerate(views):
-            for di, depth in enumerate(self.depths_m):
-                for wi, wl in enumerate(self.wavelengths_m):
+        # Views innermost: both use the same wavelength's kernels while they are cached.
+        for di, depth in enumerate(self.depths_m):
+            for wi, wl in enumerate(self.wavelengths_m):
+                for vi, view in enumerate(views):
                     if view == "uncoded":
-                        key = (float(depth), float(wl))
+                        key = (float(depth), float(wl), self.precision)
                         if key not in self._uncoded_cache:
-                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth)[0]
+                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)[0]
                         out[vi, di, wi] = self._uncoded_cache[key]
                     else:
-                        out[vi, di, wi] = self._view_psf(view, h, wl, depth)[0]
+                        out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision)[0]
                     if progress is not None:
                         progress.update(1)
         return PSFResult(psf=out, views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
@@ -435,7 +464,7 @@ class PSFEngine:
                 scale = self.step_m ** 2 / (wl * self.camera.sensor_distance_m) ** 2 / np.sum(np.abs(t) ** 2)
                 grid, field = read_pixels(t, ay, ax, scale)
                 values[di, wi] = grid[r_idx, c_idx]
-                v = apply_energy_operator(t, ay, ax) if reads.energy else None
+                v = apply_energy_operator(t, ay, ax, self._work) if reads.energy else None
                 if v is not None:
                     energy[di, wi] = scale * np.vdot(t, v).real
                 saved[di, wi] = (t, field, v, scale)

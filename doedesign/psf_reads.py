@@ -58,14 +58,32 @@ def read_axis(centres, u, w, freq, n, lag_sum=None):
     return ReadAxis(fringe, weight, symbol)
 
 
-def apply_energy_operator(t, ay, ax):
-    """``Ty t Tx^T`` by FFT convolution along each axis (zero-padded, no wrap-around)."""
+def apply_energy_operator(t, ay, ax, work=None):
+    """``Ty t Tx^T`` by FFT convolution along each axis (zero-padded, no wrap-around).
+
+    ``work``: optional dict of reusable padded buffers (fresh large arrays cost page faults
+    at every evaluation); the transforms run in place in them.
+    """
     a, b = t.shape
-    v = sfft.fft(t, n=ay.symbol_fft.size, axis=0, workers=-1)
+    work = {} if work is None else work
+    ly, lx = ay.symbol_fft.size, ax.symbol_fft.size
+    col = work.get("col")
+    if col is None or col.shape != (ly, b):
+        col = work["col"] = np.zeros((ly, b), dtype=complex)
+    row = work.get("row")
+    if row is None or row.shape != (a, lx):
+        row = work["row"] = np.zeros((a, lx), dtype=complex)
+    col[:a] = t
+    col[a:] = 0
+    v = sfft.fft(col, axis=0, workers=-1, overwrite_x=True)
     v *= ay.symbol_fft[:, None]
-    v = sfft.fft(sfft.ifft(v, axis=0, workers=-1, overwrite_x=True)[:a], n=ax.symbol_fft.size, axis=1, workers=-1)
+    v = sfft.ifft(v, axis=0, workers=-1, overwrite_x=True)
+    row[:, :b] = v[:a]
+    row[:, b:] = 0
+    v = sfft.fft(row, axis=1, workers=-1, overwrite_x=True)
     v *= ax.symbol_fft[None, :]
-    return sfft.ifft(v, axis=1, workers=-1, overwrite_x=True)[:, :b]
+    v = sfft.ifft(v, axis=1, workers=-1, overwrite_x=True)
+    return v[:, :b].copy()
 
 
 def read_pixels(t, ay, ax, scale):
