@@ -253,3 +253,17 @@ def test_bad_inputs_are_clear_errors():
         parse_wavelengths_nm("red")
     np.testing.assert_allclose(parse_wavelengths_nm("400:700:10")[[0, -1]], [400e-9, 700e-9])
     assert parse_wavelengths_nm("400:700:10").size == 31
+
+
+def test_single_precision_stays_within_a_few_1e7_of_the_peak():
+    n = 96
+    cam = Camera(aperture_diameter_m=n * PITCH)
+    h = blazed_grating(n, period_px=12) * np.random.default_rng(4).uniform(0.5, 1.0, (n, n))
+    wls = [450e-9, 620e-9]
+    double = PSFEngine(cam, PITCH, (n, n), wavelengths_m=wls).psf(h).psf
+    single = PSFEngine(cam, PITCH, (n, n), wavelengths_m=wls, precision="single").psf(h).psf
+    assert single.dtype == np.float64
+    assert np.abs(single - double).max() < 2e-6 * double.max()
+    assert np.abs(single - double).max() > 0  # it is really computed in single precision
+    with pytest.raises(DoeError, match="precision"):
+        PSFEngine(cam, PITCH, (n, n), precision="half")
