@@ -70,7 +70,8 @@ def run(args):
 
 
 def _heights(design, path, args, candidates):
-    from metrology.matching.compare import compare_measurement, design_levels, shift_registration
+    from doedesign.levels import design_levels
+    from metrology.matching.compare import compare_measurement, shift_registration
     from metrology.diagnosis.diagnose import diagnose_heights
     from metrology.formats.readers import read_measurement
     from metrology.matching.register import resample_to_design
