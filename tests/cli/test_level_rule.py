@@ -93,7 +93,7 @@ def test_masks_compare_and_diagnose_see_the_same_levels(tmp_path, monkeypatch):
                                   register.design_on_measurement(expected, comp.registration)[seen])
 
     # The diagnosis models the wafer on the levels of the same rule.
-    import metrology.diagnosis.diagnose as diagnose
+    import metrology.diagnosis.heights as heights
 
     got = {}
 
@@ -101,7 +101,7 @@ def test_masks_compare_and_diagnose_see_the_same_levels(tmp_path, monkeypatch):
         got["levels"] = np.asarray(levels)
         raise _Seen
 
-    monkeypatch.setattr(diagnose, "diagnose_heights", spy)
+    monkeypatch.setattr(heights, "diagnose_heights", spy)
     meas_path = tmp_path / "wafer.npz"
     write_measurement(meas_path, wafer, pixel_size_m=PIXEL)
     with pytest.raises(_Seen):
