@@ -404,6 +404,8 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
             refits[c] = _fit(problem, fits[c], list(model) + [c])
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         best = min(close, key=scores.get)
+        if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
+            break
         tied = [c for c in close if scores[c] <= scores[best] + threshold]
         artefacts = [c for c in tied if problem.effects[c].kind == "artefact"]
         if artefacts:
