@@ -16,6 +16,8 @@ from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
 
+__all__ = ["PsfProblem", "PsfRenderer", "diagnose_psf", "psf_forward"]
+
 
 class PsfRenderer:
     """Ideal PSFs of a design for any wavelengths and source distance, engines and results cached.
