@@ -38,6 +38,9 @@ from .fileio import dumps_json, read_npz, write_npz
 from .materials import get_material
 from .psf_reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
 
+__all__ = ["KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "PSFEngine", "PSFResult", "VIEWS",
+           "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
+
 log = logging.getLogger(__name__)
 
 VIEWS = ("coded", "uncoded")
