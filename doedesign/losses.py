@@ -46,7 +46,8 @@ import numpy as np
 from .errors import DoeError
 
 __all__ = ["DEFAULT_EPS", "Loss", "LossSpec", "MAX_READ_LINES", "PEAK_POWER", "PixelReads", "TERMS",
-           "energy_loss", "l2_loss", "make_loss", "peak_loss", "reweight_target", "smooth_l1", "target_metrics", "uniformity_loss"]
+           "energy_loss", "l2_loss", "make_loss", "peak_loss", "reweight_target", "smooth_l1", "target_metrics",
+           "uniformity_loss"]
 
 TERMS = ("l1", "energy", "l2", "peak", "uniformity")
 DEFAULT_EPS = 1e-6
