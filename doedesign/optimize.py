@@ -47,7 +47,7 @@ from .errors import DoeError
 from .bounds import bound_report, spot_bound
 from .losses import LossSpec, make_loss, reweight_target, target_metrics
 from .materials import get_material
-from .objectives import maximize_min, plane_weights, softmin_loss
+from .objectives import MAXMIN_ALGORITHMS, maximize_min, plane_weights, softmin_loss
 from .progress import Progress
 from .psf import PSFEngine
 
@@ -578,7 +578,8 @@ def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
                 g[d * nw + w] = gh[support]
         return e, g
 
-    algorithm = settings.algorithm if settings.algorithm in ("LD_MMA", "LD_CCSAQ") else "LD_MMA"
+    # The constraints need LD_MMA or LD_CCSAQ; with another algorithm set, LD_MMA runs this stage.
+    algorithm = settings.algorithm if settings.algorithm in MAXMIN_ALGORITHMS else "LD_MMA"
     x, hist = maximize_min(fun, h0[support], lower, upper, weights.ravel(),
                            algorithm, settings.max_iter, settings.max_time_s, desc="max-min")
     h = np.zeros(support.shape)

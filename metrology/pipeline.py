@@ -78,13 +78,13 @@ def demo_camera(cfg):
 
 def design_step(cfg, camera, out):
     from doedesign import targets
-    from doedesign.cli.design import DEFAULT_INIT, DEFAULT_LOSS
+    from doedesign.cli.design import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
     from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
 
     target = targets.bayer(camera)
     settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed,
-                                 init=DEFAULT_INIT["bayer"])
+                                 init=DEFAULT_INIT["bayer"], objective=DEFAULT_OBJECTIVE["bayer"])
     run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(DEFAULT_LOSS["bayer"]),
                      settings=settings)
     run.design.metadata["name"] = "bayer_demo"
@@ -220,6 +220,15 @@ def _img(out, rel, caption):
     return f"![{caption}]({rel})\n\n*{caption}*\n" if (out / rel).exists() else f"*({caption}: not produced)*\n"
 
 
+def _bound_line(metrics):
+    b = metrics.get("bound")
+    if not b:
+        return ""
+    pairs = ", ".join(f"{e:.3f} ({f:.2f} of its bound {bd:.3f})"
+                      for e, f, bd in zip(b["energy"][0], b["fraction_of_bound"][0], b["bound"][0]))
+    return f"Light on the R/G/B target pixels (fraction of the coded half's light): {pairs}."
+
+
 def markdown_report(report, out):
     """The demo report as Markdown; figures are referenced relative to the report."""
     d = report["design"]
@@ -229,7 +238,7 @@ def markdown_report(report, out):
              "## Timings", _table([(s["step"], f"{s['seconds']:.1f} s") for s in report["timings"]], ("step", "time")),
              "", "## 1. Design",
              f"Continuous loss {cont.get('loss', float('nan')):.4g}, quantized (16 levels) loss "
-             f"{quant.get('loss', float('nan')):.4g}.", "",
+             f"{quant.get('loss', float('nan')):.4g}.", "", _bound_line(quant or cont), "",
              "```", _short(cont), _short(quant), "```", "",
              _img(out, "psf.png", "coded and uncoded PSFs of the quantized design (log scale)"),
              "## 2. Masks", "```", _short(report["masks"]), "```",
