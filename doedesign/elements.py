@@ -7,7 +7,7 @@
 - Hyperspectral: first-order light per band on its spot against the 16-level staircase limit
   ``eta_1 = sinc^2(1/N) * [sin(pi (a - 1)) / (N sin(pi (a - 1) / N))]^2`` with ``a`` the phase
   depth of one period in waves at that band (``a = 1`` at the design wavelength, where it is
-  ``sinc^2(1/16) = 0.987``), times the light of a spot on the order's pixels.
+  ``sinc^2(1/16) = 0.9872``), times the light of a spot on the order's pixels.
 - Depth: the ring radius per depth (the radius holding most light, from the azimuthal sum about
   the axis) against the target radius schedule (seed: 25 - 5 d px).
 
