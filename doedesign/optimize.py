@@ -30,8 +30,17 @@ and the heights re-optimized for ``reweight_iter`` evaluations. The weights keep
 before each annealing stage, so the quantized design stays balanced; the final weights are
 in the report. On targets with one pixel per plane (Bayer) the update does nothing.
 
-Metrics (energy on target per wavelength and depth, efficiency, L1) are reported for the
-continuous, the plainly rounded and the final quantized design.
+Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.losses.LossSpec`
+terms; ``"softmin"`` the negative soft minimum of the per-plane energies on target over their
+``colour_weights``; ``"maxmin"`` runs the continuous stage as nlopt's auxiliary-variable max-min
+(:func:`doedesign.objectives.maximize_min`, LD_MMA or LD_CCSAQ) and anneals with the soft-min.
+``init="router"`` starts from the coherent pupil model's max-min (:mod:`doedesign.router`);
+``starts`` adds initial designs for a multi-start (a short stage each, the best goes on; all
+are in the report).
+
+Metrics (energy on target per wavelength and depth, efficiency, L1, and each plane's energy
+beside its single-colour bound, :mod:`doedesign.bounds`) are reported for the continuous, the
+plainly rounded and the final quantized design.
 """
 
 from __future__ import annotations
