@@ -20,6 +20,7 @@ import numpy as np
 
 from .errors import DoeError
 from .progress import Progress
+from .psf import PSFEngine
 
 log = logging.getLogger(__name__)
 
@@ -133,3 +134,40 @@ def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=10
             log.info("%s: nlopt stopped (%s); keeping the best point", desc, exc)
     log.info("%s: %d evaluations, weakest weighted energy %.4f", desc, len(history), best["value"])
     return best["x"], history
+
+
+def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
+    """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
+
+    Each plane's energy and gradient come from a one-wavelength engine sharing the camera and
+    grid, so all planes together cost one forward and one adjoint pass, as one loss would.
+    """
+    engines = [PSFEngine(engine.camera, engine.pitch_m, engine.shape, engine.material, [wl], target.depths_m,
+                         engine.q) for wl in target.wavelengths_m]
+    nd, nw = target.intensity.shape[:2]
+
+    def fun(x):
+        h = np.zeros(support.shape)
+        h[support] = x
+        e, g = np.empty(nd * nw), np.empty((nd * nw, x.size))
+        for w, eng in enumerate(engines):
+            for d in range(nd):
+                mask = target.mask[d, w]
+
+                def plane_energy(psf, d=d, mask=mask):
+                    grad = np.zeros_like(psf)
+                    grad[d, 0] = mask
+                    return float(np.sum(psf[d, 0] * mask)), grad
+
+                e[d * nw + w], gh = eng.value_and_grad(h, plane_energy)
+                g[d * nw + w] = gh[support]
+        return e, g
+
+    # The constraints need LD_MMA or LD_CCSAQ; with another algorithm set, LD_MMA runs this stage.
+    algorithm = settings.algorithm if settings.algorithm in MAXMIN_ALGORITHMS else "LD_MMA"
+    x, hist = maximize_min(fun, h0[support], lower, upper, weights.ravel(),
+                           algorithm, settings.max_iter, settings.max_time_s, desc="max-min")
+    h = np.zeros(support.shape)
+    h[support] = x
+    # The loss history is the negative weighted minimum, so "lower is better" holds throughout.
+    return h, [-v for v in hist]

@@ -51,14 +51,15 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .bounds import bound_report, spot_bound
 from .design import Design
 from .errors import DoeError
-from .bounds import bound_report, spot_bound
 from .losses import LossSpec, make_loss, reweight_target, target_metrics
 from .materials import get_material
-from .objectives import MAXMIN_ALGORITHMS, maximize_min, plane_weights, softmin_loss
+from .objectives import maxmin_stage, plane_weights, softmin_loss
 from .progress import Progress
 from .psf import PSFEngine
+from .router import router_start
 
 log = logging.getLogger(__name__)
 
@@ -549,49 +550,3 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
                               "optimizer": asdict(settings), "n_levels": settings.n_levels})
     return DesignRun(design=design, continuous_height_m=h_cont, history=history, report=report)
 
-
-def router_start(target, camera, pitch_m, shape, material, lower, settings):
-    """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.router`)."""
-    from .router import pupil_model, router_heights, to_design_grid
-
-    model = pupil_model(camera, target, material, settings.router_grid_px)
-    h, energies = router_heights(model, lower, settings.colour_weights, settings.router_iter, target=target)
-    log.info("router start: model energies on target %s", np.round(energies, 4).tolist())
-    return to_design_grid(model, h, camera, pitch_m, shape)
-
-
-def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
-    """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
-
-    Each plane's energy and gradient come from a one-wavelength engine sharing the camera and
-    grid, so all planes together cost one forward and one adjoint pass, as one loss would.
-    """
-    engines = [PSFEngine(engine.camera, engine.pitch_m, engine.shape, engine.material, [wl], target.depths_m,
-                         engine.q) for wl in target.wavelengths_m]
-    nd, nw = target.intensity.shape[:2]
-
-    def fun(x):
-        h = np.zeros(support.shape)
-        h[support] = x
-        e, g = np.empty(nd * nw), np.empty((nd * nw, x.size))
-        for w, eng in enumerate(engines):
-            for d in range(nd):
-                mask = target.mask[d, w]
-
-                def plane_energy(psf, d=d, mask=mask):
-                    grad = np.zeros_like(psf)
-                    grad[d, 0] = mask
-                    return float(np.sum(psf[d, 0] * mask)), grad
-
-                e[d * nw + w], gh = eng.value_and_grad(h, plane_energy)
-                g[d * nw + w] = gh[support]
-        return e, g
-
-    # The constraints need LD_MMA or LD_CCSAQ; with another algorithm set, LD_MMA runs this stage.
-    algorithm = settings.algorithm if settings.algorithm in MAXMIN_ALGORITHMS else "LD_MMA"
-    x, hist = maximize_min(fun, h0[support], lower, upper, weights.ravel(),
-                           algorithm, settings.max_iter, settings.max_time_s, desc="max-min")
-    h = np.zeros(support.shape)
-    h[support] = x
-    # The loss history is the negative weighted minimum, so "lower is better" holds throughout.
-    return h, [-v for v in hist]

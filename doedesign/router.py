@@ -124,3 +124,11 @@ def to_design_grid(model, h_coarse, camera, pitch_m, shape):
     iy = np.clip(np.floor(y / model.cell_m + n / 2).astype(int), 0, n - 1)
     ix = np.clip(np.floor(x / model.cell_m + n / 2).astype(int), 0, n - 1)
     return coarse[np.ix_(iy, ix)]
+
+
+def router_start(target, camera, pitch_m, shape, material, lower, settings):
+    """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.router`)."""
+    model = pupil_model(camera, target, material, settings.router_grid_px)
+    h, energies = router_heights(model, lower, settings.colour_weights, settings.router_iter, target=target)
+    log.info("router start: model energies on target %s", np.round(energies, 4).tolist())
+    return to_design_grid(model, h, camera, pitch_m, shape)
