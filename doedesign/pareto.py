@@ -13,7 +13,8 @@ import logging
 
 import numpy as np
 
-from .optimize import height_bounds, level_step_m, quantize_heights
+from .levels import level_step_m, quantize
+from .optimize import height_bounds
 from .progress import Progress
 from .psf import PSFEngine
 from .router import pupil_model, router_heights, to_design_grid
@@ -52,7 +53,7 @@ def pareto_front(camera, target, pitch_m, shape, material="fused_silica", design
             h, e_model = router_heights(model, lower, w, iterations, target=target)
             h = to_design_grid(model, h, camera, pitch_m, shape)
             point = {"weights": np.asarray(w, float).tolist(), "model": e_model.tolist()}
-            for name, hh in (("continuous", h), ("quantized", quantize_heights(h, step)[1])):
+            for name, hh in (("continuous", h), ("quantized", quantize(h, step).height_m)):
                 psf = engine.psf(hh, views=("coded",)).psf[0, 0]
                 point[name] = np.sum(psf * target.mask[0], axis=(-2, -1)).tolist()
             points.append(point)
