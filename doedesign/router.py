@@ -128,7 +128,8 @@ def to_design_grid(model, h_coarse, camera, pitch_m, shape):
 
 def router_start(target, camera, pitch_m, shape, material, lower, settings):
     """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.router`)."""
-    model = pupil_model(camera, target, material, settings.router_grid_px)
+    # No finer than the design itself.
+    model = pupil_model(camera, target, material, min(settings.router_grid_px, max(shape)))
     h, energies = router_heights(model, lower, settings.colour_weights, settings.router_iter, target=target)
     log.info("router start: model energies on target %s", np.round(energies, 4).tolist())
     return to_design_grid(model, h, camera, pitch_m, shape)
