@@ -303,8 +303,7 @@ def _bayer_doe_psf(design, source):
     from ..bounds import bound_report, spot_bound
     from ..psf import compute_psf
 
-    cam_dict = design.metadata.get("camera")
-    camera = Camera.from_dict(cam_dict) if cam_dict else Camera()
+    camera = design.camera()
     wls = bayer_wavelengths(design)
     res = compute_psf(design, camera, wavelengths_m=wls, depths_m=[np.inf], views=("coded",))
     psf, axis = res.psf[0, 0], camera.axis_pixel
