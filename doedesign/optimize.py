@@ -61,6 +61,10 @@ from .progress import Progress
 from .psf import PSFEngine
 from .router import router_start
 
+__all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OptimizerSettings",
+           "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
+           "isolation_penalty", "level_penalty", "minimize"]
+
 log = logging.getLogger(__name__)
 
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
