@@ -20,8 +20,11 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
-from metrology.diagnosis import diagnose as dg
+from metrology.diagnosis import engine as dg
+from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
+from metrology.diagnosis.heights import INTERIOR_MARGIN_M
+from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
                                            robust_valid)
 
@@ -47,7 +50,7 @@ CAMERA = Effect(
 SUBSUMED = ("instrument_blur",)
 
 
-class CameraHeightProblem(dg._Problem):
+class CameraHeightProblem(dg.Problem):
     """Measured camera heights against the design through process and instrument models.
 
     Parameters
@@ -104,12 +107,12 @@ class CameraHeightProblem(dg._Problem):
         self.edge_m = np.stack([self._edge_distance(m, ri, ci, fr, fc) for m in masks])
         self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
-        flat = (self.any_edge_m > dg.INTERIOR_MARGIN_M) & self.keep
+        flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
         groups, _ = ndi.label(flat & (self.cam_levels >= 0))
         first = self.measured - self.render({CAMERA.name: CAMERA.start_values()})
         levelled = np.full(first.shape, np.nan)
         levelled[self.keep] = self.leveller(first[self.keep])
-        self.noise = dg.estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+        self.noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
 
     def _edge_distance(self, mask, ri, ci, fr, fc):
         here = mask[ri, ci]
@@ -174,13 +177,13 @@ class CameraHeightProblem(dg._Problem):
         out = {}
         edges_d = np.linspace(-4e-6, 4e-6, 17)
         for j, d in enumerate(self.edge_m):
-            out[f"edge_distance_mask{j}_m"] = dg.binned(residual_map, d, edges_d)
-        out["level"] = dg.binned(residual_map, self.cam_levels.astype(float), np.arange(-0.5, 16.5))
+            out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
+        out["level"] = binned(residual_map, self.cam_levels.astype(float), np.arange(-0.5, 16.5))
         rows, cols = residual_map.shape
         yy, xx = np.mgrid[:rows, :cols]
         radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * self.pixel_m
-        out["radius_from_centre_m"] = dg.binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
-        out["spatial_frequency_per_m"] = dg.radial_psd(residual_map, self.pixel_m)
+        out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
+        out["spatial_frequency_per_m"] = radial_psd(residual_map, self.pixel_m)
         return out
 
     def placement_report(self, model, errors=None):
