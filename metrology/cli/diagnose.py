@@ -82,9 +82,10 @@ def _heights(design, path, args, candidates):
 
 
 def _camera(design, path, args, candidates):
+    from doedesign.levels import design_levels
     from metrology.diagnosis.camera import diagnose_camera
     from metrology.formats.readers import read_measurement
-    from metrology.matching.compare import compare_measurement, design_levels
+    from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement
 
     if args.window_px < 16:
