@@ -50,10 +50,11 @@ class DemoConfig:
     instrument_blur_m: float = 0.5e-6
     seed: int = 7
     window: int = 512
+    tolerance_samples: int = 8    # the closing `doe tolerance` run (default spec, local threads)
 
     @classmethod
     def quick(cls):
-        return cls(doe_px=160, iterations=6, anneal_iterations=2, field_px=48, window=128)
+        return cls(doe_px=160, iterations=6, anneal_iterations=2, field_px=48, window=128, tolerance_samples=4)
 
 
 @dataclass
@@ -178,6 +179,16 @@ def diagnose_step(measurement_path, design_path, out):
                   out / "diagnose")
 
 
+def tolerance_step(design_path, out, cfg):
+    """A short tolerance run of the element under the built-in spec: yield and spread of its figure."""
+    rep = _stage(["tolerance", design_path, "--out", out / "tolerance", "--samples", cfg.tolerance_samples,
+                  "--scheduler", "threads", "--workers", 2, "--oversample", 1, "--sobol-base", 0, "--no-oat"],
+                 out / "tolerance")
+    return {"spec": rep["spec"]["source"], "samples": rep["run"]["samples"], "sampling": rep["sampling"]["description"],
+            "primary_metric": rep["primary_metric"], "metrics": rep["metrics"], "yield": rep["yield"],
+            "seconds_per_sample": rep["timing"]["seconds_per_sample"]}
+
+
 def run_demo(out_dir, cfg=None):
     """Run the whole chain into ``out_dir`` and return the report dictionary."""
     cfg = cfg or DemoConfig()
@@ -194,6 +205,7 @@ def run_demo(out_dir, cfg=None):
                                     design, cfg, out)
     comparison = timings.run("compare measurement with design", compare_step, meas_path, design_path, out)
     diagnosis = timings.run("diagnose", diagnose_step, meas_path, design_path, out)
+    tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design_path, out, cfg)
     report = {
         "config": cfg.__dict__,
         "timings": timings.steps,
@@ -203,6 +215,7 @@ def run_demo(out_dir, cfg=None):
         "comparison": comparison,
         "diagnosis": diagnosis,
         "hidden_error": hidden,
+        "tolerance": tolerance,
     }
     write_json(out / "report.json", report)
     with atomic_path(out / "report.md") as tmp:
@@ -247,6 +260,14 @@ def markdown_report(report, out):
               _img(out, "diagnose/residual_steps.png", "residual map, step by step"),
               _img(out, "diagnose/breakdown.png", "where the residual lives"),
               "## The hidden error (revealed after the diagnosis)", "```", _short(report["hidden_error"]), "```", ""]
+    tol = report.get("tolerance")
+    if tol:
+        m, y = tol["metrics"][tol["primary_metric"]], tol["yield"]
+        lines += ["## 5. Tolerance", f"{tol['samples']} process samples, {tol['spec']}. {tol['sampling']}.", "",
+                  f"{tol['primary_metric']}: nominal {m['nominal']:.4g}, mean {m['mean']:.4g}, worst decile "
+                  f"{m['worst_decile_mean']:.4g}. Yield ({', '.join(f'{k} {v}' for k, v in y['thresholds'].items())}): "
+                  f"{y['passed']}/{y['samples']} (95 % interval {y['ci95'][0]:.2f}-{y['ci95'][1]:.2f}).", "",
+                  _img(out, "tolerance/distributions.png", "metric distributions against the nominal element"), ""]
     return "\n".join(lines)
 
 

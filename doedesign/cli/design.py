@@ -82,6 +82,11 @@ def register(subparsers):
     p.add_argument("--reweight-alpha", type=float, help="exponent of the reweighting (default 1)")
     p.add_argument("--reweight-iterations", type=int, help="evaluations per reweighting round (default --iterations)")
     p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
+    p.add_argument("--robust", metavar="SPEC",
+                   help='robust design over process samples of this spec (TOML, a doe compare report.json, or '
+                        '"default"), from the doe.perturbations entry points')
+    p.add_argument("--robust-samples", type=int, default=4, help="process samples per iteration (default 4)")
+    p.add_argument("--robust-measure", choices=("mean", "cvar"), help="expected loss (default) or CVaR")
     p.set_defaults(func=cmd_design)
 
     q = subparsers.add_parser("evaluate-bayer", help="the Bayer colour-sorting study (seed Table 1)",
@@ -170,7 +175,7 @@ def cmd_design(args):
                        ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),
                        ("anneal_iter", args.anneal_iterations), ("fab_weight", args.fab_weight),
                        ("reweight_rounds", args.reweight_rounds), ("reweight_alpha", args.reweight_alpha),
-                       ("reweight_iter", args.reweight_iterations)):
+                       ("reweight_iter", args.reweight_iterations), ("robust_measure", args.robust_measure)):
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
@@ -185,7 +190,12 @@ def cmd_design(args):
     init = None
     if args.init_design:
         init = Design.load(args.init_design).height_m
-    run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init)
+    perturbations = None
+    if args.robust:
+        perturbations = robust_perturbations(args.robust, args.robust_samples, settings.seed, pitch, material,
+                                             design_wl, settings.n_levels)
+    run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init,
+                     perturbations=perturbations)
     out = Path(args.out)
     run.design.save(out)
     report_path = out.parent / "report.json"
@@ -199,6 +209,19 @@ def cmd_design(args):
         summary["efficiency_quantized"] = run.report["quantized"]["efficiency"]
     print_json(summary)
     return 0
+
+
+def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavelength_m, n_levels):
+    """Height perturbations from the first provider in the ``doe.perturbations`` entry points."""
+    from importlib.metadata import entry_points
+
+    if n_samples < 1:
+        raise DoeError(f"--robust-samples {n_samples}: need at least one sample")
+    providers = sorted(entry_points(group="doe.perturbations"), key=lambda e: e.name)
+    if not providers:
+        raise DoeError("--robust: no doe.perturbations provider is installed (the masks package registers one)")
+    return providers[0].load()(None if spec == "default" else spec, n_samples, seed, pitch_m, material,
+                               design_wavelength_m, n_levels)
 
 
 def quick_bayer_design(size_px=128, iterations=60, seed=0):
