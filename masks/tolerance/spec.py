@@ -4,8 +4,8 @@ TOML schema (every table optional; lengths in the unit named by the key)::
 
     [etch_depth]            # depth error of each mask's etch
     sigma_rel = 0.02        # or sigma_nm / mean_nm / mean_rel; dist = "normal" (default)
-    [etch_depth.mask.3]     # override for mask 3 only (masks count from 0, 75 nm first)
-    sigma_rel = 0.03
+    [etch_depth.mask.3]     # override for mask 3 only (masks count from 0, 75 nm first);
+    sigma_nm = 5            # it replaces the shared sigma of any unit
     [mask_overlay]          # x and y placement of masks 1.. relative to mask 0
     sigma_um = 0.25
     [mask_rotation]         # rotation of masks 1.. about the design centre
@@ -255,7 +255,10 @@ def _effect_params(effect, entry, n, nominal_depths_m, source):
             raise DoeError(f"{source}: [{effect}] names mask {m}, which does not exist ({what})")
     out = []
     for m in masks:
-        values = {**entry, **overrides.get(str(m), overrides.get(m, {}))}
+        # A per-mask key replaces the shared one of the same kind (sigma_nm replaces sigma_rel).
+        own = overrides.get(str(m), overrides.get(m, {}))
+        replaced = {k.partition("_")[0] for k in own}
+        values = {**{k: v for k, v in entry.items() if k.partition("_")[0] not in replaced}, **own}
         for comp in _components(effect):
             out.append(_param(effect, m, comp, values, nominal_depths_m[m], source))
     return out
@@ -284,8 +287,10 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
             raise DoeError(f"{source}: {where}: {key} must be a number, got {value!r}") from None
         if not math.isfinite(value):
             raise DoeError(f"{source}: {where}: {key} must be finite")
+        if base in got:
+            raise DoeError(f"{source}: {where}: give {base} once (in one unit), got {sorted(values)}")
         factor = units[unit] if units[unit] is not None else nominal_depth_m
-        got[base] = got.get(base, 0.0) + value * factor
+        got[base] = value * factor
     keys = DISTRIBUTIONS[dist]
     a = got.get(keys[0], 0.0)
     b = got.get(keys[1], 0.0) if len(keys) > 1 else 0.0

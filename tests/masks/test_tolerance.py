@@ -55,6 +55,8 @@ def test_spec_errors_name_the_problem():
         build_spec({"etch_depth": {"sigma_nm": -2}}, DEPTHS, "p.toml")
     with pytest.raises(DoeError, match="negative width"):
         build_spec({"proximity_blur": {"dist": "uniform", "low_um": 0.5, "high_um": 0.1}}, DEPTHS, "p.toml")
+    with pytest.raises(DoeError, match="give sigma once"):
+        build_spec({"etch_depth": {"sigma_nm": 2, "sigma_rel": 0.01}}, DEPTHS, "p.toml")
     with pytest.raises(DoeError, match="unknown key 'sigma_mm'"):
         build_spec({"mask_overlay": {"sigma_mm": 0.2}}, DEPTHS, "p.toml")
 
@@ -65,8 +67,8 @@ def test_spec_units_and_per_mask_override():
                       DEPTHS, "p.toml")
     by = {p.name: p for p in spec.params}
     assert by["etch_depth_nm[mask 1]"].b == pytest.approx(0.02 * 150e-9)
-    # The override adds to the shared entry: 2 % of 600 nm plus 5 nm.
-    assert by["etch_depth_nm[mask 3]"].b == pytest.approx(0.02 * 600e-9 + 5e-9)
+    # The per-mask sigma replaces the shared one.
+    assert by["etch_depth_nm[mask 3]"].b == pytest.approx(5e-9)
     assert "mask_overlay.dx_um[mask 0]" not in by and by["mask_overlay.dy_um[mask 3]"].b == pytest.approx(0.25e-6)
     assert by["roughness_nm"].a == pytest.approx(1e-9)
 
