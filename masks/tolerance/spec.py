@@ -19,6 +19,11 @@ TOML schema (every table optional; lengths in the unit named by the key)::
     [sidewall_slope]        # width of the etched step ramp (um)
     [etch_loading]          # fractional depth loss per unit open fraction (plain number)
     [roughness]             # rms (nm)
+    [microtrenching]        # per mask, when the process model has it: depth (nm) and
+    sigma_nm = 3            # width (um) of the trench at the foot of each etched edge
+    mean_um = 0.5
+    [etch_gradient]         # x and y: relative depth change across the field, % per mm
+    sigma_percent_per_mm = 0.5
     [thresholds]            # yield: every threshold must hold
     on_target_mean = ">= 0.15"
 
@@ -54,7 +59,16 @@ EFFECTS = {
     "etch_loading": (False, False, {"": 1.0}, "", True),
     "roughness": (False, False, {"nm": 1e-9}, "nm", True),
 }
-REPORT_SCALE = {"nm": 1e9, "um": 1e6, "urad": 1e6, "": 1.0}
+# Effects of the newer process model, offered when this ProcessParams has them.
+_NEWER = {
+    "microtrenching": (True, False, {"nm": 1e-9, "um": 1e-6}, "", True),
+    "etch_gradient": (False, False, {"percent_per_mm": 10.0}, "percent_per_mm", False),
+}
+EFFECTS.update({k: v for k, v in _NEWER.items() if k in ProcessParams.__dataclass_fields__})
+# Effects with several components: component -> report unit (its keys use that unit).
+COMPONENTS = {"mask_overlay": {"dx": "um", "dy": "um"}, "microtrenching": {"depth": "nm", "width": "um"},
+              "etch_gradient": {"x": "percent_per_mm", "y": "percent_per_mm"}}
+REPORT_SCALE = {"nm": 1e9, "um": 1e6, "urad": 1e6, "percent_per_mm": 0.1, "": 1.0}
 DISTRIBUTIONS = {"normal": ("mean", "sigma"), "uniform": ("low", "high"), "fixed": ("value",)}
 DEFAULT_SPEC = {
     "etch_depth": {"sigma_rel": 0.02},
@@ -82,9 +96,13 @@ class Param:
     b: float = 0.0
 
     @property
+    def unit(self):
+        return COMPONENTS.get(self.effect, {}).get(self.component, EFFECTS[self.effect][3])
+
+    @property
     def name(self):
         """Report key with its unit, e.g. ``mask_overlay.dx_um[mask 2]``."""
-        unit = EFFECTS[self.effect][3]
+        unit = self.unit
         comp = f".{self.component}" if self.component else ""
         where = f"[mask {self.mask}]" if self.mask is not None else ""
         return f"{self.effect}{comp}{'_' + unit if unit else ''}{where}"
@@ -98,8 +116,9 @@ class Param:
 
     @property
     def group(self):
-        """Sobol group: the effect on one mask (overlay x and y together)."""
-        return self.label.rsplit(" dx", 1)[0].rsplit(" dy", 1)[0]
+        """Sobol group: the effect on one mask (its components together, e.g. overlay x and y)."""
+        where = f"mask {self.mask} " if self.mask is not None else ""
+        return f"{where}{self.effect}"
 
     @property
     def spread(self):
@@ -117,7 +136,7 @@ class Param:
         return np.maximum(v, 0.0) if EFFECTS[self.effect][4] else v
 
     def to_report(self, value):
-        return float(value) * REPORT_SCALE[EFFECTS[self.effect][3]]
+        return float(value) * REPORT_SCALE[self.unit]
 
 
 @dataclass
@@ -160,7 +179,7 @@ class ToleranceSpec:
         depth = np.array(base.etch_depth, float)
         overlay = np.array(base.mask_overlay, float)
         bias = np.array(base.linewidth_bias, float)
-        scalars = {}
+        scalars, arrays = {}, {}
         for p in self.params:
             v = values[p.name]
             if p.effect == "etch_depth":
@@ -171,20 +190,26 @@ class ToleranceSpec:
                 overlay[p.mask, 2] += v
             elif p.effect == "linewidth_bias":
                 bias[p.mask] += v
+            elif p.effect in _NEWER:
+                arrays.setdefault(p.effect, np.array(getattr(base, p.effect), float))
+                index = {"depth": 0, "width": 1, "x": 0, "y": 1}[p.component]
+                arrays[p.effect][(p.mask, index) if p.mask is not None else index] += v
             else:
                 scalars[p.effect] = scalars.get(p.effect, getattr(base, p.effect)) + v
+        if "microtrenching" in arrays:
+            # A trench needs a positive width wherever it has a depth.
+            arrays["microtrenching"][:, 1] = np.maximum(arrays["microtrenching"][:, 1], 1e-9)
         return base.copy(etch_depth=np.maximum(depth, 0.0), mask_overlay=overlay, linewidth_bias=bias,
-                         seed=seed, **scalars)
+                         seed=seed, **scalars, **arrays)
 
     def describe(self):
         """JSON-friendly description (units in the keys)."""
         rows = []
         for p in self.params:
-            unit = EFFECTS[p.effect][3]
             keys = DISTRIBUTIONS[p.dist]
             row = {"name": p.name, "effect": p.effect, "mask": p.mask, "dist": p.dist}
             for k, v in zip(keys, (p.a, p.b)):
-                row[f"{k}_{unit}" if unit else k] = p.to_report(v)
+                row[f"{k}_{p.unit}" if p.unit else k] = p.to_report(v)
             rows.append(row)
         return {"source": self.source, "given": self.table, "parameters": rows,
                 "thresholds": {k: f"{op} {v:g}" for k, (op, v) in self.thresholds.items()}}
@@ -242,7 +267,8 @@ def _effect_params(effect, entry, n, nominal_depths_m, source):
     if not per_mask:
         if overrides or masks is not None:
             raise DoeError(f"{source}: [{effect}] is one value per run; it takes no mask")
-        return [_param(effect, None, comp, entry, None, source) for comp in _components(effect)]
+        return [_param(effect, None, comp, _for_component(effect, comp, entry), None, source)
+                for comp in _components(effect)]
     if not isinstance(overrides, dict):
         raise DoeError(f"{source}: [{effect}.mask] must hold tables named by mask index")
     try:
@@ -260,18 +286,27 @@ def _effect_params(effect, entry, n, nominal_depths_m, source):
         replaced = {k.partition("_")[0] for k in own}
         values = {**{k: v for k, v in entry.items() if k.partition("_")[0] not in replaced}, **own}
         for comp in _components(effect):
-            out.append(_param(effect, m, comp, values, nominal_depths_m[m], source))
+            out.append(_param(effect, m, comp, _for_component(effect, comp, values), nominal_depths_m[m], source))
     return out
 
 
 def _components(effect):
-    return ("dx", "dy") if effect == "mask_overlay" else ("",)
+    return tuple(COMPONENTS.get(effect, {"": None}))
+
+
+def _for_component(effect, comp, values):
+    """The keys of one component: all of them, or those in its own unit (microtrench depth nm, width um)."""
+    unit = COMPONENTS.get(effect, {}).get(comp)
+    if effect != "microtrenching":
+        return values
+    return {k: v for k, v in values.items() if k == "dist" or k.partition("_")[2] == unit}
 
 
 def _param(effect, mask, component, values, nominal_depth_m, source):
     units = EFFECTS[effect][2]
     values = dict(values)
-    dist = values.pop("dist", "normal" if any(k.startswith("sigma") for k in values) or not values else "fixed")
+    bases = {k.partition("_")[0] for k in values}
+    dist = values.pop("dist", "uniform" if bases & {"low", "high"} else "fixed" if "value" in bases else "normal")
     where = f"[{effect}]" + (f" mask {mask}" if mask is not None else "")
     if dist not in DISTRIBUTIONS:
         raise DoeError(f"{source}: {where}: unknown dist {dist!r}; choose {', '.join(DISTRIBUTIONS)}")

@@ -212,3 +212,19 @@ def test_cli_errors_exit_2_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "unknown effect 'sidewall'" in err and "\n" not in err
     assert not (tmp_path / "o" / "report.json").exists()
+
+
+def test_newer_process_effects_when_the_model_has_them():
+    from masks.process import ProcessParams
+
+    if "microtrenching" not in ProcessParams.__dataclass_fields__:
+        pytest.skip("this process model has no microtrenching / etch_gradient yet")
+    spec = build_spec({"microtrenching": {"masks": [3], "sigma_nm": 3, "mean_um": 0.5},
+                       "etch_gradient": {"sigma_percent_per_mm": 0.5}}, DEPTHS, "t")
+    by = {p.name: p for p in spec.params}
+    assert by["microtrenching.width_um[mask 3]"].a == pytest.approx(0.5e-6)
+    assert by["etch_gradient.x_percent_per_mm"].b == pytest.approx(5.0)  # 0.5 %/mm = 5 /m
+    values = {**spec.nominal_values(), "microtrenching.depth_nm[mask 3]": 4e-9, "etch_gradient.y_percent_per_mm": 2.0}
+    params = spec.params_for(values, ProcessParams.ideal(depths_m=DEPTHS))
+    assert params.microtrenching[3].tolist() == pytest.approx([4e-9, 0.5e-6])
+    assert params.etch_gradient.tolist() == pytest.approx([0.0, 2.0])
