@@ -10,7 +10,7 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert main(["demo", "--quick", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     steps = [s["step"] for s in report["timings"]]
-    assert len(steps) == 6 and all(s["seconds"] > 0 for s in report["timings"])
+    assert len(steps) == 7 and all(s["seconds"] > 0 for s in report["timings"])
     assert report["masks"]["verification"]["passed"]
     assert (out / "masks" / "bayer_demo.gds").stat().st_size > 0
     assert (out / "measurement.datx").exists()
@@ -26,6 +26,11 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert steps[0]["residual_rms_after"] < 0.7 * report["diagnosis"]["initial_residual_rms"]
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
+    # The closing tolerance run: its samples, the built-in spec, a yield with its interval.
+    tol = report["tolerance"]
+    assert tol["yield"]["samples"] == 4 and "built-in default" in tol["spec"]
+    assert 0 <= tol["yield"]["ci95"][0] <= tol["yield"]["fraction"] <= tol["yield"]["ci95"][1] <= 1
+    assert "## 5. Tolerance" in text and (out / "tolerance" / "report.json").is_file()
 
 
 def test_demo_measures_where_the_pattern_has_structure():
