@@ -19,7 +19,7 @@ TOML schema (every table optional; lengths in the unit named by the key)::
     [sidewall_slope]        # width of the etched step ramp (um)
     [etch_loading]          # fractional depth loss per unit open fraction (plain number)
     [roughness]             # rms (nm)
-    [microtrenching]        # per mask, when the process model has it: depth (nm) and
+    [microtrenching]        # per mask: depth (nm) and
     sigma_nm = 3            # width (um) of the trench at the foot of each etched edge
     mean_um = 0.5
     [etch_gradient]         # x and y: relative depth change across the field, % per mm
@@ -47,7 +47,9 @@ from doedesign.errors import DoeError
 
 from ..process import ProcessParams
 
-# effect -> (per_mask, skip mask 0, units {suffix: factor to SI}, SI unit, report unit, clip at 0)
+# The effects of masks.effects, as a tolerance spec names them (mask_rotation in urad here,
+# applied as the rotation in ProcessParams.mask_overlay).
+# effect -> (per_mask, skip mask 0, units {suffix: factor to SI}, report unit, clip at 0)
 _LEN_UM = {"um": 1e-6}
 EFFECTS = {
     "etch_depth": (True, False, {"nm": 1e-9, "rel": None}, "nm", False),
@@ -59,12 +61,12 @@ EFFECTS = {
     "etch_loading": (False, False, {"": 1.0}, "", True),
     "roughness": (False, False, {"nm": 1e-9}, "nm", True),
 }
-# Effects of the newer process model, offered when this ProcessParams has them.
-_NEWER = {
+# Per-mask / whole-run arrays of the process model set component by component.
+_ARRAYS = {
     "microtrenching": (True, False, {"nm": 1e-9, "um": 1e-6}, "", True),
     "etch_gradient": (False, False, {"percent_per_mm": 10.0}, "percent_per_mm", False),
 }
-EFFECTS.update({k: v for k, v in _NEWER.items() if k in ProcessParams.__dataclass_fields__})
+EFFECTS.update(_ARRAYS)
 # Effects with several components: component -> report unit (its keys use that unit).
 COMPONENTS = {"mask_overlay": {"dx": "um", "dy": "um"}, "microtrenching": {"depth": "nm", "width": "um"},
               "etch_gradient": {"x": "percent_per_mm", "y": "percent_per_mm"}}
@@ -190,7 +192,7 @@ class ToleranceSpec:
                 overlay[p.mask, 2] += v
             elif p.effect == "linewidth_bias":
                 bias[p.mask] += v
-            elif p.effect in _NEWER:
+            elif p.effect in _ARRAYS:
                 arrays.setdefault(p.effect, np.array(getattr(base, p.effect), float))
                 index = {"depth": 0, "width": 1, "x": 0, "y": 1}[p.component]
                 arrays[p.effect][(p.mask, index) if p.mask is not None else index] += v

@@ -214,11 +214,12 @@ def test_cli_errors_exit_2_with_one_line(tmp_path, capsys):
     assert not (tmp_path / "o" / "report.json").exists()
 
 
-def test_newer_process_effects_when_the_model_has_them():
+def test_every_process_effect_can_be_toleranced():
+    from masks.effects import EFFECTS as MODEL_EFFECTS
     from masks.process import ProcessParams
+    from masks.tolerance.spec import EFFECTS as SPEC_EFFECTS
 
-    if "microtrenching" not in ProcessParams.__dataclass_fields__:
-        pytest.skip("this process model has no microtrenching / etch_gradient yet")
+    assert set(MODEL_EFFECTS) == set(SPEC_EFFECTS)
     spec = build_spec({"microtrenching": {"masks": [3], "sigma_nm": 3, "mean_um": 0.5},
                        "etch_gradient": {"sigma_percent_per_mm": 0.5}}, DEPTHS, "t")
     by = {p.name: p for p in spec.params}
