@@ -19,7 +19,7 @@ import numpy as np
 
 from doedesign.camera import Camera
 from doedesign.design import Design
-from masks.quantize import level_step_m
+from doedesign.levels import level_step_m
 from masks.tolerance.analysis import build_evaluator, nominal_depths
 from masks.tolerance.runner import make_client, run_jobs
 from masks.tolerance.spec import default_spec

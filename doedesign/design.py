@@ -32,6 +32,7 @@ import numpy as np
 from . import __version__
 from .errors import DesignFileError, DoeError
 from .fileio import atomic_path, read_npz
+from .levels import N_LEVELS, level_step_m
 from .materials import get_material
 
 FORMAT_VERSION = 1
@@ -112,6 +113,14 @@ class Design:
     def height_2pi_m(self):
         """2 pi height at the design wavelength."""
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
+
+    def level_step_m(self, n_levels: int = N_LEVELS) -> float:
+        """Depth of one of ``n_levels`` levels at this design's material and wavelength.
+
+        See :func:`doedesign.levels.level_step_m`; the level map itself comes from
+        :func:`doedesign.levels.design_levels`.
+        """
+        return level_step_m(self.material, self.design_wavelength_m, n_levels)
 
     def save(self, path):
         """Write the design atomically to ``path`` (``.npz``)."""

@@ -15,8 +15,8 @@ import numpy as np
 
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, write_json
+from doedesign.levels import design_levels, level_step_m
 
-from ..cli import design_levels
 from ..decompose import binary_depths_m
 from ..fabricated import camera_for
 from .evaluate import Evaluator
@@ -39,8 +39,6 @@ def design_wavelengths_depths(design, camera):
 
 def nominal_depths(design):
     """Mask etch depths (m) of the design's process: binary multiples of its level step."""
-    from ..quantize import level_step_m
-
     n_levels = int(design.metadata.get("n_levels", 16))
     n_masks = int(round(math.log2(n_levels)))
     return binary_depths_m(level_step_m(design.material, design.design_wavelength_m, n_levels), n_masks)
@@ -53,7 +51,7 @@ def build_evaluator(design, spec, source="design", oversample=2, process_upsampl
     wls, depths = design_wavelengths_depths(design, camera)
     if wavelengths_m is not None:
         wls = np.asarray(wavelengths_m, float)
-    levels, _, _ = design_levels(design, source)
+    levels = design_levels(design, int(design.metadata.get("n_levels", 16)), source)
     base = nominal_process(nominal_depths(design))
     ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
                    wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),

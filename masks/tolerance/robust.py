@@ -16,10 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from doedesign.levels import level_step_m, quantize
+
 from ..decompose import binary_depths_m
 from ..fabricated import fabricated_height
 from ..process import ProcessParams
-from ..quantize import level_step_m
 from .spec import default_spec, load_spec, nominal_process
 
 
@@ -33,7 +34,7 @@ class ProcessPerturbation:
     n_levels: int = 16
 
     def __call__(self, height_m):
-        levels = np.clip(np.rint(-np.asarray(height_m) / self.step_m), 0, self.n_levels - 1).astype(np.int16)
+        levels = quantize(height_m, self.step_m, self.n_levels).levels
         made = fabricated_height(levels, self.pitch_m, self.params, oversample=1)
         return height_m + (made + levels * self.step_m), _identity
 

@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from doedesign.errors import DoeError
+from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
 from masks.fabricated import camera_for, fabricated_height, target_from_psf
 
-from metrology.matching.compare import design_levels
 
 log = logging.getLogger(__name__)
 

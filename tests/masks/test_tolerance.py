@@ -9,7 +9,7 @@ import pytest
 from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.errors import DoeError
-from masks.quantize import level_step_m
+from doedesign.levels import level_step_m
 from masks.tolerance.analysis import nominal_depths, tolerance_analysis
 from masks.tolerance.report import clopper_pearson
 from masks.tolerance.spec import build_spec, default_spec, sample_seed, spec_from_compare

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from doedesign.optimize import robust_value_and_grad
-from masks.quantize import level_step_m
+from doedesign.levels import level_step_m
 from masks.tolerance.robust import ProcessPerturbation, process_perturbations
 from masks.tolerance.spec import build_spec, nominal_process
 
