@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from doedesign.camera import Camera
 from doedesign.errors import DoeError
 
 from .process import simulate_surface
@@ -25,17 +24,6 @@ from .process import simulate_surface
 # The "target" when the design carries none: the design PSF's brightest pixels that hold this
 # share of its in-window light.
 DEFAULT_TARGET_FRACTION = 0.9
-
-
-def camera_for(design):
-    """The camera recorded in the design's metadata, or the seed paper's."""
-    cam = design.metadata.get("camera")
-    if isinstance(cam, dict):
-        try:
-            return Camera.from_dict(cam)
-        except (TypeError, ValueError) as exc:
-            raise DoeError(f"design metadata: bad camera entry: {exc}") from None
-    return Camera()
 
 
 def target_from_psf(psf, fraction=DEFAULT_TARGET_FRACTION):

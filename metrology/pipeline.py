@@ -21,8 +21,7 @@ import numpy as np
 
 from doedesign.camera import Camera
 from doedesign.design import Design
-from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path, write_json
+from doedesign.fileio import atomic_path, dumps_json, write_json
 from doedesign.psf import compute_psf
 
 log = logging.getLogger(__name__)
@@ -103,19 +102,10 @@ def psf_step(design, camera, out):
     return result
 
 
-def _stage(argv, out_dir):
-    """Run one stage exactly as a user would (``doe ...``) and return its report.json."""
-    import json
+def masks_step(design, design_path, out):
+    from masks.element import write_element
 
-    from doedesign.cli import main
-
-    if main([str(a) for a in argv]) != 0:
-        raise DoeError(f"demo: `doe {' '.join(str(a) for a in argv)}` failed (see the message above)")
-    return json.loads((Path(out_dir) / "report.json").read_text())
-
-
-def masks_step(design_path, out):
-    return _stage(["masks", design_path, "--out", out / "masks"], out / "masks")
+    return write_element(design, out / "masks", source=str(design_path))
 
 
 def fabricate_and_measure(design, cfg, out):
@@ -153,20 +143,30 @@ def fabricate_and_measure(design, cfg, out):
     return path, hidden
 
 
-def compare_step(measurement_path, design_path, out):
-    return _stage(["compare", measurement_path, "--design", design_path, "--out", out / "compare"], out / "compare")
+def compare_step(measurement_path, design, design_path, out):
+    from metrology.formats.readers import read_measurement
+    from metrology.matching.report import write_comparison
+
+    return write_comparison(read_measurement(measurement_path), design, out / "compare",
+                            measurement_source=str(measurement_path), design_source=str(design_path))
 
 
-def diagnose_step(measurement_path, design_path, out):
-    return _stage(["diagnose", "--design", design_path, "--measured", measurement_path, "--out", out / "diagnose"],
-                  out / "diagnose")
+def diagnose_step(measurement_path, design, design_path, out):
+    from metrology.diagnosis import diagnose_measurement
+    from metrology.formats.readers import read_measurement
+
+    diag, inputs = diagnose_measurement(design, read_measurement(measurement_path), source=str(measurement_path))
+    return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
-def tolerance_step(design_path, out, cfg):
+def tolerance_step(design, design_path, out, cfg):
     """A short tolerance run of the element under the built-in spec: yield and spread of its figure."""
-    rep = _stage(["tolerance", design_path, "--out", out / "tolerance", "--samples", cfg.tolerance_samples,
-                  "--scheduler", "threads", "--workers", 2, "--oversample", 1, "--sobol-base", 0, "--no-oat"],
-                 out / "tolerance")
+    from masks.tolerance.analysis import nominal_depths, tolerance_analysis
+    from masks.tolerance.spec import default_spec
+
+    rep = tolerance_analysis(design, default_spec(nominal_depths(design)), cfg.tolerance_samples, out / "tolerance",
+                             design_name=str(design_path), scheduler="threads", workers=2, oversample=1,
+                             sobol_base=0, one_at_a_time=False)
     return {"spec": rep["spec"]["source"], "samples": rep["run"]["samples"], "sampling": rep["sampling"]["description"],
             "primary_metric": rep["primary_metric"], "metrics": rep["metrics"], "yield": rep["yield"],
             "seconds_per_sample": rep["timing"]["seconds_per_sample"]}
@@ -183,12 +183,12 @@ def run_demo(out_dir, cfg=None):
     design = Design.load(out / "design.npz")  # the file a user would hand on
     psf = timings.run("PSFs of the design", psf_step, design, camera, out)
     design_path = out / "design.npz"
-    masks_report = timings.run("masks and GDSII (export + verification)", masks_step, design_path, out)
+    masks_report = timings.run("masks and GDSII (export + verification)", masks_step, design, design_path, out)
     meas_path, hidden = timings.run("fabrication and Zygo measurement (simulated)", fabricate_and_measure,
                                     design, cfg, out)
-    comparison = timings.run("compare measurement with design", compare_step, meas_path, design_path, out)
-    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design_path, out)
-    tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design_path, out, cfg)
+    comparison = timings.run("compare measurement with design", compare_step, meas_path, design, design_path, out)
+    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design, design_path, out)
+    tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design, design_path, out, cfg)
     report = {
         "config": cfg.__dict__,
         "timings": timings.steps,
@@ -255,9 +255,7 @@ def markdown_report(report, out):
 
 
 def _short(obj, limit=1800):
-    import json
-
-    text = json.dumps(obj, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    text = dumps_json(obj, indent=1)
     return text if len(text) <= limit else text[:limit] + "\n ..."
 
 

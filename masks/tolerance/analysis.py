@@ -18,7 +18,6 @@ from doedesign.fileio import atomic_path, write_json
 from doedesign.levels import design_levels, level_step_m
 
 from ..decompose import binary_depths_m
-from ..fabricated import camera_for
 from .evaluate import Evaluator
 from .metrics import DIRECTIONS, metric_set
 from .report import default_thresholds, markdown, metric_summary, plot_distributions, plot_tornado, yield_summary
@@ -47,7 +46,7 @@ def nominal_depths(design):
 def build_evaluator(design, spec, source="design", oversample=2, process_upsample=None, wavelengths_m=None,
                     metric_script=None):
     """The evaluator of ``design`` under ``spec`` and the nominal (ideal element) metrics."""
-    camera = camera_for(design)
+    camera = design.camera()
     wls, depths = design_wavelengths_depths(design, camera)
     if wavelengths_m is not None:
         wls = np.asarray(wavelengths_m, float)

@@ -151,6 +151,17 @@ class Diagnosis:
         return [plot_steps(self, Path(out_dir) / "residual_steps.png"),
                 plot_breakdown(self, Path(out_dir) / "breakdown.png")]
 
+    def save(self, out_dir, inputs=None):
+        """Write the figures (:meth:`plot`) and ``report.json`` (:meth:`to_dict` with ``inputs``
+        and ``plots``) into ``out_dir``; return the report."""
+        from doedesign.fileio import write_json
+
+        report = self.to_dict()
+        report["inputs"] = dict(inputs or {})
+        report["plots"] = [p.name for p in self.plot(out_dir)]
+        write_json(Path(out_dir) / "report.json", report)
+        return report
+
 
 class Problem:
     """What a domain supplies to the fitting loop.

@@ -26,7 +26,7 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
-from masks.fabricated import camera_for, fabricated_height, target_from_psf
+from masks.fabricated import fabricated_height, target_from_psf
 
 
 log = logging.getLogger(__name__)
@@ -102,7 +102,7 @@ def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e
     params : masks.process.ProcessParams
         Fitted process (e.g. ``Comparison.fitted_params()``).
     camera : Camera, optional
-        Default :func:`camera_for` the design.
+        Default: the design's own (:meth:`Design.camera`).
     wavelengths_m : sequence of float
     oversample : int
         Samples per DOE pixel per axis for both surfaces.
@@ -116,7 +116,7 @@ def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e
     q = int(oversample)
     if q < 1:
         raise DoeError(f"oversample must be a positive integer, got {oversample}")
-    camera = camera or camera_for(design)
+    camera = camera or design.camera()
     levels = design_levels(design)
     fine_measured = fabricated_height(levels, design.pitch_m, params, q)
     fine_shape = fine_measured.shape
