@@ -127,8 +127,8 @@ class Design:
         if self.aperture is not None:
             arrays["aperture"] = self.aperture.astype(bool)
         path = Path(path)
-        with atomic_path(path, suffix=".npz") as tmp:
-            np.savez_compressed(tmp, **arrays)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
         return path
 
     @classmethod

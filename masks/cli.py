@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.cli.common import Number
 from doedesign.errors import DoeError
-from doedesign.fileio import save_figure, write_json
+from doedesign.fileio import ensure_output_dir, output_run, save_figure, write_json
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +27,7 @@ def register(subparsers):
                    help="etch depth per mask, comma separated (default 2**j times the level step)")
     p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask")
     p.add_argument("--etch-order", default=None, help="mask index etched in each step, e.g. 3,2,1,0")
-    p.add_argument("--clear-aperture-mm", type=float, default=None,
+    p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
     p.add_argument("--oasis", action="store_true", help="also write <name>.oas")
     p.set_defaults(func=run_masks)
@@ -102,6 +103,7 @@ def run_masks(args):
     from .decompose import binary_depths_m, levels_to_masks
     from .gds import export_masks
 
+    out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     source = str(args.design)
     levels, step, qreport = design_levels(design, source)
@@ -116,17 +118,17 @@ def run_masks(args):
     if aperture is not None and aperture >= die:
         log.warning("%s: clear aperture %.2f mm does not fit the die; no Cr aperture drawn", source, aperture * 1e3)
         aperture = None
-    out = Path(args.out)
     name = design.name
     gds_path = out / f"{Path(name).name or 'design'}.gds"
-    report = export_masks(gds_path, masks, design.pitch_m, layers=layers, tone=args.tone,
-                          mirrored=args.mirror, depths_m=depths, etch_order=order, name=name,
-                          clear_aperture_m=aperture, die_size_m=die, oasis=args.oasis)
-    report["design"] = source
-    report["level_step_nm"] = step * 1e9
-    report["quantization"] = qreport
-    preview(levels, masks, out / "masks.png", name)
-    write_json(out / "report.json", report)
+    with output_run(out, f"doe masks {source}"):
+        report = export_masks(gds_path, masks, design.pitch_m, layers=layers, tone=args.tone,
+                              mirrored=args.mirror, depths_m=depths, etch_order=order, name=name,
+                              clear_aperture_m=aperture, die_size_m=die, oasis=args.oasis)
+        report["design"] = source
+        report["level_step_nm"] = step * 1e9
+        report["quantization"] = qreport
+        preview(levels, masks, out / "masks.png", name)
+        write_json(out / "report.json", report)
     from doedesign.cli.common import print_json
 
     print_json({k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")})

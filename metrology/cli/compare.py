@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 
 log = logging.getLogger(__name__)
@@ -26,11 +27,11 @@ def register(sub):
     p.add_argument("measurement", help="height map (.dat, .datx, .xyz, .asc, .npz, .npy, .tif)")
     p.add_argument("--design", required=True, help="design .npz")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--pixel-size-um", type=float, default=None,
+    p.add_argument("--pixel-size-um", type=Number(float, 0, 1e4, lo_open=True, unit="um"), default=None,
                    help="measurement pixel size (um) when the file has none or it is wrong (a starting value: "
                         "registration measures it against the DOE pitch)")
     p.add_argument("--wavelengths-nm", default="486,589,656", help="PSF wavelengths: list or start:stop:step")
-    p.add_argument("--psf-oversample", type=int, default=1,
+    p.add_argument("--psf-oversample", type=Number(int, 1, 8), default=1,
                    help="PSF samples per DOE pixel per axis: 1 is fast (about 20 s for a 1600-pixel aperture) "
                         "but averages mask slivers over whole DOE pixels; 2 resolves slivers of half a pixel "
                         "at 2-3x the time and memory")
@@ -42,20 +43,16 @@ def register(sub):
 def run_compare(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
-    from doedesign.fileio import write_json
+    from doedesign.fileio import ensure_output_dir, output_run
     from doedesign.progress import Progress
     from doedesign.psf import parse_wavelengths_nm
 
     from metrology.matching.compare import compare_measurement
     from metrology.formats.readers import read_measurement
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise DoeError(f"{out}: --out must be a directory")
+    out = ensure_output_dir(args.out)
     design = Design.load(args.design)
-    pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um else None
-    if pixel is not None and not pixel > 0:
-        raise DoeError(f"--pixel-size-um must be positive, got {args.pixel_size_um}")
+    pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm)
     with Progress(6 + (0 if args.no_psf else 2), desc="compare") as prog:
@@ -64,7 +61,6 @@ def run_compare(args):
         except DoeError as exc:
             raise DoeError(f"{args.measurement}: {exc}") from None
         report = {"measurement": str(args.measurement), "design": str(args.design), **comp.report()}
-        out.mkdir(parents=True, exist_ok=True)
         psf_cmp = None
         if not args.no_psf:
             from metrology.matching.measured_psf import compare_psf
@@ -72,10 +68,23 @@ def run_compare(args):
             psf_cmp = compare_psf(design, comp.fitted_params(), wavelengths_m=wavelengths,
                                   oversample=args.psf_oversample, progress=prog)
             report["psf"] = psf_cmp.report()
+    with output_run(out, f"doe compare {args.measurement}"):
+        if psf_cmp is not None:
             from doedesign.fileio import write_npz
 
             write_npz(out / "psf.npz", wavelengths_m=psf_cmp.wavelengths_m, design_psf=psf_cmp.design_psf,
                       measured_psf=psf_cmp.measured_psf, target=psf_cmp.target)
+        _write_outputs(args, comp, meas, psf_cmp, report, out)
+    print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
+                                       "height_error_rms_nm", "render3d")}
+               | {"report": str(out / "report.json")})
+    return 0
+
+
+def _write_outputs(args, comp, meas, psf_cmp, report, out):
+    """Figures, the 3-D rendering and report.json (strict JSON) into ``out``; ``report`` is completed."""
+    from doedesign.fileio import write_json
+
     figures = _figures(comp, meas.pixel_size_m, psf_cmp, out)
     if args.no_render:
         report["render3d"] = "skipped (--no-render)"
@@ -87,12 +96,8 @@ def run_compare(args):
         if not failure:
             figures.append("surface3d.png")
     report["figures"] = figures
-    report = _strict_json(report)
+    report.update(_strict_json(report))
     write_json(out / "report.json", report)
-    print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
-                                       "height_error_rms_nm", "render3d")}
-               | {"report": str(out / "report.json")})
-    return 0
 
 
 def _strict_json(obj):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+from doedesign.cli.common import Number
 from doedesign.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,6 @@ def register(sub):
                                    "OUT/report.md with figures and a 3-D rendering.")
     p.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     p.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
-    p.add_argument("--iterations", type=int, default=None, help="optimizer iterations")
-    p.add_argument("--doe-px", type=int, default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
+    p.add_argument("--iterations", type=Number(int, 1, 10**6), default=None, help="optimizer iterations")
+    p.add_argument("--doe-px", type=Number(int, 16, 4096, unit="px"), default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
     p.set_defaults(func=cmd_demo)

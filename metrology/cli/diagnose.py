@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.cli.common import Number, NumberList
 from doedesign.errors import DoeError
 
 log = logging.getLogger(__name__)
@@ -31,14 +32,14 @@ def register(subparsers):
                                                "views when two, optional depth_m and axis_pixel)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--effects", help="comma-separated candidate effects (default: all of the domain)")
-    p.add_argument("--region-px", type=int, default=40,
+    p.add_argument("--region-px", type=Number(int, 8, 4096, unit="px"), default=40,
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
-    p.add_argument("--upsample", type=int, default=5,
+    p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
                    help="model samples per design pixel per axis (height maps; default 5)")
-    p.add_argument("--depths-nm", type=lambda t: [float(v) for v in t.split(",")], default=[75, 150, 300, 600],
+    p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16), default=[75, 150, 300, 600],
                    help="etch depths the process was asked for, one per mask (the ideal model; "
                         "default 75,150,300,600 as in doe masks)")
-    p.add_argument("--threshold", type=float, default=10.0,
+    p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.set_defaults(func=run)
 
@@ -46,8 +47,9 @@ def register(subparsers):
 def run(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
-    from doedesign.fileio import write_json
+    from doedesign.fileio import ensure_output_dir, output_run, write_json
 
+    out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
     if args.region_px < 8:
@@ -56,12 +58,12 @@ def run(args):
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
-    out = Path(args.out)
     report = diag.to_dict()
     report["inputs"] = dict(design=str(args.design), **inputs)
-    plots = diag.plot(out)
-    report["plots"] = [p.name for p in plots]
-    write_json(out / "report.json", report)
+    with output_run(out, "doe diagnose"):
+        plots = diag.plot(out)
+        report["plots"] = [p.name for p in plots]
+        write_json(out / "report.json", report)
     print_json({"report": str(out / "report.json"), "effects_found": diag.named,
                 "measurement_artefacts": report["measurement_artefacts"],
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
