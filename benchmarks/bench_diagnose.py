@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from metrology.diagnosis.diagnose import PsfProblem, diagnose_heights, run_diagnosis
+from metrology.diagnosis import PsfProblem, diagnose_heights, run_diagnosis
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.synthetic import (HEIGHT_EFFECTS, PSF_EFFECTS, make_height_case, make_psf_case, parameter_errors,
                                  psf_test_setup)

@@ -120,6 +120,7 @@ def masks_step(design_path, out):
 def fabricate_and_measure(design, cfg, out):
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
+    from metrology.diagnosis.window import busiest_window
     from metrology.matching import compare, register
     from metrology.formats.writers import write_datx
 
@@ -128,7 +129,10 @@ def fabricate_and_measure(design, cfg, out):
     overlay = np.zeros((n_masks, 3))
     overlay[cfg.hidden_mask, :2] = cfg.hidden_overlay_m
     params = ProcessParams.ideal().copy(mask_overlay=overlay, roughness=0.5e-9, seed=cfg.seed)
-    centre = busiest_field(design.levels, cfg.field_px)
+    # Place the field where the pattern has structure, inside the element's inscribed circle: a
+    # flat zone of a lens-like design cannot be registered or tell anything about the masks.
+    r0, _, c0, _ = busiest_window(design.levels, cfg.field_px, need_flat=False, inside_circle=True)
+    centre = (float(r0 + cfg.field_px // 2), float(c0 + cfg.field_px // 2))
     centre = (centre[0] + rng.uniform(-2, 2), centre[1] + rng.uniform(-2, 2))
     scale = cfg.measurement_pixel_m / design.pitch_m
     shape_px = int(cfg.field_px / scale)
@@ -146,27 +150,6 @@ def fabricate_and_measure(design, cfg, out):
                                "dy_um": cfg.hidden_overlay_m[1] * 1e6},
               "registration": truth.to_dict()}
     return path, hidden
-
-
-def busiest_field(levels, field_px):
-    """Centre (row, col) of the field with the most level edges inside the clear aperture.
-
-    An engineer puts the profilometer where the pattern has structure: a flat zone of a
-    lens-like design cannot be registered or tell anything about the masks.
-    """
-    from scipy import ndimage
-
-    edges = np.zeros(levels.shape)
-    edges[:, 1:] += levels[:, 1:] != levels[:, :-1]
-    edges[1:, :] += levels[1:, :] != levels[:-1, :]
-    density = ndimage.uniform_filter(edges, field_px, mode="constant")
-    n_r, n_c = levels.shape
-    rr, cc = np.mgrid[:n_r, :n_c]
-    # Keep the whole field (its diagonal) inside the inscribed circle of the element.
-    radius = min(n_r, n_c) / 2 - field_px * 0.75
-    inside = np.hypot(rr - (n_r - 1) / 2, cc - (n_c - 1) / 2) <= radius
-    r, c = np.unravel_index(np.argmax(np.where(inside, density, -1)), levels.shape)
-    return float(r), float(c)
 
 
 def compare_step(measurement_path, design_path, out):

@@ -539,21 +539,63 @@ def save_stack(stack, path):
         **extra)
 
 
-def load_stack(path):
-    """Read a PSF ``.npz`` (5-D from :func:`save_stack` / PSFResult, or 4-D views x wavelengths) as a stack."""
+def read_stack(path):
+    """Read a PSF stack ``.npz`` (a measured stack, :func:`save_stack` or a PSFResult file).
+
+    The one set of rules for PSF-stack files: ``psf`` is (views, wavelengths, rows, cols),
+    (wavelengths, rows, cols) for one view, or 5-D with a single depth; ``views`` names each
+    view from :data:`doedesign.psf.VIEWS` (default ``("coded",)`` for one view);
+    ``wavelengths_m`` are in metres; ``depths_m`` (first) or ``depth_m`` give the source
+    distance; ``axis_pixel`` is (row, col), row 0 at the top.
+
+    Returns
+    -------
+    dict
+        ``psf`` (views, wavelengths, rows, cols) in the file's view order, ``views``,
+        ``wavelengths_m``, ``pixel_pitch_m``, ``depth_m`` and ``axis_pixel`` (None when
+        absent), and the optional ``measured``, ``normalization``, ``spectrum_wavelengths_m``,
+        ``spectra`` and ``info`` (None when absent).
+    """
     path = Path(path)
-    data = read_psf_arrays(path, ("psf", "views", "wavelengths_m", "pixel_pitch_m"))
-    psf, views = data["psf"], [str(v) for v in data["views"]]
+    data = read_psf_arrays(path, ("psf", "wavelengths_m", "pixel_pitch_m"), what="PSF stack")
+    psf = np.asarray(data["psf"], dtype=float)
+    wl = np.atleast_1d(np.asarray(data["wavelengths_m"], dtype=float))
     if psf.ndim == 5:
         if psf.shape[1] != 1:
             raise DoeError(f"{path}: holds {psf.shape[1]} depths; load one depth with PSFResult.load")
         psf = psf[:, 0]
-    if psf.ndim != 4 or sorted(views) != sorted(VIEWS):
-        raise DoeError(f"{path}: psf must be (views, wavelengths, rows, cols) with views {VIEWS}, got {psf.shape}")
-    psf = psf[[views.index(v) for v in VIEWS]]
-    depth = float(data["depths_m"][0]) if "depths_m" in data else float(data.get("depth_m", np.inf))
-    return PSFStack(psf=psf, wavelengths_m=data["wavelengths_m"], pixel_pitch_m=float(data["pixel_pitch_m"]),
-                    axis_pixel=tuple(data.get("axis_pixel", (256, 256))),
-                    measured=data.get("measured"), normalization=str(data.get("normalization", "uncoded")),
-                    depth_m=depth, spectrum_wavelengths_m=data.get("spectrum_wavelengths_m"),
-                    spectra=data.get("spectra"), info=json.loads(str(data.get("info", "{}"))))
+    if psf.ndim == 3:
+        psf = psf[None]
+    if psf.ndim != 4 or psf.shape[1] != wl.size:
+        raise DoeError(f"{path}: psf must be (wavelengths, rows, cols) or (views, wavelengths, rows, cols) "
+                       f"with {wl.size} wavelengths, got shape {psf.shape}")
+    if np.any(~(wl > 100e-9)) or np.any(wl > 20e-6):
+        raise DoeError(f"{path}: wavelengths_m must be in metres, got {wl.tolist()}")
+    views = tuple(str(v) for v in data["views"]) if "views" in data else ("coded",)
+    if len(views) != psf.shape[0] or len(set(views)) != len(views) or any(v not in VIEWS for v in views):
+        raise DoeError(f"{path}: {psf.shape[0]} view(s) in psf but views lists {list(views)} "
+                       f"(each one of {list(VIEWS)})")
+    if "depths_m" in data:
+        depth = float(np.atleast_1d(data["depths_m"])[0])
+    else:
+        depth = float(data["depth_m"]) if "depth_m" in data else None
+    axis = tuple(int(v) for v in data["axis_pixel"]) if "axis_pixel" in data else None
+    info = data.get("info")
+    return {"psf": psf, "views": views, "wavelengths_m": wl, "pixel_pitch_m": float(data["pixel_pitch_m"]),
+            "depth_m": depth, "axis_pixel": axis, "measured": data.get("measured"),
+            "normalization": str(data["normalization"]) if "normalization" in data else None,
+            "spectrum_wavelengths_m": data.get("spectrum_wavelengths_m"), "spectra": data.get("spectra"),
+            "info": json.loads(str(info)) if info is not None else None}
+
+
+def load_stack(path):
+    """Read a PSF stack of both views (see :func:`read_stack` for the rules) as a :class:`PSFStack`."""
+    d = read_stack(path)
+    if sorted(d["views"]) != sorted(VIEWS):
+        raise DoeError(f"{path}: a calibrated stack holds both views {list(VIEWS)}, got {list(d['views'])}")
+    psf = d["psf"][[d["views"].index(v) for v in VIEWS]]
+    return PSFStack(psf=psf, wavelengths_m=d["wavelengths_m"], pixel_pitch_m=d["pixel_pitch_m"],
+                    axis_pixel=d["axis_pixel"] or (256, 256), measured=d["measured"],
+                    normalization=d["normalization"] or "uncoded",
+                    depth_m=np.inf if d["depth_m"] is None else d["depth_m"],
+                    spectrum_wavelengths_m=d["spectrum_wavelengths_m"], spectra=d["spectra"], info=d["info"] or {})

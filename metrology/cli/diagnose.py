@@ -10,10 +10,7 @@ import dataclasses
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from doedesign.cli.common import Number, NumberList
-from doedesign.errors import DoeError
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +33,8 @@ def register(subparsers):
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
     p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
                    help="model samples per design pixel per axis (height maps; default 5)")
-    p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16), default=[75, 150, 300, 600],
+    p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
+                   default=[75, 150, 300, 600],
                    help="etch depths the process was asked for, one per mask (the ideal model; "
                         "default 75,150,300,600 as in doe masks)")
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
@@ -52,8 +50,6 @@ def run(args):
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
-    if args.region_px < 8:
-        raise DoeError(f"--region-px must be at least 8, got {args.region_px}")
     if args.measured:
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
@@ -72,74 +68,22 @@ def run(args):
 
 
 def _heights(design, path, args, candidates):
-    from metrology.matching.compare import compare_measurement, design_levels, shift_registration
-    from metrology.diagnosis.diagnose import diagnose_heights
+    from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
-    from metrology.matching.register import resample_to_design
 
-    if args.upsample < 1:
-        raise DoeError(f"--upsample must be a positive integer, got {args.upsample}")
-    meas = read_measurement(path)
-    # The comparison's preparation: despiked, levelled jointly on the registered levels, and
-    # registered with the edge fit's sub-pixel refinement of the whole pattern's position.
-    comp = compare_measurement(meas, design)
-    levelled = comp.height_m
-    reg = shift_registration(comp.registration, comp.edge_fit.shift_m[0], design.pitch_m)
-    # Diagnose the window of the design best covered by the measurement.
-    coverage = np.isfinite(resample_to_design(levelled, reg, upsample=1))
-    if coverage.sum() < 64:
-        raise DoeError(f"{path}: the measurement covers only {int(coverage.sum())} design pixels after registration")
-    rows, cols = np.nonzero(coverage)
-    size = min(args.region_px, rows.max() - rows.min() + 1, cols.max() - cols.min() + 1)
-    r0 = int(np.clip(round(rows.mean() - size / 2), 0, design.shape[0] - size))
-    c0 = int(np.clip(round(cols.mean() - size / 2), 0, design.shape[1] - size))
-    region = (r0, r0 + size, c0, c0 + size)
-    fine = resample_to_design(levelled, reg, upsample=args.upsample, region=region)
-    depths = [v * 1e-9 for v in args.depths_nm]
-    diag = diagnose_heights(design_levels(design), design.pitch_m, fine, design.pitch_m / args.upsample,
-                            region=region, region_px=size, depths_m=depths, candidates=candidates,
-                            threshold=args.threshold)
-    return diag, {"measured": str(path), "region_design_px": list(region), "upsample": args.upsample,
-                  "registration_ncc": getattr(reg, "match_ncc", None), "nominal_depths_m": list(depths)}
-
-
-def load_psf_stack(path):
-    """Read a measured PSF stack ``.npz``.
-
-    Returns
-    -------
-    dict with ``psf`` (views, wavelengths, rows, cols), ``views``, ``wavelengths_m``,
-    ``pixel_pitch_m``, ``depth_m`` (None when absent) and ``axis_pixel`` (None when absent).
-    """
-    from doedesign.psf import read_psf_arrays
-
-    data = read_psf_arrays(path, ("psf", "wavelengths_m", "pixel_pitch_m"), what="measured PSF stack")
-    psf = np.asarray(data["psf"], dtype=float)
-    wl = np.atleast_1d(np.asarray(data["wavelengths_m"], dtype=float))
-    if psf.ndim == 5 and psf.shape[1] == 1:  # a PSFResult file of one source distance
-        psf = psf[:, 0]
-    if psf.ndim == 3:
-        psf = psf[None]
-    if psf.ndim != 4 or psf.shape[1] != wl.size:
-        raise DoeError(f"{path}: psf must be (wavelengths, rows, cols) or (views, wavelengths, rows, cols) "
-                       f"with {wl.size} wavelengths, got shape {psf.shape}")
-    if np.any(~(wl > 100e-9)) or np.any(wl > 20e-6):
-        raise DoeError(f"{path}: wavelengths_m must be in metres, got {wl.tolist()}")
-    views = tuple(str(v) for v in data["views"]) if "views" in data else ("coded",)
-    if len(views) != psf.shape[0]:
-        raise DoeError(f"{path}: {psf.shape[0]} view(s) in psf but views lists {list(views)}")
-    depth = float(data["depth_m"]) if "depth_m" in data else None
-    axis = tuple(int(v) for v in data["axis_pixel"]) if "axis_pixel" in data else None
-    return {"psf": psf, "views": views, "wavelengths_m": wl, "pixel_pitch_m": float(data["pixel_pitch_m"]),
-            "depth_m": depth, "axis_pixel": axis}
+    diag, inputs = diagnose_measurement(design, read_measurement(path), region_px=args.region_px,
+                                        upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
+                                        candidates=candidates, threshold=args.threshold, source=str(path))
+    return diag, {"measured": str(path), **inputs}
 
 
 def _psf(design, path, args, candidates):
     from doedesign.camera import Camera
 
-    from metrology.diagnosis.diagnose import diagnose_psf
+    from metrology.calibration.psfstack import read_stack
+    from metrology.diagnosis import diagnose_psf
 
-    stack = load_psf_stack(path)
+    stack = read_stack(path)
     cam_dict = design.metadata.get("camera")
     camera = Camera.from_dict(cam_dict) if isinstance(cam_dict, dict) else Camera()
     rows, cols = stack["psf"].shape[-2:]

@@ -2,7 +2,7 @@
 
 Each :class:`Effect` has a name, parameters with physical units and bounds, a function that
 applies it to the model, a one-sentence explanation, and the *stage* of the forward model it
-acts on. The diagnosis (:mod:`metrology.diagnosis.diagnose`) fits every candidate's parameters to a
+acts on. The diagnosis (:mod:`metrology.diagnosis.engine`) fits every candidate's parameters to a
 measurement and keeps those that earn their parameters.
 
 Stages, in the order the forward model applies them:

@@ -207,7 +207,7 @@ def make_psf_case(effects, seed, n_wavelengths=3, views=("coded", "uncoded"), se
         ``data`` holds ``design``, ``camera``, ``wavelengths_m``, ``views``, ``measured_psf``
         (views, wavelengths, rows, cols) and ``renderer`` (reusable by the diagnosis).
     """
-    from metrology.diagnosis.diagnose import PsfRenderer, psf_forward
+    from metrology.diagnosis.psf import PsfRenderer, psf_forward
 
     rng = np.random.default_rng(seed)
     design, camera, wavelengths = setup or psf_test_setup(n_wavelengths)

@@ -31,11 +31,12 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
 def test_demo_measures_where_the_pattern_has_structure():
     import numpy as np
 
-    from metrology.pipeline import busiest_field
+    from metrology.diagnosis import busiest_window
 
     levels = np.zeros((200, 200), int)
     levels[20:180, 110:180] = np.random.default_rng(0).integers(0, 16, (160, 70))
-    r, c = busiest_field(levels, 40)
+    r0, _, c0, _ = busiest_window(levels, 40, need_flat=False, inside_circle=True)
+    r, c = r0 + 20, c0 + 20
     assert 110 <= c <= 180 and 20 <= r <= 180
     # The field stays inside the element's inscribed circle.
     assert np.hypot(r - 99.5, c - 99.5) <= 100 - 30

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from doedesign.cli import main
-from metrology.diagnosis.diagnose import (PsfProblem, bic_eff, diagnose_heights, estimate_noise, run_diagnosis)
+from metrology.diagnosis import (PsfProblem, bic_eff, diagnose_heights, estimate_noise, run_diagnosis)
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.synthetic import (HEIGHT_EFFECTS, PSF_EFFECTS, correlated_noise, make_height_case, make_psf_case,
                                  parameter_errors)

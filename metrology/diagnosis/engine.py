@@ -1,0 +1,431 @@
+"""The model-selection engine: fit candidate effects, score them, name the best, revise.
+
+Method
+------
+1. Forward model: the design through the ideal process (height domain, :mod:`masks.process`)
+   or the ideal PSF (PSF domain, :mod:`doedesign.psf`), with the effects of the current model
+   (:mod:`metrology.diagnosis.effects`) applied.
+2. Noise floor (:mod:`metrology.diagnosis.noise`) and correlation from the data alone: heights scatter about their own mean on
+   the flat interiors of features (edges excluded); PSF pixels scatter about a local mean where
+   no model light falls. The autocorrelation of that scatter gives the correlation area ``A``
+   (pixels) and the effective sample count ``n_eff = N / A``.
+3. For every candidate effect, fit its parameters (scipy ``least_squares``, bounded, in units of
+   each parameter's scale) starting from the current model, and score it with
+   ``BIC_eff = n_eff ln(RSS / N) + k ln(n_eff)``; a richer model must lower it by more than
+   ``threshold`` (10: "very strong" evidence) to be named.
+4. Add the best candidate, refit all named effects jointly, repeat until no candidate is
+   significant or the residual reaches the noise floor. Candidates within the threshold of
+   the best cannot be told apart by the data; they are listed as ``ambiguous_with`` and a
+   measurement artefact is preferred among them. A backward pass then swaps or drops named
+   effects that the final model no longer needs (forward-backward stepwise selection).
+   A residual shift of the whole pattern (registration) is fitted in every height model.
+5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum,
+
+A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) supplies a
+:class:`Problem`: the candidate effects, the noise estimate and the residual of a model.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from doedesign.progress import Progress
+
+from metrology.diagnosis.noise import NoiseEstimate
+
+log = logging.getLogger(__name__)
+
+DEFAULT_THRESHOLD = 10.0
+# Iterations of the short fit that screens each candidate.
+SCREEN_ITER = 4
+# Finite-difference step of the Jacobian, in units of each parameter's scale.
+JAC_STEP = 0.02
+# Fraction of the noise floor above which a final residual is reported unexplained even when
+# no binned pattern earns its parameters (the noise-floor estimate itself is good to ~5 %).
+UNEXPLAINED_RATIO = 1.25
+
+
+def bic_eff(rss, n, n_eff, k):
+    """Information criterion with an effective sample count: ``n_eff ln(RSS/N) + k ln(n_eff)``."""
+    return float(n_eff * np.log(rss / n) + k * np.log(n_eff))
+
+
+# -- the generic fitting loop ------------------------------------------------------------------
+@dataclass
+class Step:
+    """One named effect of a diagnosis."""
+
+    effect: str
+    kind: str
+    description: str
+    params: dict
+    uncertainties: dict
+    units: dict
+    residual_rms_before: float
+    residual_rms_after: float
+    criterion_change: float
+    candidates: dict
+    ambiguous_with: list = field(default_factory=list)
+    revised: str | None = None
+
+    def to_dict(self):
+        return {"effect": self.effect, "kind": self.kind, "description": self.description,
+                "measurement_artefact": self.kind == "artefact",
+                "params": self.params, "uncertainties": self.uncertainties, "units": self.units,
+                "residual_rms_before": self.residual_rms_before, "residual_rms_after": self.residual_rms_after,
+                "criterion_change": self.criterion_change, "candidates": self.candidates,
+                "ambiguous_with": self.ambiguous_with, "revised": self.revised}
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose_heights` or :func:`diagnose_psf`.
+
+    Attributes
+    ----------
+    domain : {"height", "psf"}
+    steps : list of Step
+        Named effects in the order found, each with the parameters of the final joint fit.
+    model : dict
+        Effect name -> fitted parameter values (final joint fit).
+    noise_floor : float
+    initial_residual_rms, final_residual_rms : float
+    unexplained : bool
+        Whether a significant structured residual remains (binned residual model earns its
+        parameters under the same criterion).
+    breakdown_initial, breakdown_final : dict
+        Residual broken down by what may explain it (see :func:`residual_breakdown`).
+    residual_maps : list of ndarray
+        Residual map before the first step and after each step (row 0 at the top).
+    """
+
+    domain: str
+    steps: list
+    model: dict
+    noise_floor: float
+    corr_area_px: float
+    n_samples: int
+    n_eff: float
+    initial_residual_rms: float
+    final_residual_rms: float
+    unexplained: bool
+    structure_criterion: float
+    units: str
+    breakdown_initial: dict = field(default_factory=dict)
+    breakdown_final: dict = field(default_factory=dict)
+    residual_maps: list = field(default_factory=list)
+    map_step_m: float | None = None
+
+    @property
+    def named(self):
+        """Names of the effects found, in order."""
+        return [s.effect for s in self.steps]
+
+    def to_dict(self):
+        return {"domain": self.domain, "units": self.units,
+                "steps": [s.to_dict() for s in self.steps],
+                "effects_found": self.named,
+                "measurement_artefacts": [s.effect for s in self.steps if s.kind == "artefact"],
+                "model": {k: np.asarray(v).tolist() for k, v in self.model.items()},
+                "noise_floor": self.noise_floor, "corr_area_px": self.corr_area_px,
+                "n_samples": self.n_samples, "n_eff": self.n_eff,
+                "initial_residual_rms": self.initial_residual_rms,
+                "final_residual_rms": self.final_residual_rms,
+                "unexplained": self.unexplained, "structure_criterion": self.structure_criterion,
+                "breakdown_initial": self.breakdown_initial, "breakdown_final": self.breakdown_final}
+    def plot(self, out_dir):
+        """Write ``residual_steps.png`` (residual map before and after each step) and
+        ``breakdown.png`` (residual by edge distance, level, density, position, frequency).
+
+        Returns
+        -------
+        list of Path
+        """
+        from metrology.diagnosis.plots import plot_breakdown, plot_steps
+
+        return [plot_steps(self, Path(out_dir) / "residual_steps.png"),
+                plot_breakdown(self, Path(out_dir) / "breakdown.png")]
+
+
+class Problem:
+    """What a domain supplies to the fitting loop.
+
+    Subclasses set ``effects`` (candidate Effect objects), ``noise`` (NoiseEstimate) and
+    implement ``residual(model) -> 1-D array`` (measured minus model, on the compared samples),
+    ``residual_map(model) -> 2-D array`` and ``breakdown(residual_map) -> dict``.
+    """
+
+    effects: dict
+    noise: NoiseEstimate
+    units = "m"
+    nuisance: dict = {}
+
+    def residual(self, model):
+        raise NotImplementedError
+
+    def residual_map(self, model):
+        raise NotImplementedError
+
+    def breakdown(self, residual_map):
+        return {}
+
+    def structure_groups(self):
+        """Label maps of bins for the structured-residual test (0 = excluded), one per way of
+        grouping pixels that an unmodelled effect would show up in."""
+        return []
+
+
+def _fit(problem, model, free, max_iter=None):
+    """Least-squares fit of the ``free`` effects' parameters, others held at ``model``.
+
+    Central-difference Jacobians: area-coverage edges make the residual piecewise smooth with
+    kinks where an edge crosses a grid line (at zero shift or bias), where one-sided differences
+    stall the fit.
+
+    Parameters
+    ----------
+    max_iter : int, optional
+        Cap on function evaluations outside the Jacobian (a short fit to screen candidates).
+
+    Returns (values dict, rss, stderr dict).
+    """
+    effs = [problem.effects[name] for name in free]
+    scale = np.concatenate([e.scales() for e in effs])
+    lo = np.concatenate([e.bounds()[0] for e in effs]) / scale
+    hi = np.concatenate([e.bounds()[1] for e in effs]) / scale
+    x0 = np.concatenate([np.asarray(model[e.name], dtype=float) for e in effs]) / scale
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    splits = np.cumsum([e.n_params for e in effs])[:-1]
+    sigma = problem.noise.sigma
+
+    def unpack(x):
+        trial = dict(model)
+        for e, v in zip(effs, np.split(x * scale, splits)):
+            trial[e.name] = v
+        return trial
+
+    def fun(x):
+        return problem.residual(unpack(x)) / sigma
+
+    def jac(x):
+        return _central_jacobian(fun, x, lo, hi)
+
+    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
+                        max_nfev=max_iter or 60)
+    fitted = unpack(res.x)
+    rss = float(np.sum(res.fun ** 2)) * sigma ** 2
+    n, k = res.fun.size, res.x.size
+    jtj = res.jac.T @ res.jac
+    try:
+        cov = np.linalg.pinv(jtj) * (np.sum(res.fun ** 2) / max(n - k, 1)) * problem.noise.corr_area_px
+        err = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    except np.linalg.LinAlgError:
+        err = np.full(k, np.nan)
+    errors = {e.name: v for e, v in zip(effs, np.split(err, splits))}
+    return fitted, rss, errors
+
+
+def _central_jacobian(fun, x, lo, hi, step=JAC_STEP):
+    """Central differences with an absolute step (in units of each parameter's scale),
+    one-sided against a bound. SciPy's relative steps vanish at a parameter of exactly zero,
+    where most effects start."""
+    cols = []
+    for i in range(x.size):
+        up, down = x.copy(), x.copy()
+        up[i] = min(x[i] + step, hi[i])
+        down[i] = max(x[i] - step, lo[i])
+        cols.append((fun(up) - fun(down)) / (up[i] - down[i]))
+    return np.stack(cols, axis=1)
+
+
+def _rms(r):
+    return float(np.sqrt(np.mean(r ** 2)))
+
+
+def _structure_test(problem, r_map, n_eff, n):
+    """Most negative criterion change of a binned (piecewise-constant) model of the residual
+    over the problem's groupings; below -threshold a structured residual remains."""
+    best = np.inf
+    for groups in problem.structure_groups():
+        valid = np.isfinite(r_map) & (groups > 0)
+        r = r_map[valid]
+        lab = groups[valid]
+        counts = np.bincount(lab)
+        means = np.bincount(lab, weights=r) / np.maximum(counts, 1)
+        rss0 = float(np.sum(r ** 2))
+        rss1 = float(np.sum((r - means[lab]) ** 2))
+        k = int(np.count_nonzero(counts))
+        best = min(best, bic_eff(rss1, n, n_eff, k) - bic_eff(rss0, n, n_eff, 0))
+    return float(best)
+
+
+def _criterion(problem, model, n, n_eff):
+    r = problem.residual(model)
+    return bic_eff(float(np.sum(r ** 2)), n, n_eff, sum(problem.effects[m].n_params for m in model))
+
+
+def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold):
+    """Backward pass of the stepwise selection, once all named effects are in the model.
+
+    Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
+    be told apart once everything else is explained: each named effect is tried against the
+    alternatives that scored close to it when it was chosen (swap if better by the threshold,
+    or if tied and the alternative is a measurement artefact), then each named effect is
+    dropped if the criterion no longer needs it.
+    """
+    crit = _criterion(problem, model, n, n_eff)
+    by_name = {st.effect: st for st in steps}
+    for st in list(steps):
+        for alt in alternatives.get(st.effect, []):
+            if alt in model or st.effect not in model:
+                continue
+            trial = {k: v for k, v in model.items() if k != st.effect}
+            trial[alt] = problem.effects[alt].start_values()
+            fitted, rss, errs = _fit(problem, trial, list(trial))
+            c_alt = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
+            prefer = problem.effects[alt].kind == "artefact" and problem.effects[st.effect].kind != "artefact"
+            if c_alt < crit - threshold or (prefer and c_alt <= crit + threshold):
+                log.info("revision: %s replaces %s (criterion %+.1f)", alt, st.effect, c_alt - crit)
+                old = st.effect
+                eff = problem.effects[alt]
+                st.effect, st.kind, st.description = alt, eff.kind, eff.description
+                st.units = {p.name: p.unit for p in eff.params}
+                st.ambiguous_with = sorted(set(st.ambiguous_with + [old]) - {alt})
+                st.revised = f"replaced {old} in the backward pass"
+                by_name[alt] = st
+                model, errors, crit = fitted, errs, c_alt
+    for st in list(steps):
+        if len(model) - len(nuisance) <= 1:
+            break
+        trial = {k: v for k, v in model.items() if k != st.effect}
+        fitted, rss, errs = _fit(problem, trial, list(trial))
+        c_drop = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
+        if c_drop < crit + threshold:
+            log.info("revision: %s no longer needed (criterion %+.1f)", st.effect, c_drop - crit)
+            model, errors, crit = fitted, errs, c_drop
+    return model, errors, crit
+
+
+def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="height", candidates=None,
+                  screen_iter=SCREEN_ITER, stop_at_floor=True):
+    """The greedy model-building loop on a prepared problem (see the module docstring).
+
+    Parameters
+    ----------
+    problem : Problem
+    threshold : float
+        Criterion drop a candidate must achieve to be named.
+    max_steps : int
+    domain : str
+    candidates : list of str, optional
+        Restrict the candidates (default: every registered effect of the domain).
+    screen_iter : int
+        Iterations of each candidate's screening fit (the candidate with the named effects).
+        A short fit over-estimates the RSS, so its criterion change is conservative; the
+        chosen effect is then fitted to convergence jointly with all effects and nuisances.
+    stop_at_floor : bool
+        Stop as soon as the residual rms reaches the noise floor (else only the criterion stops).
+
+    Returns
+    -------
+    Diagnosis
+    """
+    nuisance = list(getattr(problem, "nuisance", {}))
+    names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
+    model = {}
+    if nuisance:
+        model, _, _ = _fit(problem, {n: problem.effects[n].start_values() for n in nuisance}, nuisance)
+    r = problem.residual(model)
+    n = r.size
+    n_eff = max(n / problem.noise.corr_area_px, 2.0)
+    rss = float(np.sum(r ** 2))
+    initial_rms = _rms(r)
+    k_base = sum(problem.effects[m].n_params for m in nuisance)
+    crit = bic_eff(rss, n, n_eff, k_base)
+    maps = [problem.residual_map(model)]
+    breakdown_initial = problem.breakdown(maps[0])
+    steps = []
+    errors = {}
+    alternatives = {}
+    log.info("diagnosis: %d samples, n_eff %.0f, noise floor %.3g, initial rms %.3g",
+             n, n_eff, problem.noise.sigma, initial_rms)
+    while len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
+        pending = [nm for nm in names if nm not in model]
+        if not pending:
+            break
+        scores = {}
+        fits = {}
+        k_now = sum(problem.effects[m].n_params for m in model)
+        with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
+            for name in pending:
+                eff = problem.effects[name]
+                trial = dict(model)
+                trial[name] = eff.start_values()
+                # The named effects refit with the candidate: partly degenerate effects (a blur
+                # and a sidewall ramp) must be able to share what one of them took alone.
+                free = [m for m in model if m not in nuisance] + [name]
+                fitted, rss_c, _ = _fit(problem, trial, free, max_iter=screen_iter)
+                scores[name] = bic_eff(rss_c, n, n_eff, k_now + eff.n_params) - crit
+                fits[name] = fitted
+                bar.update(1, status=f"{name} {scores[name]:+.1f}")
+        if not scores:
+            break
+        best = min(scores, key=scores.get)
+        log.info("candidates: %s", {k: round(v, 1) for k, v in sorted(scores.items(), key=lambda kv: kv[1])})
+        if scores[best] > -threshold:
+            break
+        # Candidates close to the best are fitted to convergence and compared again; those
+        # within the threshold of the best cannot be told apart by the data. Among them a
+        # measurement artefact is preferred: it is always present in a measurement, and a
+        # fabrication effect must not be blamed for what the instrument does.
+        close = [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
+        refits = {}
+        for c in close:
+            refits[c] = _fit(problem, fits[c], list(model) + [c])
+            scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
+        best = min(close, key=scores.get)
+        tied = [c for c in close if scores[c] <= scores[best] + threshold]
+        artefacts = [c for c in tied if problem.effects[c].kind == "artefact"]
+        if artefacts:
+            best = min(artefacts, key=scores.get)
+        ambiguous = sorted(c for c in tied if c != best)
+        alternatives[best] = [c for c in close if c != best]
+        model, rss_new, errors = refits[best]
+        new_crit = bic_eff(rss_new, n, n_eff, k_now + problem.effects[best].n_params)
+        r_new = problem.residual(model)
+        eff = problem.effects[best]
+        steps.append(Step(
+            effect=best, kind=eff.kind, description=eff.description,
+            params={}, uncertainties={}, units={p.name: p.unit for p in eff.params},
+            residual_rms_before=_rms(r), residual_rms_after=_rms(r_new),
+            criterion_change=new_crit - crit, candidates={k: float(v) for k, v in scores.items()},
+            ambiguous_with=ambiguous))
+        maps.append(problem.residual_map(model))
+        r, crit = r_new, new_crit
+    if steps:
+        model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold)
+        r = problem.residual(model)
+        steps = [st for st in steps if st.effect in model]
+        if len(maps) > len(steps) + 1 or any(st.revised for st in steps):
+            # After a revision the per-step maps no longer describe the final model; keep the
+            # ideal and the final residual maps.
+            maps = maps[:1] + [problem.residual_map(model)]
+    # Report every step's parameters from the final joint fit, with their uncertainties.
+    for s in steps:
+        eff = problem.effects[s.effect]
+        s.params = {p.name: float(v) for p, v in zip(eff.params, model[s.effect])}
+        s.uncertainties = {p.name: float(v) for p, v in zip(eff.params, errors.get(s.effect, []))}
+    final_map = maps[-1]
+    struct = _structure_test(problem, final_map, n_eff, n)
+    unexplained = bool(struct < -threshold or _rms(r) > UNEXPLAINED_RATIO * problem.noise.sigma)
+    return Diagnosis(domain=domain, steps=steps, model=model, noise_floor=problem.noise.sigma,
+                     corr_area_px=problem.noise.corr_area_px, n_samples=n, n_eff=n_eff,
+                     initial_residual_rms=initial_rms, final_residual_rms=_rms(r),
+                     unexplained=unexplained, structure_criterion=struct, units=problem.units,
+                     breakdown_initial=breakdown_initial, breakdown_final=problem.breakdown(final_map),
+                     residual_maps=maps)

@@ -1,0 +1,288 @@
+"""The height problem: a measured height map against the design through the process model.
+
+Arrays are row-major with row 0 at the top; residuals are in metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from doedesign.errors import DoeError
+
+from metrology.diagnosis.breakdown import binned, radial_psd
+from metrology.diagnosis.effects import Effect, Parameter, effects_for
+from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
+from metrology.diagnosis.noise import estimate_noise
+from metrology.diagnosis.window import busiest_window
+
+# Margin (m) around design edges excluded from the flat interiors used for the noise floor:
+# wider than plausible overlay / bias slivers plus instrument blur.
+INTERIOR_MARGIN_M = 1.6e-6
+
+
+def _shift_all_masks(params, values):
+    overlay = np.array(params.mask_overlay, dtype=float, copy=True)
+    overlay[:, 0] += values[0]
+    overlay[:, 1] += values[1]
+    return params.copy(mask_overlay=overlay)
+
+
+# A residual registration error of the measurement against the design moves every mask alike.
+# It is a nuisance, always fitted (never named): registration is good to a fraction of a pixel.
+REGISTRATION = Effect(
+    "registration_shift", "height", "process",
+    [Parameter(f"{ax}_m", "m", -2e-6, 2e-6, 0.2e-6) for ax in ("dx", "dy")], _shift_all_masks,
+    "Residual shift of the registered measurement against the design (nuisance).", kind="calibration",
+    order=-1)
+
+
+def signed_edge_distance_m(mask, step_m):
+    """Distance (m) of each pixel centre to the nearest edge of a boolean mask; positive inside."""
+    inside = ndi.distance_transform_edt(mask) - 0.5
+    outside = ndi.distance_transform_edt(~mask) - 0.5
+    return np.where(mask, inside, -outside) * step_m
+
+
+class HeightProblem(Problem):
+    """A measured height map against the design through the process model.
+
+    Parameters
+    ----------
+    levels : ndarray of int (rows, cols)
+        Design levels, row 0 at the top.
+    pitch_m : float
+    measured_height_m : ndarray
+        The measurement on the fine model grid of ``region``: shape
+        ``((row1 - row0) * u, (col1 - col0) * u)`` with ``u = pitch_m / step_m``; NaN = no data.
+    step_m : float
+    region : (row0, row1, col0, col1)
+        Design pixels the measurement covers (half-open).
+    base_params : ProcessParams
+        The ideal process (the nominal etch depths).
+    effects : list of Effect
+    border_m : float
+        Width excluded at the edges of the map (spectral filters see mirrored data there).
+    fit_registration : bool
+        Fit a residual shift of the whole pattern as a nuisance in every model.
+    """
+
+    units = "m"
+
+    def __init__(self, levels, pitch_m, measured_height_m, step_m, region, base_params, effects,
+                 border_m=3e-6, fit_registration=True):
+        from masks.decompose import levels_to_masks
+        from masks.process import fine_upsample
+
+        self.levels = np.asarray(levels)
+        self.pitch_m = float(pitch_m)
+        self.region = tuple(int(v) for v in region)
+        u = fine_upsample(pitch_m, step_m)
+        if abs(pitch_m / u - step_m) > 1e-6 * step_m:
+            raise DoeError(f"model grid step {step_m * 1e6:.4g} um must divide the design pitch "
+                           f"{pitch_m * 1e6:.4g} um (resample the measurement first)")
+        self.step_m = pitch_m / u
+        self.upsample = u
+        row0, row1, col0, col1 = self.region
+        shape = ((row1 - row0) * u, (col1 - col0) * u)
+        meas = np.asarray(measured_height_m, dtype=float)
+        if meas.shape != shape:
+            raise DoeError(f"measurement of shape {meas.shape} does not match the model grid {shape} "
+                           f"of design region {self.region} at {u} samples per pixel")
+        self.measured = meas
+        self.base = base_params
+        self.effects = {e.name: e for e in effects}
+        if fit_registration:
+            self.effects[REGISTRATION.name] = REGISTRATION
+            self.nuisance = {REGISTRATION.name: REGISTRATION}
+        b = int(np.ceil(border_m / self.step_m))
+        keep = np.zeros(shape, dtype=bool)
+        keep[b:shape[0] - b, b:shape[1] - b] = True
+        self.valid = keep & np.isfinite(meas)
+        if self.valid.sum() < 100:
+            raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed region")
+        # Design quantities on the fine grid, for the noise floor and the breakdown.
+        lev = self.levels[row0:row1, col0:col1]
+        self.fine_levels = np.repeat(np.repeat(lev, u, axis=0), u, axis=1)
+        masks = levels_to_masks(lev, len(base_params.etch_depth))
+        self.fine_masks = np.repeat(np.repeat(masks, u, axis=1), u, axis=2)
+        self.edge_m = np.stack([signed_edge_distance_m(m, self.step_m) for m in self.fine_masks])
+        self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
+        m = int(np.ceil(INTERIOR_MARGIN_M / self.step_m))
+        flat = (ndi.maximum_filter(self.fine_levels, size=2 * m + 1)
+                == ndi.minimum_filter(self.fine_levels, size=2 * m + 1)) & self.valid
+        groups, _ = ndi.label(flat)
+        self.noise = estimate_noise(meas, groups)
+
+    def surface(self, model):
+        """Model height map (m) on the fine grid with the effects in ``model`` applied."""
+        from masks.process import simulate_surface
+
+        chosen = sorted((self.effects[n] for n in model),
+                        key=lambda e: (("process", "surface").index(e.stage), e.order))
+        params = self.base
+        for e in chosen:
+            if e.stage == "process":
+                params = e.apply(params, e.check(model[e.name]))
+        h = simulate_surface(self.levels, self.pitch_m, params, step_m=self.step_m, region=self.region).height_m
+        for e in chosen:
+            if e.stage == "surface":
+                h = e.apply(h, e.check(model[e.name]), self.step_m)
+        return h
+
+    def residual(self, model):
+        r = self.measured[self.valid] - self.surface(model)[self.valid]
+        # The measurement's height zero is arbitrary: a piston is always removed (1 dof).
+        return r - r.mean()
+
+    def residual_map(self, model):
+        out = np.full(self.measured.shape, np.nan)
+        out[self.valid] = self.residual(model)
+        return out
+
+    def structure_groups(self):
+        """Level x distance to the nearest edge (edge effects), level x 4 x 4 tiles of the field
+        (density and position effects), and signed distance to each mask's edges."""
+        dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
+        rows, cols = self.valid.shape
+        tile = (np.arange(rows)[:, None] * 4 // rows) * 4 + (np.arange(cols)[None, :] * 4 // cols)
+        signed = [np.digitize(d, np.linspace(-3e-6, 3e-6, 13)) for d in self.edge_m]
+        maps = [self.fine_levels * 8 + dist_bin, self.fine_levels * 16 + tile]
+        maps.append(sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2])))
+        return [np.where(self.valid, m + 1, 0) for m in maps]
+
+    def breakdown(self, residual_map):
+        """Residual by signed distance to each mask's edges, level, density, position, frequency."""
+        out = {}
+        edges_d = np.linspace(-4e-6, 4e-6, 17)
+        for j, d in enumerate(self.edge_m):
+            out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
+        out["level"] = binned(residual_map, self.fine_levels.astype(float), np.arange(-0.5, 16.5))
+        sigma_px = 50e-6 / self.step_m
+        density = ndi.gaussian_filter(self.fine_masks.mean(axis=0).astype(float), sigma_px, mode="reflect")
+        out["pattern_density"] = binned(residual_map, density, np.linspace(0, 1, 11))
+        rows, cols = residual_map.shape
+        yy, xx = np.mgrid[:rows, :cols]
+        radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * self.step_m
+        out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
+        out["spatial_frequency_per_m"] = radial_psd(residual_map, self.step_m)
+        return out
+
+
+def diagnose_heights(design_levels, pitch_m, measured_height_m, step_m, region=None, region_px=40,
+                     depths_m=None, candidates=None, threshold=DEFAULT_THRESHOLD, max_steps=6, stop_at_floor=True):
+    """Find, name and fit the effects that explain a measured height map.
+
+    Parameters
+    ----------
+    design_levels : ndarray of int (rows, cols)
+        The design's levels (0 = top surface), row 0 at the top.
+    pitch_m : float
+        Design pixel pitch.
+    measured_height_m : ndarray
+        Measured heights (m, z up) registered onto the fine model grid: fine pixel (a, b) of
+        the map covers design coordinates ``row0 + (a + 0.5) / u - 0.5`` (likewise columns),
+        ``u = pitch_m / step_m``. It covers either the whole design or ``region``.
+    step_m : float
+        Fine-grid spacing of the measurement; must divide ``pitch_m``.
+    region : (row0, row1, col0, col1), optional
+        Design pixels the measurement covers. Default: the whole design.
+    region_px : int
+        The diagnosis fits the window of at most this many design pixels per side that holds
+        the most level edges (each model evaluation then costs milliseconds).
+    depths_m : sequence of float, optional
+        Nominal etch depths per mask (default: 75, 150, 300, 600 nm).
+    candidates : list of str, optional
+        Effects to try (default: every registered height-domain effect).
+    threshold : float
+        Criterion drop required to name an effect.
+    max_steps : int
+    stop_at_floor : bool
+        Stop when the residual reaches the noise floor (default) or only on the criterion.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    from masks.process import ProcessParams, fine_upsample
+
+    levels = np.asarray(design_levels)
+    if levels.ndim != 2:
+        raise DoeError(f"design levels must be a 2-D array, got shape {levels.shape}")
+    u = fine_upsample(pitch_m, step_m)
+    meas = np.asarray(measured_height_m, dtype=float)
+    if region is None:
+        region = (0, levels.shape[0], 0, levels.shape[1])
+    row0, row1, col0, col1 = (int(v) for v in region)
+    if meas.shape != ((row1 - row0) * u, (col1 - col0) * u):
+        raise DoeError(f"measurement of shape {meas.shape} does not cover design region {tuple(region)} "
+                       f"at {u} samples per {pitch_m * 1e6:.3g} um pixel (expected "
+                       f"{((row1 - row0) * u, (col1 - col0) * u)})")
+    sub = busiest_window(levels[row0:row1, col0:col1], region_px)
+    meas = meas[sub[0] * u:sub[1] * u, sub[2] * u:sub[3] * u]
+    window = (row0 + sub[0], row0 + sub[1], col0 + sub[2], col0 + sub[3])
+    base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
+    problem = HeightProblem(levels, pitch_m, meas, step_m, window, base, effects_for("height", candidates))
+    diag = run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
+                         stop_at_floor=stop_at_floor)
+    diag.map_step_m = problem.step_m
+    return diag
+
+
+def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m=None, candidates=None,
+                         threshold=DEFAULT_THRESHOLD, source="measurement"):
+    """Diagnose a profilometer measurement of a design: prepare, register, choose the window.
+
+    The comparison's preparation (despiked, levelled jointly on the registered levels,
+    registered with the edge fit's sub-pixel refinement of the whole pattern's position), then
+    :func:`diagnose_heights` on the window of the design best covered by the measurement.
+
+    Parameters
+    ----------
+    design : Design
+    measurement : Measurement
+        As read by :func:`metrology.formats.readers.read_measurement`.
+    region_px : int
+        Design pixels per side of the window diagnosed (at least 8).
+    upsample : int
+        Model samples per design pixel per axis.
+    depths_m : sequence of float, optional
+        Nominal etch depths per mask (the ideal model).
+    candidates : list of str, optional
+    threshold : float
+    source : str
+        Name of the measurement in error messages (its file).
+
+    Returns
+    -------
+    (Diagnosis, dict)
+        The diagnosis and its inputs: the window (``region_design_px``, half-open design pixels,
+        row 0 at the top), ``upsample``, ``registration_ncc`` and ``nominal_depths_m``.
+    """
+    from masks.process import ProcessParams
+
+    from metrology.matching.compare import compare_measurement, design_levels, shift_registration
+    from metrology.matching.register import resample_to_design
+
+    if region_px < 8:
+        raise DoeError(f"--region-px must be at least 8, got {region_px}")
+    if upsample < 1:
+        raise DoeError(f"--upsample must be a positive integer, got {upsample}")
+    comp = compare_measurement(measurement, design)
+    levelled = comp.height_m
+    reg = shift_registration(comp.registration, comp.edge_fit.shift_m[0], design.pitch_m)
+    coverage = np.isfinite(resample_to_design(levelled, reg, upsample=1))
+    if coverage.sum() < 64:
+        raise DoeError(f"{source}: the measurement covers only {int(coverage.sum())} design pixels after registration")
+    rows, cols = np.nonzero(coverage)
+    size = min(region_px, rows.max() - rows.min() + 1, cols.max() - cols.min() + 1)
+    r0 = int(np.clip(round(rows.mean() - size / 2), 0, design.shape[0] - size))
+    c0 = int(np.clip(round(cols.mean() - size / 2), 0, design.shape[1] - size))
+    region = (r0, r0 + size, c0, c0 + size)
+    fine = resample_to_design(levelled, reg, upsample=upsample, region=region)
+    depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
+    diag = diagnose_heights(design_levels(design), design.pitch_m, fine, design.pitch_m / upsample,
+                            region=region, region_px=size, depths_m=depths, candidates=candidates,
+                            threshold=threshold)
+    return diag, {"region_design_px": list(region), "upsample": upsample,
+                  "registration_ncc": getattr(reg, "match_ncc", None), "nominal_depths_m": depths}

@@ -1,0 +1,99 @@
+"""Noise floor and correlation area of a measurement, estimated from the data alone.
+
+Pixels that scatter about a per-group constant (flat feature interiors for heights, unlit
+tiles for PSFs) give the noise rms; the autocorrelation of that scatter gives the correlation
+area ``A`` (pixels) and the effective sample count ``n_eff = N / A`` of the criterion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from doedesign.errors import DoeError
+
+# Lags (pixels) over which the noise autocorrelation is summed into the correlation area.
+MAX_LAG_PX = 3
+
+
+@dataclass
+class NoiseEstimate:
+    """Noise floor and correlation of the measurement, estimated from the data.
+
+    Attributes
+    ----------
+    sigma : float
+        Robust rms of the noise (measurement units).
+    corr_area_px : float
+        Correlation area ``A = sum of the autocorrelation over lags`` (pixels, >= 1).
+    n_samples : int
+        Pixels the estimate used.
+    """
+
+    sigma: float
+    corr_area_px: float
+    n_samples: int
+
+
+def estimate_noise(values, groups, max_lag=MAX_LAG_PX):
+    """Noise rms and correlation area from pixels scattering about a per-group constant.
+
+    Parameters
+    ----------
+    values : ndarray (rows, cols)
+    groups : ndarray of int (rows, cols)
+        Label of each pixel's flat region; 0 excludes the pixel. Within a group the true
+        signal is taken as constant, so the scatter about the group mean is noise.
+    max_lag : int
+        Largest lag (pixels) of the autocorrelation summed into the correlation area.
+
+    Returns
+    -------
+    NoiseEstimate
+    """
+    groups = np.asarray(groups)
+    valid = (groups > 0) & np.isfinite(values)
+    n = int(valid.sum())
+    labels = groups[valid]
+    n_groups = np.unique(labels).size
+    if n - n_groups < 50:
+        raise DoeError(f"too few flat pixels ({n}) to estimate the noise floor; "
+                       "the measurement must include feature interiors away from edges")
+    sums = np.bincount(labels, weights=values[valid])
+    counts = np.bincount(labels)
+    dev = np.zeros(values.shape)
+    dev[valid] = values[valid] - sums[labels] / counts[labels]
+    area = _correlation_area(dev, valid, groups, max_lag)
+    # Removing each group's mean also removes ~A pixels' worth of correlated noise variance;
+    # undo that shrinkage per group (groups smaller than 3 A carry too little and are dropped).
+    n_g = counts[labels]
+    keep = n_g > 3 * area
+    if keep.sum() < 50:
+        raise DoeError(f"too few flat pixels in features wider than the noise correlation "
+                       f"({int(keep.sum())}) to estimate the noise floor")
+    scaled = dev[valid][keep] * np.sqrt(n_g[keep] / (n_g[keep] - area))
+    # MAD is robust to spikes and to a few edge pixels left in the interiors.
+    var = (1.4826 * np.median(np.abs(scaled - np.median(scaled)))) ** 2
+    if not var > 0:
+        var = float(np.mean(scaled ** 2))
+    n = int(keep.sum())
+    return NoiseEstimate(sigma=float(np.sqrt(var)), corr_area_px=area, n_samples=n)
+
+
+def _correlation_area(dev, valid, groups, max_lag):
+    """Sum of the autocorrelation of ``dev`` over lags up to ``max_lag`` (pairs within a group)."""
+    var = np.mean(dev[valid] ** 2)
+    clip = np.where(valid & (np.abs(dev) < 5 * np.sqrt(var)), dev, 0.0)
+    ref = np.mean(clip[valid] ** 2)
+    rows, cols = dev.shape
+    area = 0.0
+    for dy in range(-max_lag, max_lag + 1):
+        for dx in range(-max_lag, max_lag + 1):
+            a = (slice(max(0, -dy), rows - max(0, dy)), slice(max(0, -dx), cols - max(0, dx)))
+            b = (slice(max(0, dy), rows + min(0, dy)), slice(max(0, dx), cols + min(0, dx)))
+            same = valid[a] & valid[b] & (groups[a] == groups[b])
+            if same.sum() < 20:
+                continue
+            area += max(np.mean(clip[a][same] * clip[b][same]) / ref, 0.0)
+    return float(max(area, 1.0))

@@ -1,0 +1,51 @@
+"""Figures of a diagnosis: the residual map step by step and where the residual lives."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from doedesign.fileio import save_figure
+
+
+def plot_steps(diag, path):
+    """Residual map before and after each step (row 0 at the top); returns the path."""
+    import matplotlib.pyplot as plt
+
+    maps = diag.residual_maps
+    scale, unit = (1e9, "nm") if diag.domain == "height" else (1.0, "fraction")
+    lim = np.nanpercentile(np.abs(maps[0]), 99) * scale or 1.0
+    fig, axes = plt.subplots(1, len(maps), figsize=(3.2 * len(maps), 3.4), squeeze=False)
+    if len(maps) == len(diag.steps) + 1:
+        titles = ["ideal model"] + [f"+ {s.effect}" for s in diag.steps]
+        rms = [diag.initial_residual_rms] + [s.residual_rms_after for s in diag.steps]
+    else:  # the backward pass revised the steps: show the ideal and the final model
+        titles = ["ideal model", "final: " + ", ".join(diag.named)]
+        rms = [diag.initial_residual_rms, diag.final_residual_rms]
+    for ax, m, t, r in zip(axes[0], maps, titles, rms):
+        im = ax.imshow(m * scale, cmap="RdBu_r", vmin=-lim, vmax=lim, origin="upper", interpolation="nearest")
+        ax.set_title(f"{t}\nrms {r * scale:.3g} {unit}", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label=f"measured - model ({unit}); row 0 at top")
+    return save_figure(fig, path)
+
+
+def plot_breakdown(diag, path):
+    """Mean residual by each breakdown key, before and after; returns the path."""
+    import matplotlib.pyplot as plt
+
+    scale, unit = (1e9, "nm") if diag.domain == "height" else (1.0, "fraction")
+    keys = [k for k, v in diag.breakdown_initial.items() if "rms" in v]
+    fig, axes = plt.subplots(1, max(len(keys), 1), figsize=(3.4 * max(len(keys), 1), 3.0), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        for label, bd, style in (("before", diag.breakdown_initial, "o-"), ("after", diag.breakdown_final, "s--")):
+            b = bd[key]
+            centres = 0.5 * (np.asarray(b["edges"][1:]) + np.asarray(b["edges"][:-1]))
+            x = centres * 1e6 if key.endswith("_m") else centres
+            ax.plot(x, np.asarray(b["mean"]) * scale, style, ms=3, label=f"mean {label}")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(f"{key[:-2]} (um)" if key.endswith("_m") else key, fontsize=8)
+        ax.set_ylabel(f"residual ({unit})", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0][0].legend(fontsize=7)
+    return save_figure(fig, path)

@@ -1,0 +1,245 @@
+"""The PSF problem: a measured PSF stack against the design's PSFs through the camera.
+
+Stacks are (views, wavelengths, rows, cols), row 0 at the top; residuals are fractions of each
+channel's light per pixel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from doedesign.errors import DoeError
+
+from metrology.diagnosis.breakdown import binned, radial_psd
+from metrology.diagnosis.effects import effects_for
+from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
+from metrology.diagnosis.noise import estimate_noise
+
+
+class PsfRenderer:
+    """Ideal PSFs of a design for any wavelengths and source distance, engines and results cached.
+
+    ``render(height_m, wavelengths_m, depth_m)`` returns (views, wavelengths, rows, cols) for
+    the views ``("coded", "uncoded")``.
+    """
+
+    def __init__(self, camera, pitch_m, shape, material="fused_silica", doe_oversample=1, cache_size=16):
+        self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
+        self.material, self.q = material, int(doe_oversample)
+        self._engines = {}
+        self._results = {}
+        self.cache_size = cache_size
+        self.calls = 0
+
+    def __call__(self, height_m, wavelengths_m, depth_m):
+        from doedesign.psf import VIEWS, PSFEngine
+
+        wls = tuple(np.round(np.asarray(wavelengths_m, dtype=float), 15))
+        key = (hash(np.asarray(height_m).tobytes()), wls, float(depth_m))
+        if key in self._results:
+            return self._results[key]
+        ekey = (wls, float(depth_m))
+        if ekey not in self._engines:
+            if len(self._engines) > self.cache_size:
+                self._engines.pop(next(iter(self._engines)))
+            self._engines[ekey] = PSFEngine(self.camera, self.pitch_m, self.shape, self.material, wls,
+                                            (float(depth_m),), self.q)
+        self.calls += 1
+        out = self._engines[ekey].psf(height_m, views=VIEWS).psf[:, 0]
+        if len(self._results) > self.cache_size:
+            self._results.pop(next(iter(self._results)))
+        self._results[key] = out
+        return out
+
+
+def psf_forward(model, effects, render, height_m, wavelengths_m, depth_m, views):
+    """Model PSF stack of the measured ``views`` with the effects of ``model`` applied.
+
+    Each (view, wavelength) channel is normalized to unit sum over the window, as the measured
+    stack is (its units are arbitrary).
+
+    Parameters
+    ----------
+    model : dict
+        Effect name -> values.
+    effects : dict
+        Effect name -> Effect (per-channel effects already expanded).
+    render : callable
+        ``render(height_m, wavelengths_m, depth_m) -> (2 views, wavelengths, rows, cols)``.
+    views : sequence of str
+        Measured views, a subset of ``("coded", "uncoded")``.
+    """
+    from doedesign.psf import VIEWS
+
+    chosen = sorted((effects[n] for n in model), key=lambda e: (("height", "optics", "sensor").index(e.stage), e.order))
+    h = np.asarray(height_m, dtype=float)
+    info = {"depth_m": float(depth_m)}
+    for e in chosen:
+        if e.stage == "height":
+            h = e.apply(h, e.check(model[e.name]))
+    for e in chosen:
+        if e.stage == "optics":
+            render = e.apply(render, e.check(model[e.name]), info)
+    full = render(h, wavelengths_m, depth_m)
+    stack = full[[VIEWS.index(v) for v in views]]
+    info.update(views=tuple(views), full=full, full_views=VIEWS)
+    for e in chosen:
+        if e.stage == "sensor":
+            stack = e.apply(stack, e.check(model[e.name]), info)
+    return stack / stack.sum(axis=(-2, -1), keepdims=True)
+
+
+def _mosaic(stack):
+    """Channels of a (views, wavelengths, rows, cols) stack one under another, separated by a
+    row of NaN, as one 2-D map (row 0 at the top)."""
+    v, w, rows, cols = stack.shape
+    out = np.full((v * w, rows + 1, cols), np.nan)
+    out[:, :rows] = stack.reshape(v * w, rows, cols)
+    return out.reshape(v * w * (rows + 1), cols)[:-1]
+
+
+class PsfProblem(Problem):
+    """A measured PSF stack against the design's PSFs through the camera.
+
+    Parameters
+    ----------
+    design_height_m : ndarray (rows, cols)
+    pitch_m : float
+    camera : Camera
+    measured : ndarray (views, wavelengths, rows, cols)
+        Any units; each channel is normalized to unit sum.
+    views : sequence of str
+    wavelengths_m : sequence of float
+    depth_m : float
+        Point-source distance (default in :func:`diagnose_psf`: the camera's focus).
+    effects : list of Effect
+    """
+
+    units = "fraction of the channel's light per pixel"
+
+    def __init__(self, design_height_m, pitch_m, camera, measured, views, wavelengths_m, depth_m, effects,
+                 material="fused_silica", doe_oversample=1, renderer=None):
+        meas = np.asarray(measured, dtype=float)
+        self.views = tuple(views)
+        self.wavelengths_m = np.asarray(wavelengths_m, dtype=float)
+        if meas.shape[:2] != (len(self.views), self.wavelengths_m.size) or meas.shape[2:] != tuple(camera.window_shape):
+            raise DoeError(f"measured PSF stack of shape {meas.shape} does not match {len(self.views)} view(s), "
+                           f"{self.wavelengths_m.size} wavelength(s) and the camera window {camera.window_shape}")
+        sums = np.nansum(meas, axis=(-2, -1), keepdims=True)
+        if np.any(sums <= 0):
+            raise DoeError("a channel of the measured PSF stack holds no light (sum <= 0)")
+        self.measured = meas / sums
+        self.height_m = np.asarray(design_height_m, dtype=float)
+        self.depth_m = float(depth_m)
+        self.render = renderer or PsfRenderer(camera, pitch_m, self.height_m.shape, material, doe_oversample)
+        self.channels = [f"{v}_{wl * 1e9:.0f}nm" for v in self.views for wl in self.wavelengths_m]
+        self.effects = {e.name: e.for_channels(self.channels) for e in effects}
+        self.axis_pixel = camera.axis_pixel
+        self.valid = np.isfinite(self.measured)
+        # Where no light of either view falls in the ideal model, the measurement is noise
+        # (plus a smooth background): the noise floor comes from those pixels in 8 x 8 tiles.
+        from doedesign.psf import VIEWS
+
+        full = self.render(self.height_m, self.wavelengths_m, self.depth_m)
+        light = full / full.sum(axis=(-2, -1), keepdims=True)
+        lit = (light > 1e-3 * light.max(axis=(-2, -1), keepdims=True)).any(axis=0)
+        lit = ndi.binary_dilation(lit, structure=np.ones((1, 7, 7), dtype=bool))
+        self.ideal = light[[VIEWS.index(v) for v in self.views]]
+        rows, cols = camera.window_shape
+        tiles = (np.arange(rows)[:, None] // 8) * ((cols + 7) // 8) + np.arange(cols)[None, :] // 8 + 1
+        n_tiles = int(tiles.max())
+        groups = np.zeros(self.measured.shape, dtype=int)
+        for vi in range(len(self.views)):
+            for wi in range(self.wavelengths_m.size):
+                ci = vi * self.wavelengths_m.size + wi
+                groups[vi, wi] = np.where(~lit[wi] & self.valid[vi, wi], tiles + ci * n_tiles, 0)
+        self.noise = estimate_noise(_mosaic(self.measured), np.nan_to_num(_mosaic(groups)).astype(int))
+
+    def stack(self, model):
+        return psf_forward(model, self.effects, self.render, self.height_m, self.wavelengths_m, self.depth_m,
+                           self.views)
+
+    def _residual_stack(self, model):
+        # The measured channel sums carry noise and light outside the window: a free scale per
+        # channel (least squares, closed form) is profiled out, like the piston for heights.
+        p = np.where(self.valid, self.stack(model), 0.0)
+        m = np.where(self.valid, self.measured, 0.0)
+        scale = (m * p).sum(axis=(-2, -1), keepdims=True) / (p * p).sum(axis=(-2, -1), keepdims=True)
+        return np.where(self.valid, m - scale * p, np.nan)
+
+    def residual(self, model):
+        return self._residual_stack(model)[self.valid]
+
+    def residual_map(self, model):
+        return _mosaic(self._residual_stack(model))
+
+    def _radius(self):
+        rows, cols = self.measured.shape[-2:]
+        yy, xx = np.mgrid[:rows, :cols]
+        return np.hypot(yy - self.axis_pixel[0], xx - self.axis_pixel[1])
+
+    def structure_groups(self):
+        """Radial rings about the axis per channel, and 8 x 8 pixel tiles per channel."""
+        rows, cols = self.measured.shape[-2:]
+        ring = np.minimum(self._radius() // 3, 40).astype(int)
+        tiles = (np.arange(rows)[:, None] // 8) * ((cols + 7) // 8) + np.arange(cols)[None, :] // 8
+        nch = len(self.channels)
+        out = []
+        for m in (ring, tiles):
+            stack = np.broadcast_to(m, self.measured.shape).reshape(nch, rows, cols)
+            labelled = stack + (np.arange(nch)[:, None, None] * (int(m.max()) + 1)) + 1
+            out.append(np.nan_to_num(_mosaic(labelled.reshape(self.measured.shape))).astype(int))
+        return out
+
+    def breakdown(self, residual_map):
+        """Residual by radius from the axis (pixels), by channel, and by spatial frequency."""
+        nch = len(self.channels)
+        rows, cols = self.measured.shape[-2:]
+        r = np.full((nch, rows + 1, cols), np.nan)
+        r.reshape(-1, cols)[:residual_map.shape[0]] = residual_map
+        r = r[:, :rows]
+        radius = np.broadcast_to(self._radius(), r.shape)
+        out = {"radius_from_axis_px": binned(r, radius, np.linspace(0, radius.max() + 1e-9, 13)),
+               "channel_rms": {c: float(np.sqrt(np.nanmean(r[i] ** 2))) for i, c in enumerate(self.channels)},
+               "channel_mean": {c: float(np.nanmean(r[i])) for i, c in enumerate(self.channels)}}
+        out["spatial_frequency_per_px"] = radial_psd(np.nanmean(r, axis=0), 1.0)
+        return out
+
+
+def diagnose_psf(design, camera, measured_stack, wavelengths_m, views=("coded",), depth_m=None, candidates=None,
+                 threshold=DEFAULT_THRESHOLD, max_steps=5, doe_oversample=1):
+    """Find, name and fit the effects that explain a measured PSF stack.
+
+    Parameters
+    ----------
+    design : Design
+        The element (its height map, pitch and material).
+    camera : Camera
+        Geometry of the measurement (window, axis pixel, DOE side).
+    measured_stack : ndarray (views, wavelengths, rows, cols) or (wavelengths, rows, cols)
+        Measured PSFs in any units, row 0 at the top, the axis at ``camera.axis_pixel``;
+        a 3-D stack is one view (``views[0]``).
+    wavelengths_m : sequence of float
+    views : sequence of str
+        Which views the stack holds, from ``("coded", "uncoded")``.
+    depth_m : float, optional
+        Point-source distance; default where the camera is focused.
+    candidates : list of str, optional
+        Effects to try (default every registered PSF-domain effect).
+
+    Returns
+    -------
+    Diagnosis
+    """
+    stack = np.asarray(measured_stack, dtype=float)
+    if stack.ndim == 3:
+        stack = stack[None]
+    if stack.ndim != 4:
+        raise DoeError(f"measured PSF stack must be (views, wavelengths, rows, cols), got shape {stack.shape}")
+    if len(views) != stack.shape[0] or any(v not in ("coded", "uncoded") for v in views):
+        raise DoeError(f"views {tuple(views)} do not match a stack of {stack.shape[0]} view(s)")
+    depth = camera.focus_distance_m if depth_m is None else float(depth_m)
+    problem = PsfProblem(design.height_m, design.pitch_m, camera, stack, views, wavelengths_m, depth,
+                         effects_for("psf", candidates), material=design.material, doe_oversample=doe_oversample)
+    return run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="psf")
