@@ -35,6 +35,10 @@ from .fileio import atomic_path, read_npz
 from .materials import get_material
 
 FORMAT_VERSION = 1
+# Levels of the process (four binary masks) and how far a height may sit from its level, in steps.
+LEVEL_COUNT = 16
+LEVEL_TOLERANCE = 0.5
+MAX_NAME_CHARS = 200
 REQUIRED = ("height_m", "pitch_m", "material", "design_wavelength_m", "metadata")
 
 
@@ -142,11 +146,12 @@ class Design:
             raise DesignFileError(f"{path}: metadata is not valid JSON ({exc})") from None
         if not isinstance(metadata, dict):
             raise DesignFileError(f"{path}: metadata must be a JSON object")
-        if int(metadata.get("format_version", FORMAT_VERSION)) > FORMAT_VERSION:
-            raise DesignFileError(f"{path}: format_version {metadata['format_version']} is newer than this tool reads ({FORMAT_VERSION})")
+        _check_metadata(path, metadata)
         for k in ("pitch_m", "design_wavelength_m"):
-            if data[k].ndim != 0 or not np.issubdtype(data[k].dtype, np.number):
-                raise DesignFileError(f"{path}: {k} must be a number")
+            if data[k].ndim != 0 or data[k].dtype.kind not in "fiu":
+                raise DesignFileError(f"{path}: {k} must be one real number, got {data[k].dtype} {data[k].shape}")
+        if data["material"].ndim != 0 or data["material"].dtype.kind not in "US" or len(str(data["material"])) > 64:
+            raise DesignFileError(f"{path}: material must be a name (text up to 64 characters)")
         if not np.issubdtype(data["height_m"].dtype, np.floating):
             raise DesignFileError(f"{path}: height_m must be floating point, got {data['height_m'].dtype}")
         design = cls.__new__(cls)
@@ -158,7 +163,26 @@ class Design:
         design.aperture = data.get("aperture")
         design.metadata = metadata
         design.validate(source=str(path))
+        design.check_levels(source=str(path))
         return design
+
+    def check_levels(self, source="design"):
+        """Refuse levels that contradict the heights (each height must round to its level).
+
+        The level rule: level k is k steps of ``height_2pi_m() / 16`` below the top surface.
+        A design whose ``levels`` and ``height_m`` disagree would give masks of one element
+        and PSFs of another.
+        """
+        if self.levels is None:
+            return
+        step = self.height_2pi_m() / LEVEL_COUNT
+        off = np.abs(self.height_m + self.levels * step) > LEVEL_TOLERANCE * step
+        if off.any():
+            r, c = np.argwhere(off)[0]
+            raise DesignFileError(
+                f"{source}: levels contradict height_m at {int(off.sum())} pixel(s); first at row {r}, col {c}: "
+                f"level {int(self.levels[r, c])} means {-self.levels[r, c] * step * 1e9:.1f} nm, height_m is "
+                f"{self.height_m[r, c] * 1e9:.1f} nm (step {step * 1e9:.2f} nm)")
 
     def summary(self):
         """Dictionary for ``doe inspect --json``."""
@@ -184,6 +208,21 @@ class Design:
         if self.aperture is not None:
             out["aperture_fraction"] = float(self.aperture.mean())
         return out
+
+
+def _check_metadata(path, metadata):
+    """Types of the metadata fields the tool uses (a number as a name, a text version, ...)."""
+    version = metadata.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise DesignFileError(f"{path}: metadata format_version must be an integer, got {version!r}")
+    if version > FORMAT_VERSION:
+        raise DesignFileError(f"{path}: format_version {version} is newer than this tool reads ({FORMAT_VERSION})")
+    name = metadata.get("name", "design")
+    if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_CHARS:
+        shown = repr(name) if not isinstance(name, str) else f"{len(name)} characters"
+        raise DesignFileError(f"{path}: metadata name must be text of 1 to {MAX_NAME_CHARS} characters, got {shown}")
+    if "camera" in metadata and not isinstance(metadata["camera"], dict):
+        raise DesignFileError(f"{path}: metadata camera must be an object, got {type(metadata['camera']).__name__}")
 
 
 def _plain(obj):

@@ -210,7 +210,7 @@ def atomic_path(path):
 
 
 # Largest array an input file may make the tool allocate (claimed sizes are checked first).
-MAX_INPUT_ARRAY_BYTES = 2 * 1024**3
+MAX_INPUT_ARRAY_BYTES = 512 * 1024**2
 
 
 def check_input_file(path, error=None):

@@ -267,7 +267,8 @@ def cmd_evaluate_bayer(args):
 
 def bayer_wavelengths(design):
     """R, G, B wavelengths of a Bayer design (from its metadata, else 656/589/486 nm)."""
-    wls = design.metadata.get("target", {}).get("wavelengths_nm")
+    target = design.metadata.get("target")
+    wls = target.get("wavelengths_nm") if isinstance(target, dict) else None
     if wls and len(wls) == 3:
         return np.asarray(wls, dtype=float) * 1e-9
     return np.asarray(targets.RGB_WAVELENGTHS_M)

@@ -37,6 +37,8 @@ def register(sub):
                         "at 2-3x the time and memory")
     p.add_argument("--no-psf", action="store_true", help="skip the PSF comparison")
     p.add_argument("--no-render", action="store_true", help="skip the 3-D rendering")
+    p.add_argument("--force", action="store_true",
+                   help="compare even when the measurement matches the design poorly (wrong design or field)")
     p.set_defaults(func=run_compare)
 
 
@@ -57,7 +59,7 @@ def run_compare(args):
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm)
     with Progress(6 + (0 if args.no_psf else 2), desc="compare") as prog:
         try:
-            comp = compare_measurement(meas, design, progress=prog)
+            comp = compare_measurement(meas, design, progress=prog, force=args.force)
         except DoeError as exc:
             raise DoeError(f"{args.measurement}: {exc}") from None
         report = {"measurement": str(args.measurement), "design": str(args.design), **comp.report()}
@@ -98,6 +100,9 @@ def _write_outputs(args, comp, meas, psf_cmp, report, out):
     report["figures"] = figures
     report.update(_strict_json(report))
     write_json(out / "report.json", report)
+    from metrology.report_pages import compare_page
+
+    compare_page(report, out)
 
 
 def _strict_json(obj):

@@ -39,6 +39,8 @@ def register(subparsers):
                         "default 75,150,300,600 as in doe masks)")
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
+    p.add_argument("--force", action="store_true",
+                   help="diagnose even when the measurement matches the design poorly (wrong design or field)")
     p.set_defaults(func=run)
 
 
@@ -46,6 +48,8 @@ def run(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run, write_json
+
+    from metrology.report_pages import diagnose_page
 
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
@@ -60,6 +64,7 @@ def run(args):
         plots = diag.plot(out)
         report["plots"] = [p.name for p in plots]
         write_json(out / "report.json", report)
+        diagnose_page(report, out)
     print_json({"report": str(out / "report.json"), "effects_found": diag.named,
                 "measurement_artefacts": report["measurement_artefacts"],
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
@@ -73,7 +78,8 @@ def _heights(design, path, args, candidates):
 
     diag, inputs = diagnose_measurement(design, read_measurement(path), region_px=args.region_px,
                                         upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
-                                        candidates=candidates, threshold=args.threshold, source=str(path))
+                                        candidates=candidates, threshold=args.threshold, source=str(path),
+                                        force=args.force)
     return diag, {"measured": str(path), **inputs}
 
 

@@ -26,6 +26,17 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert steps[0]["residual_rms_after"] < 0.7 * report["diagnosis"]["initial_residual_rms"]
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
+    # A page a person reads: summary first, tables with units, verdicts in words, no raw JSON.
+    lines = text.splitlines()
+    assert lines[2] == "## Summary" and lines[3].startswith("- **Designed**")
+    assert "**What went wrong**" in text and "**How sure**" in text and "mask 3 overlay dx" in text
+    assert "| mask | nominal depth (nm) | measured depth (nm) |" in text
+    assert "| colour | wavelength (nm) |" in text and "| step | effect |" in text
+    assert "```" not in text and "{" not in text and "[report.json](report.json)" in text
+    for sub in ("compare", "diagnose"):
+        page = (out / sub / "report.md").read_text()
+        assert "## Summary" in page and "[report.json](report.json)" in page and "```" not in page
+    assert not list(out.rglob("INCOMPLETE")) and not list(out.rglob(".*.part"))
 
 
 def test_demo_measures_where_the_pattern_has_structure():
