@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .fileio import atomic_path
 
-__all__ = ["fmt", "fmt_pm", "table", "figure", "verdict", "json_link", "write_markdown", "MISSING"]
+__all__ = ["fmt", "fmt_pm", "table", "figure", "verdict", "json_link", "join", "write_markdown", "MISSING"]
 
 MISSING = "n/a"
 
@@ -23,12 +23,13 @@ def fmt(value, digits=3, unit=""):
     if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or \
             (isinstance(value, float) and not math.isfinite(value)):
         return MISSING if not isinstance(value, str) else value
-    text = f"{value:.{digits}g}"
+    text = str(value) if isinstance(value, int) else f"{value:.{digits}g}"
     return f"{text} {unit}".rstrip()
 
 
 def fmt_pm(value, err, digits=3, unit=""):
     """``value ± err`` (``n/a`` parts stay visible); the unit once at the end."""
+    unit = "" if unit in (None, "1") else unit
     if err is None or (isinstance(err, float) and not math.isfinite(err)):
         return fmt(value, digits, unit)
     return f"{fmt(value, digits)} ± {fmt(err, 2)} {unit}".rstrip()
@@ -65,9 +66,28 @@ def json_link(name="report.json"):
     return f"All numbers above, and more, are in [{name}]({name}) beside this page.\n"
 
 
+def join(parts):
+    """One page from ``parts``: consecutive lines stay together (lists), headings, tables and
+    figures get a blank line around them."""
+    lines = []
+    for part in parts:
+        if part is None:
+            continue
+        text = part.rstrip("\n")
+        if not text:  # an explicit paragraph break
+            if lines and lines[-1] != "":
+                lines.append("")
+            continue
+        block = text.startswith(("#", "|", "![", "*(")) or "\n" in text
+        if lines and (block or lines[-1].startswith(("#", "|", "![", "*"))) and lines[-1] != "":
+            lines.append("")
+        lines.append(text)
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
 def write_markdown(path, parts):
-    """Join ``parts`` (strings, blank lines between) and write them atomically to ``path``."""
-    text = "\n".join(p.rstrip("\n") + "\n" for p in parts if p is not None)
+    """Join ``parts`` (see :func:`join`) and write them atomically to ``path``."""
+    text = join(parts)
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)

@@ -204,7 +204,6 @@ def markdown_report(report, out):
     cont, quant = d.get("continuous") or {}, d.get("quantized") or {}
     comp, diag, masks = report.get("comparison") or {}, report.get("diagnosis") or {}, report.get("masks") or {}
     on_c, on_q = _per_colour(cont), _per_colour(quant)
-    fab = _fabricated_on_target(comp)
     findings = pages.compare_findings(comp)
     named = [e for e in diag.get("effects_found") or [] if e not in (diag.get("measurement_artefacts") or [])]
     depths = [layer.get("etch_depth_nm") for layer in masks.get("layers") or []]
@@ -229,10 +228,11 @@ def markdown_report(report, out):
         "",
         "## Light on target per colour",
         "Fraction of the coded half-aperture's light on each colour's target pixel (the design's figure of "
-        "merit); fabricated = predicted from the measured process.", "",
-        md.table([(name, md.fmt(nm, 3), md.fmt(c, 3), md.fmt(q, 3), md.fmt(fab.get(round(nm)), 3))
+        "merit; the design report states no bound for it). The fabricated element's PSF is compared with "
+        "the design's below, under the measurement.", "",
+        md.table([(name, md.fmt(nm, 3), md.fmt(c, 3), md.fmt(q, 3), md.fmt(100 * (q - c) / c if c else None, 2))
                   for name, nm, c, q in zip("RGB", RGB_NM, on_c, on_q)],
-                 ("colour", "wavelength (nm)", "continuous", "16 levels", "fabricated")),
+                 ("colour", "wavelength (nm)", "continuous", "16 levels", "quantization change (%)")),
         md.figure(out, "psf.png", "coded and uncoded PSFs of the quantized design (log scale)"),
         "## Masks",
         md.table([(f"mask {layer.get('mask')}", layer.get("layer"), md.fmt(layer.get("etch_depth_nm"), 4),
@@ -253,18 +253,13 @@ def markdown_report(report, out):
         md.table([(s["step"], md.fmt(s["seconds"], 3)) for s in report["timings"]], ("step", "time (s)")),
         md.json_link(),
     ]
-    return "\n".join(p.rstrip("\n") + "\n" for p in parts)
+    return md.join(parts)
 
 
 def _per_colour(result):
     """Light on the R/G/B target pixels of a design report stage (first source distance)."""
     values = np.asarray(result.get("energy_on_target") or [[np.nan] * 3], dtype=float)
     return [float(v) for v in values.reshape(-1, values.shape[-1])[0]]
-
-
-def _fabricated_on_target(comp):
-    psf = comp.get("psf") or {}
-    return {round(wl): v for wl, v in zip(psf.get("wavelengths_nm") or [], psf.get("measured_on_target") or [])}
 
 
 def _hidden_table(hidden, comp, diag):

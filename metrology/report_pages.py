@@ -136,7 +136,7 @@ def _param_text(name, value, err, unit):
     if unit == "m" and value is not None:
         scale, shown = (1e9, "nm") if abs(value) < 1e-6 else (1e6, "um")
         return f"{name.removesuffix('_m')} {md.fmt_pm(value * scale, None if err is None else err * scale, 3, shown)}"
-    return f"{name} {md.fmt_pm(value, err, 3, unit or '')}".rstrip()
+    return f"{name} {md.fmt_pm(value, err, 3, unit)}".rstrip()
 
 
 def diagnose_sections(rep, folder, prefix="", level=2):
@@ -146,8 +146,8 @@ def diagnose_sections(rep, folder, prefix="", level=2):
     named = [e for e in rep.get("effects_found") or [] if e not in (rep.get("measurement_artefacts") or [])]
     initial, final, floor = (rep.get(k) for k in ("initial_residual_rms", "final_residual_rms", "noise_floor"))
 
-    def r(v):
-        return md.fmt(v * unit_scale if isinstance(v, (int, float)) else None, 3, unit)
+    def r(v, with_unit=True):
+        return md.fmt(v * unit_scale if isinstance(v, (int, float)) else None, 3, unit if with_unit else "")
 
     explained = not rep.get("unexplained")
     parts = [f"{h} Summary",
@@ -165,7 +165,8 @@ def diagnose_sections(rep, folder, prefix="", level=2):
         units = step.get("units") or {}
         text = "; ".join(_param_text(k, v, errs.get(k), units.get(k)) for k, v in params.items())
         rows.append((i, step.get("effect"), "artefact" if step.get("measurement_artefact") else step.get("kind"),
-                     text or md.MISSING, r(step.get("residual_rms_before")), r(step.get("residual_rms_after")),
+                     text or md.MISSING, r(step.get("residual_rms_before"), False),
+                     r(step.get("residual_rms_after"), False),
                      md.fmt(step.get("criterion_change"), 4)))
     if rows:
         parts.append(md.table(rows, ("step", "effect", "kind", "fitted parameters (± 1 s.e.)",

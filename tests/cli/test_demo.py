@@ -27,8 +27,8 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
     # A page a person reads: summary first, tables with units, verdicts in words, no raw JSON.
-    lines = text.splitlines()
-    assert lines[2] == "## Summary" and lines[3].startswith("- **Designed**")
+    lines = [line for line in text.splitlines() if line]
+    assert lines[1] == "## Summary" and lines[2].startswith("- **Designed**")
     assert "**What went wrong**" in text and "**How sure**" in text and "mask 3 overlay dx" in text
     assert "| mask | nominal depth (nm) | measured depth (nm) |" in text
     assert "| colour | wavelength (nm) |" in text and "| step | effect |" in text

@@ -28,3 +28,8 @@ def test_figure_verdict_and_write(tmp_path):
     path = md.write_markdown(tmp_path / "r.md", ["# T", md.json_link()])
     assert path.read_text().startswith("# T\n")
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_join_keeps_lists_together_and_separates_blocks():
+    text = md.join(["# T", "- a", "- b", "## H", md.table([(1,)], ("x (nm)",)), "after", "", "para"])
+    assert text == "# T\n\n- a\n- b\n\n## H\n\n| x (nm) |\n|---|\n| 1 |\n\nafter\n\npara\n"
