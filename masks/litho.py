@@ -239,6 +239,43 @@ def interpolate_separable(coarse, row_coords, col_coords):
     return out
 
 
+def edge_foot(coverage, width_px):
+    """Profile of a microtrench: ``exp(-s / w)`` at distance ``s`` inside an opening's edge.
+
+    The closed fraction around each pixel is averaged with a separable two-sided exponential
+    of decay length ``w`` (each tap the kernel's integral over its pixel); at distance ``s``
+    inside a straight opening edge that average is ``exp(-s / w) / 2``, so twice it is the
+    trench profile at the pixel centres exactly, continuous in the edge position. At a
+    convex corner the two edges' feet combine as ``e_x + e_y - e_x e_y / 2``; in openings
+    narrower than ``w`` the feet of both edges add. Outside the array is closed.
+
+    Parameters
+    ----------
+    coverage : ndarray of float, shape (rows, cols)
+        Printed opening coverage 0..1.
+    width_px : float
+        Decay length ``w`` in fine pixels, > 0.
+
+    Returns
+    -------
+    ndarray of float64
+        0 deep inside wide openings, 1 at the foot of a straight edge; meaningful where
+        the coverage is non-zero (the caller multiplies by it).
+    """
+    from scipy.signal import lfilter  # only when microtrenching is on
+
+    a = np.exp(-1.0 / width_px)
+    tap0 = -np.expm1(-0.5 / width_px)     # integral over the centre pixel
+    tap = np.sinh(0.5 / width_px)         # tap m != 0 is tap * a**|m|
+    out = np.asarray(coverage, dtype=np.float64)
+    for axis in (0, 1):
+        # First-order recursions sum a**m x[n -+ m] over m >= 0, the two halves of the kernel.
+        causal = lfilter([1.0], [1.0, -a], out, axis=axis)
+        anti = np.flip(lfilter([1.0], [1.0, -a], np.flip(out, axis), axis=axis), axis)
+        out = tap0 * out + tap * (causal + anti - 2.0 * out)
+    return 2.0 * (1.0 - out)
+
+
 def box_kernel(width_px):
     """1-D box of a continuous width ``width_px`` (fine pixels), normalized to sum 1.
 

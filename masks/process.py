@@ -2,9 +2,10 @@
 
 A 2**n-level element is made with n binary masks (see :mod:`masks.decompose`): mask j is
 open where bit j of the level is set and its etch removes ``d_j``. This module prints each
-mask with the fabrication effects named in CONTRIBUTING.md (``etch_depth``,
+mask with the fabrication effects listed in :mod:`masks.effects` (``etch_depth``,
 ``mask_overlay``, ``linewidth_bias``, ``proximity_blur``, ``sidewall_slope``,
-``etch_loading``, ``roughness``) and sums the etches on a fine grid.
+``etch_loading``, ``roughness``, ``mask_rotation``, ``microtrenching``, ``etch_gradient``)
+and sums the etches on a fine grid.
 
 Conventions: SI units; height z up, 0 = unetched top, negative where etched; arrays
 row-major with row 0 at the top; overlay x toward increasing column, y up (toward
@@ -26,6 +27,11 @@ Approximations, in words:
   step's sidewall does depend on it;
 - the local open fraction that drives etch loading is taken from the *designed* mask at
   design-pixel resolution (Gaussian-averaged over ``loading_radius``), not the printed one;
+- microtrenching is an extra depth ``t exp(-s / w)`` at distance ``s`` inside a straight
+  edge, made from the printed coverage with a separable two-sided exponential filter
+  (exact for straight Manhattan edges; at corners and in openings narrower than ``w`` the
+  feet of neighbouring edges add up); it scales with the local etch depth of its mask;
+- the etch gradient multiplies every mask's depth by ``1 + g . r``, r from the field centre;
 - outside the design array the wafer is unetched (masks closed).
 """
 
@@ -43,17 +49,22 @@ from doedesign.errors import DoeError
 
 from . import litho
 from .decompose import DEFAULT_DEPTHS_M, levels_to_masks
+from .effects import EFFECTS
+
+__all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "fine_upsample", "simulate_surface"]
 
 log = logging.getLogger(__name__)
-
-# Effect names shared by masks, metrology and diagnosis (CONTRIBUTING.md).
-EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope",
-           "etch_loading", "roughness")
 
 # Extra design pixels of margin around a simulated region, beyond every effect's reach.
 _MARGIN_PX = 2
 # Gaussian tails are cut at this many sigma (the scipy default).
 _TRUNCATE = 4.0
+# Microtrench feet reach this many decay widths (exp(-12) ~ 6e-6) into the margin.
+_TRENCH_REACH = 12.0
+# Array-valued fields (copied, never shared) and those holding one row per mask.
+_ARRAY_FIELDS = ("etch_depth", "mask_overlay", "linewidth_bias", "mask_rotation", "microtrenching",
+                 "etch_gradient")
+_PER_MASK_FIELDS = ("mask_overlay", "linewidth_bias", "mask_rotation", "microtrenching")
 
 
 @dataclass
@@ -85,6 +96,19 @@ class ProcessParams:
         Rms random height noise (m), white on the fine grid.
     seed : int or None
         Seed of the roughness noise (None = fresh noise each call).
+    mask_rotation : ndarray, shape (n_masks,)
+        Rotation of each printed mask about the field centre (the centre of the design
+        grid), in degrees as aligners quote it, counter-clockwise; adds to the rotation in
+        ``mask_overlay``. None = 0.
+    microtrenching : ndarray, shape (n_masks, 2)
+        Per mask ``[depth_m, width_m]``: extra etch depth at the foot of the mask's etched
+        edges inside the opening, ``depth_m * exp(-s / width_m)`` at distance ``s`` from a
+        straight edge, at the mask's etch depth (it scales with the local etch depth, so
+        with loading and gradient). None = no trenches.
+    etch_gradient : ndarray, shape (2,)
+        ``[x_per_m, y_per_m]``: relative etch-depth change per metre along x and y from the
+        field centre, the same for every mask: ``depth_j(r) = d_j (1 + g . r)``
+        (10 /m = 1 % per mm). None = uniform etch.
     """
 
     etch_depth: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_DEPTHS_M, dtype=float))
@@ -97,6 +121,9 @@ class ProcessParams:
     loading_radius: float = 50e-6
     roughness: float = 0.0
     seed: int | None = None
+    mask_rotation: np.ndarray | None = None
+    microtrenching: np.ndarray | None = None
+    etch_gradient: np.ndarray | None = None
 
     def __post_init__(self):
         self.etch_depth = _float_array(self.etch_depth, "etch_depth")
@@ -108,14 +135,36 @@ class ProcessParams:
             self.mask_overlay = np.zeros((n, 3))
         if self.linewidth_bias is None:
             self.linewidth_bias = np.zeros(n)
-        self.mask_overlay = _float_array(self.mask_overlay, "mask_overlay")
-        self.linewidth_bias = _float_array(self.linewidth_bias, "linewidth_bias")
+        if self.mask_rotation is None:
+            self.mask_rotation = np.zeros(n)
+        if self.microtrenching is None:
+            self.microtrenching = np.zeros((n, 2))
+        if self.etch_gradient is None:
+            self.etch_gradient = np.zeros(2)
+        for name in _ARRAY_FIELDS[1:]:
+            setattr(self, name, _float_array(getattr(self, name), name))
         if self.mask_overlay.shape != (n, 3):
             raise DoeError(f"process parameter mask_overlay must be shaped ({n}, 3) "
                            f"[dx_m, dy_m, rotation_rad] per mask, got {self.mask_overlay.shape}")
         if self.linewidth_bias.shape != (n,):
             raise DoeError(f"process parameter linewidth_bias must hold {n} values (m), "
                            f"got shape {self.linewidth_bias.shape}")
+        if self.mask_rotation.shape != (n,):
+            raise DoeError(f"process parameter mask_rotation must hold {n} angles (degrees), "
+                           f"got shape {self.mask_rotation.shape}")
+        if abs(self.mask_rotation).max() > 45:
+            raise DoeError(f"process parameter mask_rotation must lie within +-45 degrees, "
+                           f"got {self.mask_rotation.tolist()}")
+        if self.microtrenching.shape != (n, 2):
+            raise DoeError(f"process parameter microtrenching must be shaped ({n}, 2) "
+                           f"[depth_m, width_m] per mask, got {self.microtrenching.shape}")
+        depth, width = self.microtrenching.T
+        if np.any(depth < 0) or np.any(width < 0) or np.any((depth > 0) & (width == 0)):
+            raise DoeError(f"process parameter microtrenching needs depth_m >= 0 and width_m >= 0 "
+                           f"(> 0 where depth_m > 0), got {self.microtrenching.tolist()}")
+        if self.etch_gradient.shape != (2,):
+            raise DoeError(f"process parameter etch_gradient must be [x_per_m, y_per_m], "
+                           f"got shape {self.etch_gradient.shape}")
         for name in ("proximity_blur", "resist_threshold", "sidewall_slope", "etch_loading",
                      "loading_radius", "roughness"):
             value = getattr(self, name)
@@ -169,12 +218,12 @@ class ProcessParams:
         """A copy with some fields replaced (arrays are copied, never shared)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values.update(changes)
-        for name in ("etch_depth", "mask_overlay", "linewidth_bias"):
+        for name in _ARRAY_FIELDS:
             if values[name] is not None:
                 values[name] = np.array(values[name], dtype=float)
         if "etch_depth" in changes and len(np.atleast_1d(changes["etch_depth"])) != self.n_masks:
             # A new mask count invalidates the per-mask arrays not given explicitly.
-            for name in ("mask_overlay", "linewidth_bias"):
+            for name in _PER_MASK_FIELDS:
                 if name not in changes:
                     values[name] = None
         return type(self)(**values)
@@ -192,6 +241,9 @@ class ProcessParams:
             "loading_radius": self.loading_radius,
             "roughness": self.roughness,
             "seed": self.seed,
+            "mask_rotation": self.mask_rotation.tolist(),
+            "microtrenching": self.microtrenching.tolist(),
+            "etch_gradient": self.etch_gradient.tolist(),
         }
 
     @classmethod
@@ -312,6 +364,9 @@ def simulate_surface(levels, pitch_m, params=None, step_m=0.25e-6, region=None):
     log.debug("process model: region %s + %d px margin, %d fine px per design px (step %.4g m)",
               region, margin, u, step)
     depths = _depth_maps(levels, window, params, pitch_m, u)
+    gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design)
+    if gradient is not None:
+        depths = [d * gradient for d in depths]
     crop = (slice(margin * u, (margin + row1 - row0) * u), slice(margin * u, (margin + col1 - col0) * u))
     fine_shape = (masks.shape[1] * u, masks.shape[2] * u)
     height = np.zeros(fine_shape)
@@ -321,11 +376,17 @@ def simulate_surface(levels, pitch_m, params=None, step_m=0.25e-6, region=None):
         coverage = litho.upsample_mask(masks[j], u)
         coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
         dx, dy, rotation = params.mask_overlay[j]
+        rotation += math.radians(params.mask_rotation[j])
         coverage = litho.move(coverage, (-dy / step, dx / step), rotation, centre_fine)
         coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
         printed[j] = coverage[crop]
+        depth = depths[j]
+        trench_m, trench_width_m = params.microtrenching[j]
+        if trench_m > 0 and params.etch_depth[j] > 0:
+            foot = litho.edge_foot(coverage, trench_width_m / step)
+            depth = depth * (1.0 + trench_m / params.etch_depth[j] * foot)
         # In float64, so that the ideal surface is exact to double precision.
-        np.multiply(coverage, depths[j], out=etched)
+        np.multiply(coverage, depth, out=etched)
         height -= etched
 
     if params.sidewall_slope > 0:
@@ -364,15 +425,28 @@ def _depth_maps(levels, window, params, pitch_m, u):
     return maps
 
 
+def _gradient_map(window, gradient, pitch_m, u, centre_design):
+    """``1 + g . r`` on the fine grid of the window (float64), or None for a uniform etch."""
+    if not np.any(gradient):
+        return None
+    # Fine pixel a sits at design coordinate window_start + (a + 0.5) / u - 0.5.
+    rows = window[0] + (np.arange((window[1] - window[0]) * u) + 0.5) / u - 0.5
+    cols = window[2] + (np.arange((window[3] - window[2]) * u) + 0.5) / u - 0.5
+    x_m = (cols - centre_design[1]) * pitch_m
+    y_m = (centre_design[0] - rows) * pitch_m          # y up: toward row 0
+    return 1.0 + gradient[1] * y_m[:, None] + gradient[0] * x_m[None, :]
+
+
 def _margin_px(params, pitch_m, region, centre_design):
     """Design pixels of padding so that no effect reaching the region is cut off."""
     row0, row1, col0, col1 = region
     corners = np.array([[r - 0.5, c - 0.5] for r in (row0, row1) for c in (col0, col1)])
     radius_m = np.max(np.hypot(corners[:, 0] - centre_design[0], corners[:, 1] - centre_design[1])) * pitch_m
-    overlay = np.hypot(params.mask_overlay[:, 0], params.mask_overlay[:, 1]) \
-        + np.abs(params.mask_overlay[:, 2]) * radius_m
+    rotation = np.abs(params.mask_overlay[:, 2]) + np.radians(np.abs(params.mask_rotation))
+    overlay = np.hypot(params.mask_overlay[:, 0], params.mask_overlay[:, 1]) + rotation * radius_m
+    trench = _TRENCH_REACH * np.max(params.microtrenching[:, 1] * (params.microtrenching[:, 0] > 0))
     reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias))
-             + _TRUNCATE * params.proximity_blur + params.sidewall_slope)
+             + _TRUNCATE * params.proximity_blur + params.sidewall_slope + trench)
     return _MARGIN_PX + int(math.ceil(reach / pitch_m))
 
 

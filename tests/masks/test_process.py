@@ -51,7 +51,7 @@ def test_ideal_is_the_designed_surface_exactly():
     rng = np.random.default_rng(3)
     levels = rng.integers(0, 16, (10, 13))
     surf = simulate_surface(levels, PITCH, step_m=STEP)
-    assert surf.upsample == U and surf.step_m == pytest.approx(STEP)
+    assert surf.upsample == U and surf.step_m == pytest.approx(STEP, abs=0)
     assert surf.height_m.shape == (10 * U, 13 * U)
     np.testing.assert_allclose(surf.height_m, designed_height(levels), rtol=0, atol=1e-20)
     # Printed masks are the bits of the level, upsampled.
@@ -67,8 +67,8 @@ def test_ideal_region_and_design_coords():
     rows, cols = surf.design_coords()
     assert rows.shape == (4 * U,) and cols.shape == (7 * U,)
     # First fine pixel centre: half a fine pixel below the top edge of design pixel 3.
-    assert rows[0] == pytest.approx(3 - 0.5 + 0.5 / U)
-    assert cols[-1] == pytest.approx(8 + 0.5 - 0.5 / U)
+    assert rows[0] == pytest.approx(3 - 0.5 + 0.5 / U, abs=0)
+    assert cols[-1] == pytest.approx(8 + 0.5 - 0.5 / U, abs=0)
     # Each design pixel holds exactly U fine centres.
     assert np.all(np.round(rows).reshape(4, U) == np.arange(3, 7)[:, None])
 
@@ -76,7 +76,7 @@ def test_ideal_region_and_design_coords():
 def test_upsample_rounds_up_to_the_requested_step():
     surf = simulate_surface(np.zeros((3, 3), int), 5.4e-6, step_m=0.25e-6)
     assert surf.upsample == 22
-    assert surf.step_m == pytest.approx(5.4e-6 / 22)
+    assert surf.step_m == pytest.approx(5.4e-6 / 22, abs=0)
     assert surf.step_m <= 0.25e-6
 
 
@@ -115,10 +115,10 @@ def test_overlay_subpixel_shift_area_and_sign_convention_for_y():
     top, bottom = diff[:6 * U], diff[6 * U:]
     feature_width = 4 * PITCH
     # Top edge gains etch (deeper), bottom edge loses it; each sliver holds d * dy * width.
-    assert top.min() == pytest.approx(-D3) and top.max() == 0
-    assert bottom.max() == pytest.approx(D3) and bottom.min() == 0
-    assert -top.sum() * STEP ** 2 == pytest.approx(D3 * dy * feature_width, rel=1e-6)
-    assert bottom.sum() * STEP ** 2 == pytest.approx(D3 * dy * feature_width, rel=1e-6)
+    assert top.min() == pytest.approx(-D3, abs=0) and top.max() == 0
+    assert bottom.max() == pytest.approx(D3, abs=0) and bottom.min() == 0
+    assert -top.sum() * STEP ** 2 == pytest.approx(D3 * dy * feature_width, rel=1e-6, abs=0)
+    assert bottom.sum() * STEP ** 2 == pytest.approx(D3 * dy * feature_width, rel=1e-6, abs=0)
 
 
 def test_overlay_rotation_moves_features_around_the_design_centre():
@@ -135,7 +135,7 @@ def test_overlay_rotation_moves_features_around_the_design_centre():
     # theta * (-y, x): x by -0.001 px, y by +0.015 px (up = smaller row).
     x, y = 7.5, 0.5
     assert c_c - 17.5 == pytest.approx(-theta * y, abs=2e-5)
-    assert r_c - 9.5 == pytest.approx(-theta * x, rel=0.02)
+    assert r_c - 9.5 == pytest.approx(-theta * x, rel=0.02, abs=0)
     assert abs(w.sum() * STEP ** 2 - 4 * PITCH ** 2 * D3) < 1e-3 * 4 * PITCH ** 2 * D3
 
 
@@ -150,9 +150,9 @@ def test_bias_grows_area_by_bias_times_perimeter(bias):
         surf = simulate(levels, linewidth_bias=np.array([0, 0, 0, bias]))
         area = surf.masks_printed[3].sum() * STEP ** 2
         expected = (h + 2 * bias) * (w + 2 * bias)    # = A + b P + 4 b^2
-        assert area == pytest.approx(expected, rel=0.01)
+        assert area == pytest.approx(expected, rel=0.01, abs=0)
         # Depth stays that of the mask; area scales the etched volume.
-        assert -surf.height_m.sum() * STEP ** 2 == pytest.approx(expected * D3, rel=0.01)
+        assert -surf.height_m.sum() * STEP ** 2 == pytest.approx(expected * D3, rel=0.01, abs=0)
 
 
 def test_bias_is_per_mask():
@@ -160,8 +160,8 @@ def test_bias_is_per_mask():
     surf = simulate(levels, linewidth_bias=np.array([0.5e-6, 0, 0, 0]))
     a0 = surf.masks_printed[0].sum() * STEP ** 2
     a3 = surf.masks_printed[3].sum() * STEP ** 2
-    assert a3 == pytest.approx((4 * PITCH) ** 2)
-    assert a0 == pytest.approx((4 * PITCH + 1e-6) ** 2, rel=1e-3)
+    assert a3 == pytest.approx((4 * PITCH) ** 2, abs=0)
+    assert a0 == pytest.approx((4 * PITCH + 1e-6) ** 2, rel=1e-3, abs=0)
 
 
 # ---------------------------------------------------------------- proximity blur + threshold
@@ -205,7 +205,7 @@ def test_blur_rounds_corners_area_matches_thresholded_analytic_aerial_image():
         x = np.arange(-L, L, 20e-9) + 10e-9
         f = 0.5 * (erf((L / 2 - x) / (np.sqrt(2) * sigma)) + erf((L / 2 + x) / (np.sqrt(2) * sigma)))
         ref_area = np.count_nonzero(np.outer(f, f) > thr) * (20e-9) ** 2
-        assert area == pytest.approx(ref_area, rel=0.005)
+        assert area == pytest.approx(ref_area, rel=0.005, abs=0)
         areas.append(area)
     # Straight edges stay put at threshold 0.5, so the area lost is the rounded corners:
     # it grows with the blur.
@@ -245,8 +245,8 @@ def test_sidewall_is_a_linear_ramp_of_the_given_width(ramp):
     left = slice(2 * U, 6 * U)
     np.testing.assert_allclose(profile[left], np.clip(0.5 + x[left] / ramp, 0, 1), atol=1e-9)
     # Depth in the middle of the trench and the etched volume are untouched.
-    assert profile[6 * U] == pytest.approx(1.0)
-    assert surf.height_m.sum() == pytest.approx(simulate(levels).height_m.sum(), rel=1e-9)
+    assert profile[6 * U] == pytest.approx(1.0, abs=0)
+    assert surf.height_m.sum() == pytest.approx(simulate(levels).height_m.sum(), rel=1e-9, abs=0)
 
 
 def test_sidewall_10_90_width_is_0p8_of_the_ramp():
@@ -279,8 +279,8 @@ def test_loading_sparse_regions_etch_deeper_than_dense_ones():
     rho_sparse = erf(PITCH / (2 * np.sqrt(2) * radius)) ** 2
     depth_dense = -dense.height_m[U + U // 2, U + U // 2]
     depth_sparse = -sparse.height_m[U // 2, U // 2]
-    assert depth_dense == pytest.approx(D3 * (1 - loading * rho_dense), rel=2e-4)
-    assert depth_sparse == pytest.approx(D3 * (1 - loading * rho_sparse), rel=2e-4)
+    assert depth_dense == pytest.approx(D3 * (1 - loading * rho_dense), rel=2e-4, abs=0)
+    assert depth_sparse == pytest.approx(D3 * (1 - loading * rho_sparse), rel=2e-4, abs=0)
     assert depth_sparse > depth_dense
     # No loading: no pattern dependence.
     flat = ProcessParams.ideal()
@@ -298,7 +298,7 @@ def test_roughness_rms_and_seed():
     a = simulate(levels, roughness=1e-9, seed=7).height_m
     b = simulate(levels, roughness=1e-9, seed=7).height_m
     c = simulate(levels, roughness=1e-9, seed=8).height_m
-    assert np.std(a - ideal) == pytest.approx(1e-9, rel=0.1)
+    assert np.std(a - ideal) == pytest.approx(1e-9, rel=0.1, abs=0)
     assert abs(np.mean(a - ideal)) < 0.05e-9
     np.testing.assert_array_equal(a, b)
     assert np.abs(a - c).max() > 1e-9
@@ -336,7 +336,7 @@ def test_surface_is_continuous_with_blur_bias_and_sidewall():
     # Bias through zero: no jump at b = 0.
     hs = [simulate(levels, linewidth_bias=np.full(4, b)).height_m for b in (-0.02e-6, 0.0, 0.02e-6)]
     assert np.abs(hs[1] - hs[0]).max() <= 0.02 / 0.25 * sum(DEFAULT_DEPTHS_M) * 1.01
-    assert np.abs(hs[2] - hs[1]).sum() == pytest.approx(np.abs(hs[1] - hs[0]).sum(), rel=0.05)
+    assert np.abs(hs[2] - hs[1]).sum() == pytest.approx(np.abs(hs[1] - hs[0]).sum(), rel=0.05, abs=0)
 
 
 def test_result_does_not_depend_on_the_crop():
@@ -369,9 +369,9 @@ def test_params_round_trip_and_copy():
 def test_custom_depths_and_fewer_masks():
     levels = np.array([[0, 1], [2, 3]])
     surf = simulate_surface(levels, PITCH, ProcessParams.ideal(depths_m=[100e-9, 210e-9]), STEP)
-    assert surf.height_m[0, U] == pytest.approx(-100e-9)
-    assert surf.height_m[U, 0] == pytest.approx(-210e-9)
-    assert surf.height_m[U, U] == pytest.approx(-310e-9)
+    assert surf.height_m[0, U] == pytest.approx(-100e-9, abs=0)
+    assert surf.height_m[U, 0] == pytest.approx(-210e-9, abs=0)
+    assert surf.height_m[U, U] == pytest.approx(-310e-9, abs=0)
     assert isinstance(surf, SimulatedSurface) and surf.masks_printed.shape[0] == 2
 
 
