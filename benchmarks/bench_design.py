@@ -28,7 +28,8 @@ from doedesign import targets
 from doedesign.camera import Camera
 from doedesign.losses import LossSpec
 from doedesign.materials import get_material
-from doedesign.optimize import OptimizerSettings, design_doe, level_step_m, quantize_heights
+from doedesign.levels import level_step_m, quantize
+from doedesign.optimize import OptimizerSettings, design_doe
 from doedesign.psf import PSFEngine
 
 log = logging.getLogger(__name__)
@@ -74,8 +75,8 @@ def spot_array(n=64, maxiter=100):
     t_wgs = time.perf_counter() - t0
     h_wgs = -np.mod(-phase, 2 * np.pi) * WL / (2 * np.pi * (mat.n(WL) - 1))
     eff_wgs, uni_wgs = _score(engine, h_wgs, pos)
-    step = level_step_m(design_wavelength_m=WL)
-    eff_wgs_q, uni_wgs_q = _score(engine, quantize_heights(h_wgs, step)[1], pos)
+    step = level_step_m("fused_silica", WL)
+    eff_wgs_q, uni_wgs_q = _score(engine, quantize(h_wgs, step).height_m, pos)
     # Upper bound: every spot carries the pixel envelope sinc^2(u) sinc^2(v) (u, v in cycles/pixel)
     # and a single bin-wide sensor pixel holds (integral of sinc^2 over one bin)^2 = 0.7737^2 of it.
     bin_frac = quad(lambda u: np.sinc(u) ** 2, -0.5, 0.5)[0] ** 2

@@ -32,12 +32,10 @@ import numpy as np
 from . import __version__
 from .errors import DesignFileError, DoeError
 from .fileio import atomic_path, read_npz
+from .levels import N_LEVELS, level_step_m, quantize
 from .materials import get_material
 
 FORMAT_VERSION = 1
-# Levels of the process (four binary masks) and how far a height may sit from its level, in steps.
-LEVEL_COUNT = 16
-LEVEL_TOLERANCE = 0.5
 MAX_NAME_CHARS = 200
 REQUIRED = ("height_m", "pitch_m", "material", "design_wavelength_m", "metadata")
 
@@ -117,6 +115,14 @@ class Design:
         """2 pi height at the design wavelength."""
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
 
+    def level_step_m(self, n_levels: int = N_LEVELS) -> float:
+        """Depth of one of ``n_levels`` levels at this design's material and wavelength.
+
+        See :func:`doedesign.levels.level_step_m`; the level map itself comes from
+        :func:`doedesign.levels.design_levels`.
+        """
+        return level_step_m(self.material, self.design_wavelength_m, n_levels)
+
     def save(self, path):
         """Write the design atomically to ``path`` (``.npz``)."""
         arrays = dict(
@@ -167,16 +173,16 @@ class Design:
         return design
 
     def check_levels(self, source="design"):
-        """Refuse levels that contradict the heights (each height must round to its level).
+        """Refuse levels that contradict the heights: each height must round to its stored level
+        under the level rule (:func:`doedesign.levels.quantize`: nearest step, 2 pi wrap).
 
-        The level rule: level k is k steps of ``height_2pi_m() / 16`` below the top surface.
         A design whose ``levels`` and ``height_m`` disagree would give masks of one element
         and PSFs of another.
         """
         if self.levels is None:
             return
-        step = self.height_2pi_m() / LEVEL_COUNT
-        off = np.abs(self.height_m + self.levels * step) > LEVEL_TOLERANCE * step
+        step = self.level_step_m(N_LEVELS)
+        off = quantize(self.height_m, step, N_LEVELS).levels != self.levels
         if off.any():
             r, c = np.argwhere(off)[0]
             raise DesignFileError(

@@ -16,10 +16,9 @@ Pipeline (:func:`design_doe`)
 2. Quantization-aware finish: penalty annealing toward the nearest level. The penalty
    ``mean sin^2(pi h / step)`` (zero on every level) is added with a growing weight and the
    heights re-optimized at each weight; finally each height is rounded (not floored) to the
-   nearest level, ``step = height_2pi(design wavelength) / N``. The plain rounding of the
-   continuous optimum is evaluated as well and the better of the two is kept. This rounding
-   is the design-side twin of ``masks.quantize`` (fabrication side); doedesign does not
-   import masks.
+   nearest level by the one level rule of :mod:`doedesign.levels` (the rule the masks,
+   the comparison and the diagnosis use too). The plain rounding of the continuous optimum
+   is evaluated as well and the better of the two is kept.
 3. Optional fabrication regularizer (``fab_weight``) against one-pixel pillars and holes.
 
 Uniform multi-spot targets: ``reweight_rounds`` > 0 adds rounds after the continuous stage
@@ -45,13 +44,13 @@ import numpy as np
 from .design import Design
 from .errors import DoeError
 from .losses import LossSpec, make_loss, reweight_target, target_metrics
+from .levels import N_LEVELS, level_step_m, quantize, wrap_height_m
 from .materials import get_material
 from .progress import Progress
 from .psf import PSFEngine
 
 log = logging.getLogger(__name__)
 
-N_LEVELS = 16
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
 INITS = ("random", "zeros", "streak", "grating", "lens")
 HEIGHT_RANGES = ("process", "2pi", "wrap")
@@ -62,11 +61,6 @@ ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
 
 
 # -- levels and bounds ---------------------------------------------------------------------------
-def level_step_m(material="fused_silica", design_wavelength_m=550e-9, n_levels=N_LEVELS):
-    """Height of one process level: the 2 pi height at the design wavelength over ``n_levels``."""
-    return float(get_material(material).height_2pi_m(design_wavelength_m)) / n_levels
-
-
 def height_bounds(step_m, n_levels=N_LEVELS, height_range="process"):
     """(lower, upper) height bounds in metres for ``height_range`` (see the module docstring)."""
     if height_range == "process":
@@ -76,24 +70,6 @@ def height_bounds(step_m, n_levels=N_LEVELS, height_range="process"):
     if height_range == "wrap":
         return -WRAP_SPAN * n_levels * step_m, WRAP_SPAN * n_levels * step_m
     raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {height_range!r}")
-
-
-def quantize_heights(height_m, step_m, n_levels=N_LEVELS):
-    """Round heights to the nearest process level.
-
-    Level ``k`` is ``k`` steps deep (height ``-k step``). Heights round to the nearest level
-    (not floor); a height nearer ``-N step`` than ``-(N-1) step`` wraps to level 0 (the same
-    phase at the design wavelength); anything above 0 or deeper clips.
-
-    Returns
-    -------
-    levels : int ndarray
-    height_m : ndarray, exactly ``-levels * step_m``
-    """
-    k = np.rint(-np.asarray(height_m, dtype=float) / step_m).astype(np.int64)
-    k = np.where(k == n_levels, 0, k)
-    k = np.clip(k, 0, n_levels - 1)
-    return k, -k * step_m
 
 
 def level_penalty(height_m, step_m, support=None):
@@ -159,7 +135,7 @@ def isolated_pixels(levels):
 # -- initial height maps ------------------------------------------------------------------------
 def _wrap_into(h, lower, step_m, n_levels):
     """Wrap heights modulo the 2 pi height into [lower, 0] (nearest end for the process gap)."""
-    h = -np.mod(-h, n_levels * step_m)
+    h = wrap_height_m(h, step_m, n_levels)
     return np.where(h < lower, np.where(h < lower - step_m / 2, 0.0, lower), h)
 
 
@@ -437,10 +413,11 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         hist_cont = hist_cont + hist
     if settings.height_range == "wrap":
         lower, upper = height_bounds(step, settings.n_levels, "2pi")
-        h_cont = -np.mod(-h_cont, settings.n_levels * step)
+        h_cont = wrap_height_m(h_cont, step, settings.n_levels)
     history = {"continuous": hist_cont}
     report = {"continuous": metrics(h_cont)}
-    levels, h_final = quantize_heights(h_cont, step, settings.n_levels)
+    q = quantize(h_cont, step, settings.n_levels)
+    levels, h_final = q.levels, q.height_m
     if settings.quantize:
         h = h_cont
         scale = max(report["continuous"]["loss"], 1e-6)
@@ -456,7 +433,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
             h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, settings.anneal_iter, stage_time,
                                 f"anneal x{mu:g}")
             history["anneal"].extend(hist)
-        lev_a, h_a = quantize_heights(h, step, settings.n_levels)
+        q = quantize(h, step, settings.n_levels)
+        lev_a, h_a = q.levels, q.height_m
         # Both candidates are scored with the same (final) weights.
         report["rounded"] = metrics(h_final)
         report["annealed"] = metrics(h_a)

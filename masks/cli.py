@@ -50,23 +50,6 @@ def _float_list(text, what):
     return vals
 
 
-def design_levels(design, source, n_levels=16):
-    """Levels of a design (quantizing the heights if it has none) and the quantization report."""
-    from .quantize import level_step_m, quantize
-
-    step = level_step_m(design.material, design.design_wavelength_m, n_levels)
-    if design.levels is not None:
-        lv = np.asarray(design.levels)
-        if not np.issubdtype(lv.dtype, np.integer):
-            raise DoeError(f"{source}: levels must be integers, got {lv.dtype}")
-        if lv.size and (lv.min() < 0 or lv.max() >= n_levels):
-            raise DoeError(f"{source}: levels must lie in 0..{n_levels - 1}, found {lv.min()}..{lv.max()}")
-        return lv.astype(np.int16), step, None
-    q = quantize(design.height_m, step, n_levels)
-    log.info("%s: quantized to %d levels, rms error %.2f nm", source, n_levels, q.rms_error_m * 1e9)
-    return q.levels, step, q.summary()
-
-
 def clear_aperture_m(design):
     """Clear circle diameter: the camera's aperture from the metadata, else the aperture mask."""
     cam = design.metadata.get("camera") if isinstance(design.metadata, dict) else None
@@ -99,6 +82,7 @@ def preview(levels, masks, path, title):
 
 def run_masks(args):
     from doedesign.design import Design
+    from doedesign.levels import N_LEVELS, quantize_design
 
     from .decompose import binary_depths_m, levels_to_masks
     from .gds import export_masks
@@ -106,7 +90,8 @@ def run_masks(args):
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     source = str(args.design)
-    levels, step, qreport = design_levels(design, source)
+    levels, quantization = quantize_design(design, N_LEVELS, source)
+    step = design.level_step_m(N_LEVELS)
     masks = levels_to_masks(levels, 4)
     depths = (binary_depths_m(step, 4) if args.depths_nm is None
               else [d * 1e-9 for d in _float_list(args.depths_nm, "depths-nm")])
@@ -126,7 +111,7 @@ def run_masks(args):
                               clear_aperture_m=aperture, die_size_m=die, oasis=args.oasis)
         report["design"] = source
         report["level_step_nm"] = step * 1e9
-        report["quantization"] = qreport
+        report["quantization"] = None if quantization is None else quantization.summary()
         preview(levels, masks, out / "masks.png", name)
         write_json(out / "report.json", report)
     from doedesign.cli.common import print_json

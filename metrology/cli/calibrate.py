@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from doedesign.cli.common import Number
+from doedesign.cli.common import MAX_WINDOW_PX, Number
 from doedesign.errors import DoeError
-from doedesign.fileio import ensure_output_dir, ensure_output_file, save_figure, write_json, write_npz
+from doedesign.fileio import check_input_file, ensure_output_dir, ensure_output_file, save_figure, write_json, write_npz
 from doedesign.psf import parse_wavelengths_nm
 
 import metrology.calibration.dualpixel as dp
@@ -94,6 +94,8 @@ def _pair(values, name):
             raise ValueError
     except ValueError:
         raise DoeError(f"{name} must be two integers like 256,256, got {values!r}") from None
+    if not all(0 <= p <= MAX_WINDOW_PX for p in parts):
+        raise DoeError(f"{name} {values!r}: each must lie in 0..{MAX_WINDOW_PX} pixels")
     return tuple(parts)
 
 
@@ -165,8 +167,13 @@ def find_captures(spec, wavelengths_m=None):
             ((dark["sum"], dark["view"]) if dark else None)
     if not spec.is_file():
         raise DoeError(f"{spec}: no such capture directory or list file")
+    check_input_file(spec)
+    try:
+        listing = spec.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DoeError(f"{spec}: not a capture list (text file of 'wavelength_nm sum view' lines)") from None
     wl_nm, files, dark = [], [], None
-    for n, line in enumerate(spec.read_text().splitlines(), 1):
+    for n, line in enumerate(listing.splitlines(), 1):
         parts = line.split("#")[0].replace(",", " ").split()
         if not parts:
             continue
@@ -233,6 +240,8 @@ def run_psf(args):
     from doedesign.cli.common import print_json
 
     out = ensure_output_dir(args.out)
+    window = _pair(args.window, "--window")
+    axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None
     if wavelengths is not None:
         ps.check_wavelengths(wavelengths, "--wavelengths-nm")
@@ -247,8 +256,6 @@ def run_psf(args):
     cfa = None if args.cfa.lower() == "none" else args.cfa
     if cal is not None and cfa is not None and cfa.upper() != cal.cfa_pattern:
         raise DoeError(f"--cfa {cfa} differs from the calibration's pattern {cal.cfa_pattern}")
-    window = _pair(args.window, "--window")
-    axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
     centre = _pair(args.axis, "--axis") if args.axis else None
 
     captures, gains = [], []

@@ -261,9 +261,9 @@ def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m
         The diagnosis and its inputs: the window (``region_design_px``, half-open design pixels,
         row 0 at the top), ``upsample``, ``registration_ncc`` and ``nominal_depths_m``.
     """
+    from doedesign.levels import design_levels
     from masks.process import ProcessParams
-
-    from metrology.matching.compare import compare_measurement, design_levels, shift_registration
+    from metrology.matching.compare import compare_measurement, shift_registration
     from metrology.matching.register import resample_to_design
 
     if region_px < 8:

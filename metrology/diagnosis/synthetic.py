@@ -188,9 +188,9 @@ def psf_test_setup(n_wavelengths=3, size_px=96, pitch_m=14.4e-6, window=(40, 72)
     """
     from doedesign.camera import Camera
     from doedesign.design import Design
-    from doedesign.materials import get_material
+    from doedesign.levels import level_step_m
 
-    step = get_material("fused_silica").height_2pi_m(550e-9) / 16
+    step = level_step_m("fused_silica", 550e-9)
     levels = np.tile((np.arange(size_px) % 12) * 16 // 12, (size_px, 1)).astype(np.int16)
     design = Design(height_m=-levels * step, pitch_m=pitch_m, levels=levels)
     camera = Camera(aperture_diameter_m=None, window_shape=window, axis_pixel=axis, doe_side="left")

@@ -22,6 +22,7 @@ import numpy as np
 from scipy import ndimage, optimize, special, stats
 
 from doedesign.errors import DoeError
+from doedesign.levels import design_levels
 from masks.decompose import levels_to_masks
 from masks.process import ProcessParams, simulate_surface
 
@@ -465,14 +466,6 @@ def crop_registration(registration, row0, col0, shape):
     return replace(registration, offset=offset, measurement_shape=tuple(shape))
 
 
-def design_levels(design, n_levels=16):
-    """Level map of a design: its ``levels`` field, or heights rounded to the level step."""
-    if design.levels is not None:
-        return np.asarray(design.levels, int)
-    step = design.height_2pi_m() / n_levels
-    return np.clip(np.rint(-design.height_m / step), 0, n_levels - 1).astype(int)
-
-
 @dataclass
 class Comparison:
     """Everything :func:`compare_measurement` found; :meth:`report` is the JSON summary.
@@ -607,7 +600,7 @@ def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progre
 
     pitch = design.pitch_m
     levels = design_levels(design, 2 ** n_masks)
-    nominal = np.array(binary_depths_m(design.height_2pi_m() / 2 ** n_masks, n_masks))
+    nominal = np.array(binary_depths_m(design.level_step_m(2 ** n_masks), n_masks))
     h, n_spikes = remove_spikes(measurement.height_m)
     first = level_on_top(h)
     step("levelled on level 0")

@@ -25,10 +25,10 @@ import numpy as np
 
 from doedesign.camera import Camera
 from doedesign.errors import DoeError
+from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
 from masks.process import simulate_surface
 
-from metrology.matching.compare import design_levels
 
 log = logging.getLogger(__name__)
 

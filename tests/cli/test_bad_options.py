@@ -80,6 +80,7 @@ CASES = [
     (["psf", "{d}", "--aperture-mm", "nan"], "'nan'"),
     (["masks", "{d}", "--clear-aperture-mm", "0"], "> 0"),
     (["calibrate", "psf", "--captures", "x", "--pixel-pitch-um", "0"], "> 0"),
+    (["calibrate", "psf", "--captures", "{d}", "--window", "100000,100000"], "0..8192"),
     (["demo", "--doe-px", "0"], ">= 16"),
     (["inspect", "{d}", "--pixel-size-m", "inf"], "'inf'"),
 ]

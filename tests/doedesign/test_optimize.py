@@ -57,13 +57,6 @@ def test_off_axis_spot_converges_to_blazed_grating():
     assert run.design.height_m.max() <= 0 and run.design.height_m.min() >= -16 * STEP
 
 
-def test_quantize_rounds_not_floors():
-    h = np.array([-0.4, -0.6, -1.49, -14.6, -15.4, -15.6, 0.2]) * STEP
-    levels, hq = optimize.quantize_heights(h, STEP)
-    assert levels.tolist() == [0, 1, 1, 15, 15, 0, 0]
-    np.testing.assert_allclose(hq, -levels * STEP)
-
-
 def test_quantized_design_holds_only_16_heights_and_reports_both():
     cam = Camera(aperture_diameter_m=32 * PITCH, window_shape=(64, 64), axis_pixel=(32, 32))
     target = targets.bayer(cam)

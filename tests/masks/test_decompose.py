@@ -1,4 +1,4 @@
-"""Quantization and binary mask decomposition against exact arithmetic."""
+"""Binary mask decomposition against exact arithmetic."""
 
 import numpy as np
 import pytest
@@ -6,47 +6,6 @@ import pytest
 from doedesign.errors import DoeError
 from masks.decompose import (DEFAULT_DEPTHS_M, binary_depths_m, check_etch_order, levels_to_masks,
                              masks_to_height, masks_to_levels)
-from masks.quantize import level_step_m, quantize
-
-
-def test_level_step_fused_silica_published():
-    # optics-and-fabrication.md: 2 pi at 550 nm is 1195.9 nm, one of 16 levels 74.74 nm
-    assert level_step_m("fused_silica", 550e-9) == pytest.approx(74.74e-9, abs=0.01e-9)
-    assert level_step_m("fused_silica", 550e-9, 8) == pytest.approx(1195.9e-9 / 8, abs=0.1e-9)
-
-
-def test_quantize_rounds_not_floors():
-    step = 100e-9
-    h = -np.array([0.0, 0.49, 0.51, 1.49, 1.51, 14.6]) * step
-    q = quantize(h, step)
-    assert q.levels.tolist() == [0, 0, 1, 1, 2, 15]
-    assert q.max_error_m <= step / 2 + 1e-18
-    assert q.wrapped_pixels == 0
-    np.testing.assert_allclose(q.height_m, -q.levels * step)
-    np.testing.assert_allclose(q.error_m, h - q.height_m, atol=1e-18)
-
-
-def test_quantize_wraps_by_one_2pi_height():
-    step = 100e-9
-    # 15.6 steps deep rounds to 16 = level 0 one 2 pi deeper; +0.6 step above the top -> 15
-    h = -np.array([15.6, -0.6, 17.2, -0.3]) * step
-    q = quantize(h, step)
-    assert q.levels.tolist() == [0, 15, 1, 0]
-    assert q.wrapped_pixels == 3
-    np.testing.assert_allclose(q.error_m / step, [0.4, -0.4, -0.2, 0.3], atol=1e-12)
-
-
-def test_quantize_uniform_error_is_step_over_sqrt12():
-    rng = np.random.default_rng(0)
-    step = level_step_m("fused_silica", 550e-9)
-    h = -rng.uniform(0, 16 * step, 200_000)
-    q = quantize(h, step)
-    assert q.rms_error_m == pytest.approx(step / np.sqrt(12), rel=0.01)
-
-
-def test_quantize_rejects_nan():
-    with pytest.raises(DoeError, match="NaN"):
-        quantize(np.array([0.0, np.nan]), 75e-9)
 
 
 @pytest.mark.parametrize("kind", ["random", "ramp", "rings"])
