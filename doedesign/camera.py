@@ -78,12 +78,18 @@ class Camera:
     def to_dict(self):
         d = asdict(self)
         d["focal_length_m"] = self.focal_length_m
+        # Strict JSON has no Infinity: a lens focused at infinity is written "inf".
+        if np.isinf(self.focus_distance_m):
+            d["focus_distance_m"] = "inf"
         return d
 
     @classmethod
     def from_dict(cls, d):
         keys = {f for f in cls.__dataclass_fields__}
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in keys})
+        d = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in keys}
+        if str(d.get("focus_distance_m")).lower() == "inf":
+            d["focus_distance_m"] = np.inf
+        return cls(**d)
 
     def pupil_grid_shape(self, design_shape, pitch_m):
         """Shape of the pupil grid (DOE pixels) holding the aperture; the design is centred in it."""

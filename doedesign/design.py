@@ -30,8 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .camera import Camera
 from .errors import DesignFileError, DoeError
-from .fileio import atomic_path, read_npz
+from .fileio import atomic_path, dumps_json, read_npz
 from .levels import N_LEVELS, level_step_m, quantize
 from .materials import get_material
 
@@ -115,6 +116,30 @@ class Design:
         """2 pi height at the design wavelength."""
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
 
+    def camera(self, missing: str = "seed") -> Camera | None:
+        """The camera recorded in the metadata (``metadata["camera"]``, :meth:`Camera.to_dict`).
+
+        Parameters
+        ----------
+        missing : {"seed", "none"}
+            What a design without a camera entry gets: the seed paper's camera (``Camera()``)
+            or None.
+
+        Raises
+        ------
+        DesignFileError
+            A camera entry that is not a valid camera description.
+        """
+        cam = self.metadata.get("camera")
+        if cam is None:
+            return Camera() if missing == "seed" else None
+        if not isinstance(cam, dict):
+            raise DesignFileError(f"{self.name}: metadata camera must be a JSON object, got {type(cam).__name__}")
+        try:
+            return Camera.from_dict(cam)
+        except (TypeError, ValueError, DoeError) as exc:
+            raise DesignFileError(f"{self.name}: metadata camera entry is not a valid camera: {exc}") from None
+
     def level_step_m(self, n_levels: int = N_LEVELS) -> float:
         """Depth of one of ``n_levels`` levels at this design's material and wavelength.
 
@@ -130,7 +155,7 @@ class Design:
             pitch_m=np.float64(self.pitch_m),
             material=np.str_(self.material),
             design_wavelength_m=np.float64(self.design_wavelength_m),
-            metadata=np.str_(json.dumps(self.metadata, default=_plain)),
+            metadata=np.str_(dumps_json(self.metadata, indent=None)),
         )
         if self.levels is not None:
             arrays["levels"] = self.levels.astype(np.int16)
@@ -230,10 +255,3 @@ def _check_metadata(path, metadata):
     if "camera" in metadata and not isinstance(metadata["camera"], dict):
         raise DesignFileError(f"{path}: metadata camera must be an object, got {type(metadata['camera']).__name__}")
 
-
-def _plain(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)

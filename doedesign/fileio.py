@@ -1,4 +1,5 @@
-"""Atomic file output: write to a temporary name beside the target, then rename.
+"""File output: atomic writes (a temporary name beside the target, then rename) and the one
+strict JSON encoder (:func:`json_ready`, :func:`dumps_json`, :func:`write_json`).
 
 A failure part-way leaves no partial file behind, so a mask shop or a later
 pipeline step never sees a half-written result. Temporary names never end in the
@@ -14,6 +15,7 @@ import contextlib
 import datetime as _dt
 import errno
 import json
+import math
 import os
 import re
 import stat
@@ -326,10 +328,44 @@ def read_npz(path, required, what, error=None):
     return data
 
 
-def write_json(path, obj):
-    """Write ``obj`` as indented JSON, atomically (numpy scalars and arrays allowed)."""
+def json_ready(obj):
+    """``obj`` as plain JSON values, the one rule for every report and JSON string we write.
+
+    numpy scalars and arrays become Python numbers and lists, tuples lists, paths strings,
+    dictionary keys strings, and NaN or infinite floats ``None`` (strict JSON has no NaN or
+    Infinity, and strict readers such as jq and browsers reject them).
+
+    Raises
+    ------
+    TypeError
+        An object with no JSON form.
+    """
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return json_ready(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if obj is None or isinstance(obj, (bool, int, str)):
+        return obj
+    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
+
+
+def dumps_json(obj, indent: int | None = 2) -> str:
+    """Strict JSON text of ``obj`` (see :func:`json_ready`)."""
+    return json.dumps(json_ready(obj), indent=indent, allow_nan=False)
+
+
+def write_json(path, obj) -> Path:
+    """Write ``obj`` as indented strict JSON (:func:`dumps_json`), atomically."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+        tmp.write_text(dumps_json(obj) + "\n")
     return Path(path)
 
 
@@ -348,13 +384,3 @@ def save_figure(fig, path, dpi=110):
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
     plt.close(fig)
     return Path(path)
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serializable: {type(obj).__name__}")

@@ -1,14 +1,28 @@
-"""A small text progress bar on stderr for optimizations and exports.
+"""Progress bars on stderr for optimizations, exports and fits (tqdm underneath).
 
-It draws only when stderr is a terminal or ``DOE_PROGRESS=1``; set ``DOE_PROGRESS=0``
-to silence it. Status messages go through :mod:`logging`, never print.
+A bar draws only when stderr is a terminal or ``DOE_PROGRESS=1``; set ``DOE_PROGRESS=0`` to
+silence it. Status messages go through :mod:`logging`, never print.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-import time
+
+from tqdm import tqdm
+
+__all__ = ["Progress", "progress_enabled"]
+
+
+def progress_enabled(stream=None, enabled: bool | None = None) -> bool:
+    """Whether to draw: ``enabled`` if given, else ``DOE_PROGRESS`` (``1``/``0``), else a terminal."""
+    if enabled is not None:
+        return bool(enabled)
+    env = os.environ.get("DOE_PROGRESS")
+    if env is not None:
+        return env == "1"
+    stream = stream if stream is not None else sys.stderr
+    return bool(getattr(stream, "isatty", lambda: False)())
 
 
 class Progress:
@@ -17,46 +31,31 @@ class Progress:
     Use as a context manager; call :meth:`update` once per step.
     """
 
-    def __init__(self, total, desc="", stream=None, enabled=None):
+    def __init__(self, total: int, desc: str = "", stream=None, enabled: bool | None = None):
         self.total = max(int(total), 1)
         self.desc = desc
         self.stream = stream if stream is not None else sys.stderr
-        env = os.environ.get("DOE_PROGRESS")
-        if enabled is None:
-            enabled = env == "1" if env is not None else self.stream.isatty()
-        self.enabled = enabled
+        self.enabled = progress_enabled(self.stream, enabled)
         self.count = 0
-        self.start = time.perf_counter()
-        self._last_draw = 0.0
+        self._bar = None
 
-    def __enter__(self):
-        self._draw("")
+    def __enter__(self) -> Progress:
+        if self.enabled:
+            self._bar = tqdm(total=self.total, desc=self.desc, file=self.stream, leave=True,
+                             mininterval=0.1, dynamic_ncols=True)
         return self
 
-    def __exit__(self, *exc):
-        if self.enabled:
-            self._draw(self._status if hasattr(self, "_status") else "", force=True)
-            self.stream.write("\n")
-            self.stream.flush()
+    def __exit__(self, *exc) -> bool:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
         return False
 
-    def update(self, n=1, status=""):
+    def update(self, n: int = 1, status: str = "") -> None:
         """Advance by ``n`` steps and show ``status`` beside the bar."""
-        self.count = min(self.count + n, self.total)
-        self._status = status
-        self._draw(status)
-
-    def _draw(self, status, force=False):
-        if not self.enabled:
-            return
-        now = time.perf_counter()
-        if not force and now - self._last_draw < 0.1 and self.count < self.total:
-            return
-        self._last_draw = now
-        frac = self.count / self.total
-        width = 28
-        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
-        elapsed = now - self.start
-        self.stream.write(f"\r{self.desc} [{bar}] {self.count}/{self.total} "
-                          f"{elapsed:5.1f}s {status}".rstrip() + "\x1b[K")
-        self.stream.flush()
+        step = min(self.count + n, self.total) - self.count
+        self.count += step
+        if self._bar is not None:
+            if status:
+                self._bar.set_postfix_str(status, refresh=False)
+            self._bar.update(step)

@@ -34,7 +34,7 @@ import scipy.fft as sfft
 
 from .camera import Camera
 from .errors import DoeError, SamplingError
-from .fileio import read_npz, write_npz
+from .fileio import dumps_json, read_npz, write_npz
 from .materials import get_material
 
 log = logging.getLogger(__name__)
@@ -87,13 +87,11 @@ class PSFResult:
 
     def save(self, path):
         """Write the PSF ``.npz`` (fields documented in the README)."""
-        import json
-
         return write_npz(
             path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
             depths_m=np.asarray(self.depths_m), pixel_pitch_m=np.float64(self.pixel_pitch_m),
             energy_in_window=self.energy_in_window, axis_pixel=np.asarray(self.axis_pixel),
-            sampling=np.str_(json.dumps(self.sampling, default=float)))
+            sampling=np.str_(dumps_json(self.sampling, indent=None)))
 
     @classmethod
     def load(cls, path):

@@ -21,8 +21,7 @@ import numpy as np
 
 from doedesign.camera import Camera
 from doedesign.design import Design
-from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path, write_json
+from doedesign.fileio import atomic_path, json_ready, write_json
 from doedesign.psf import compute_psf
 
 log = logging.getLogger(__name__)
@@ -102,19 +101,10 @@ def psf_step(design, camera, out):
     return result
 
 
-def _stage(argv, out_dir):
-    """Run one stage exactly as a user would (``doe ...``) and return its report.json."""
-    import json
+def masks_step(design, design_path, out):
+    from masks.element import write_element
 
-    from doedesign.cli import main
-
-    if main([str(a) for a in argv]) != 0:
-        raise DoeError(f"demo: `doe {' '.join(str(a) for a in argv)}` failed (see the message above)")
-    return json.loads((Path(out_dir) / "report.json").read_text())
-
-
-def masks_step(design_path, out):
-    return _stage(["masks", design_path, "--out", out / "masks"], out / "masks")
+    return write_element(design, out / "masks", source=str(design_path))
 
 
 def fabricate_and_measure(design, cfg, out):
@@ -152,13 +142,20 @@ def fabricate_and_measure(design, cfg, out):
     return path, hidden
 
 
-def compare_step(measurement_path, design_path, out):
-    return _stage(["compare", measurement_path, "--design", design_path, "--out", out / "compare"], out / "compare")
+def compare_step(measurement_path, design, design_path, out):
+    from metrology.formats.readers import read_measurement
+    from metrology.matching.report import write_comparison
+
+    return write_comparison(read_measurement(measurement_path), design, out / "compare",
+                            measurement_source=str(measurement_path), design_source=str(design_path))
 
 
-def diagnose_step(measurement_path, design_path, out):
-    return _stage(["diagnose", "--design", design_path, "--measured", measurement_path, "--out", out / "diagnose"],
-                  out / "diagnose")
+def diagnose_step(measurement_path, design, design_path, out):
+    from metrology.diagnosis import diagnose_measurement
+    from metrology.formats.readers import read_measurement
+
+    diag, inputs = diagnose_measurement(design, read_measurement(measurement_path), source=str(measurement_path))
+    return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
 def run_demo(out_dir, cfg=None):
@@ -172,11 +169,11 @@ def run_demo(out_dir, cfg=None):
     design = Design.load(out / "design.npz")  # the file a user would hand on
     psf = timings.run("PSFs of the design", psf_step, design, camera, out)
     design_path = out / "design.npz"
-    masks_report = timings.run("masks and GDSII (export + verification)", masks_step, design_path, out)
+    masks_report = timings.run("masks and GDSII (export + verification)", masks_step, design, design_path, out)
     meas_path, hidden = timings.run("fabrication and Zygo measurement (simulated)", fabricate_and_measure,
                                     design, cfg, out)
-    comparison = timings.run("compare measurement with design", compare_step, meas_path, design_path, out)
-    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design_path, out)
+    comparison = timings.run("compare measurement with design", compare_step, meas_path, design, design_path, out)
+    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design, design_path, out)
     report = {
         "config": cfg.__dict__,
         "timings": timings.steps,
@@ -189,7 +186,7 @@ def run_demo(out_dir, cfg=None):
     }
     write_json(out / "report.json", report)
     with atomic_path(out / "report.md") as tmp:
-        tmp.write_text(markdown_report(report, out))
+        tmp.write_text(markdown_report(json_ready(report), out))
     return report
 
 

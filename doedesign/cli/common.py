@@ -6,12 +6,11 @@ them without reaching into the root command.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
 from ..camera import Camera
-from ..fileio import _json_default
+from ..fileio import dumps_json
 
 __all__ = ["add_camera_options", "camera_from_args", "print_json", "Number", "NumberList", "MAX_WINDOW_PX"]
 
@@ -81,8 +80,8 @@ class NumberList:
 
 
 def print_json(obj) -> None:
-    """Print ``obj`` as JSON on stdout (numpy values allowed)."""
-    sys.stdout.write(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    """Print ``obj`` as strict JSON on stdout (:func:`doedesign.fileio.dumps_json`)."""
+    sys.stdout.write(dumps_json(obj) + "\n")
 
 
 def add_camera_options(parser):

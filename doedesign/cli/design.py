@@ -231,8 +231,7 @@ def cmd_evaluate_bayer(args):
         else:
             design = quick_bayer_design(args.quick_size, args.quick_iterations, args.seed)
             source = f"built-in quick optimization ({args.quick_size} px, {args.quick_iterations} evaluations)"
-        cam_dict = design.metadata.get("camera")
-        camera = Camera.from_dict(cam_dict) if cam_dict else Camera()
+        camera = design.camera()
         res = compute_psf(design, camera, wavelengths_m=bayer_wavelengths(design), depths_m=[np.inf],
                           views=("coded",))
         doe_psf, axis = res.psf[0, 0], camera.axis_pixel

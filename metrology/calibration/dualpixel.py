@@ -33,7 +33,7 @@ from scipy import ndimage
 from scipy.interpolate import make_smoothing_spline
 
 from doedesign.errors import DoeError
-from doedesign.fileio import write_npz
+from doedesign.fileio import dumps_json, write_npz
 
 log = logging.getLogger(__name__)
 
@@ -223,7 +223,7 @@ class CrosstalkCalibration:
         meta = dict(self.metadata, cfa_pattern=self.cfa_pattern, stored_view_half=self.stored_view_half,
                     channels=list(CHANNELS), views=list(VIEW_NAMES),
                     layout="ratio[view, channel, column]; column 0 at the sensor's left edge")
-        return write_npz(path, ratio=self.ratio, raw_ratio=self.raw_ratio, metadata=np.str_(json.dumps(meta)))
+        return write_npz(path, ratio=self.ratio, raw_ratio=self.raw_ratio, metadata=np.str_(dumps_json(meta, indent=None)))
 
     @classmethod
     def load(cls, path):

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import ndimage
 
 from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path, write_npz
+from doedesign.fileio import atomic_path, dumps_json, write_npz
 from doedesign.progress import Progress
 from doedesign.psf import VIEWS, read_psf_arrays
 
@@ -535,7 +535,7 @@ def save_stack(stack, path):
         pixel_pitch_m=np.float64(stack.pixel_pitch_m), energy_in_window=stack.energy_in_window[:, None],
         axis_pixel=np.asarray(stack.axis_pixel), measured=stack.measured,
         normalization=np.str_(stack.normalization), band_centroid_m=stats[:, 0], bandwidth_fwhm_m=stats[:, 1],
-        sampling=np.str_(json.dumps({"source": "measured"})), info=np.str_(json.dumps(stack.info, default=float)),
+        sampling=np.str_(dumps_json({"source": "measured"}, indent=None)), info=np.str_(dumps_json(stack.info, indent=None)),
         **extra)
 
 

@@ -47,9 +47,7 @@ def register(subparsers):
 def run(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
-    from doedesign.fileio import ensure_output_dir, output_run, write_json
-
-    from metrology.report_pages import diagnose_page
+    from doedesign.fileio import ensure_output_dir, output_run
 
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
@@ -58,13 +56,8 @@ def run(args):
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
-    report = diag.to_dict()
-    report["inputs"] = dict(design=str(args.design), **inputs)
     with output_run(out, "doe diagnose"):
-        plots = diag.plot(out)
-        report["plots"] = [p.name for p in plots]
-        write_json(out / "report.json", report)
-        diagnose_page(report, out)
+        report = diag.save(out, dict(design=str(args.design), **inputs))
     print_json({"report": str(out / "report.json"), "effects_found": diag.named,
                 "measurement_artefacts": report["measurement_artefacts"],
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
@@ -84,14 +77,11 @@ def _heights(design, path, args, candidates):
 
 
 def _psf(design, path, args, candidates):
-    from doedesign.camera import Camera
-
     from metrology.calibration.psfstack import read_stack
     from metrology.diagnosis import diagnose_psf
 
     stack = read_stack(path)
-    cam_dict = design.metadata.get("camera")
-    camera = Camera.from_dict(cam_dict) if isinstance(cam_dict, dict) else Camera()
+    camera = design.camera()
     rows, cols = stack["psf"].shape[-2:]
     axis = stack["axis_pixel"] or (rows // 2, cols // 2)
     camera = dataclasses.replace(camera, window_shape=(rows, cols), axis_pixel=axis,

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from doedesign.errors import DoeError
+from doedesign.fileio import json_ready
 
 
 class MeasurementFileError(DoeError):
@@ -104,18 +105,6 @@ class Measurement:
             "height_min_m": hmin,
             "height_max_m": hmax,
             "height_rms_m": rms,
-            "metadata": _plain(self.metadata),
+            "metadata": json_ready(self.metadata),
         }
 
-
-def _plain(obj):
-    """Metadata as JSON-friendly Python values (tuples to lists, numpy to Python)."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj

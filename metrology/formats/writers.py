@@ -11,7 +11,6 @@ image (the first row stored). Origins are (x, y) in camera pixels.
 
 from __future__ import annotations
 
-import json
 import struct
 import uuid
 from pathlib import Path
@@ -292,10 +291,10 @@ def write_npz(path, height_m, pixel_size_m, metadata=None):
     """Write a ``.npz`` with ``height_m``, ``pixel_size_m`` and a JSON ``metadata`` string."""
     from doedesign.fileio import write_npz as _write
 
-    from metrology.formats.measurement import _plain
+    from doedesign.fileio import dumps_json
 
     return _write(path, height_m=_height(height_m), pixel_size_m=np.float64(pixel_size_m),
-                  metadata=np.array(json.dumps(_plain(metadata or {}))))
+                  metadata=np.array(dumps_json(metadata or {}, indent=None)))
 
 
 def write_tiff(path, height_m, pixel_size_m, z_unit_m=1.0):

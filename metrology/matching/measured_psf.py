@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from doedesign.camera import Camera
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
@@ -108,17 +107,6 @@ def target_from_psf(psf, fraction=DEFAULT_TARGET_FRACTION):
     return out
 
 
-def camera_for(design):
-    """The camera recorded in the design's metadata, or the seed paper's."""
-    cam = design.metadata.get("camera")
-    if isinstance(cam, dict):
-        try:
-            return Camera.from_dict(cam)
-        except (TypeError, ValueError) as exc:
-            raise DoeError(f"design metadata: bad camera entry: {exc}") from None
-    return Camera()
-
-
 def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e-9), oversample=2,
                 target=None, progress=None):
     """Coded PSF of the design and of the design made with ``params``.
@@ -129,7 +117,7 @@ def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e
     params : masks.process.ProcessParams
         Fitted process (e.g. ``Comparison.fitted_params()``).
     camera : Camera, optional
-        Default :func:`camera_for` the design.
+        Default: the design's own (:meth:`Design.camera`).
     wavelengths_m : sequence of float
     oversample : int
         Samples per DOE pixel per axis for both surfaces.
@@ -143,7 +131,7 @@ def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e
     q = int(oversample)
     if q < 1:
         raise DoeError(f"oversample must be a positive integer, got {oversample}")
-    camera = camera or camera_for(design)
+    camera = camera or design.camera()
     levels = design_levels(design)
     fine_measured = simulate_surface(levels, design.pitch_m, params, step_m=design.pitch_m / q).height_m
     fine_shape = (design.shape[0] * q, design.shape[1] * q)

@@ -37,6 +37,27 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
         page = (out / sub / "report.md").read_text()
         assert "## Summary" in page and "[report.json](report.json)" in page and "```" not in page
     assert not list(out.rglob("INCOMPLETE")) and not list(out.rglob(".*.part"))
+    # Every JSON the demo writes is strict JSON (no NaN / Infinity).
+    written = sorted(out.rglob("*.json"))
+    assert {p.relative_to(out).as_posix() for p in written} >= {
+        "report.json", "design_report.json", "masks/report.json", "compare/report.json", "diagnose/report.json"}
+    for path in written:
+        json.loads(path.read_text(), parse_constant=_reject)
+
+
+def _reject(name):
+    raise ValueError(f"non-strict JSON constant {name}")
+
+
+def test_demo_calls_the_library_not_the_command_line():
+    import ast
+
+    import metrology.pipeline as pipeline
+
+    tree = ast.parse(open(pipeline.__file__).read())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert not any(m and (m.startswith("doedesign.cli") or ".cli" in m) for m in imported - {"doedesign.cli.design"})
 
 
 def test_demo_measures_where_the_pattern_has_structure():

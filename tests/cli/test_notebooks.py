@@ -1,4 +1,5 @@
-"""Every notebook in notebooks/ runs top to bottom (the workflows a user follows)."""
+"""Every notebook in notebooks/ runs top to bottom (the workflows a user follows) and shows
+the figures it draws."""
 
 import shutil
 from pathlib import Path
@@ -10,8 +11,10 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[2] / "notebooks").glob("*.ipynb"))
 
 
-def test_there_are_notebooks():
-    assert len(NOTEBOOKS) >= 5, [p.name for p in NOTEBOOKS]
+def _figure_cells(nb):
+    """Code cells that draw a figure (matplotlib or the package's figure helpers)."""
+    drawing = ("plt.subplots", "plt.figure", "_figure(", ".imshow(", "plt.plot(")
+    return [i for i, c in enumerate(nb.cells) if c.cell_type == "code" and any(d in c.source for d in drawing)]
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
@@ -27,3 +30,10 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
     client.execute()
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"]
     assert not errors
+    # Every cell that draws a figure shows it: an image output in that cell or a later one.
+    shown = [i for i, c in enumerate(nb.cells) if c.cell_type == "code"
+             for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
+    drawn = _figure_cells(nb)
+    assert drawn, f"{path.name} draws no figure"
+    assert shown and max(drawn) <= max(shown), f"{path.name}: figures drawn in cells {drawn}, shown in {shown}"
+    assert len(set(shown)) >= len(drawn) / 2, f"{path.name}: figures drawn in cells {drawn}, shown in {shown}"

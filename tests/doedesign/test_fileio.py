@@ -1,78 +1,71 @@
-"""Output hygiene: temporaries, stale temporaries, incomplete markers, unwritable targets."""
+"""The one strict JSON encoder and the camera's JSON round trip."""
 
-import os
-import subprocess
-import sys
+import json
+import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from doedesign import fileio
-from doedesign.errors import DoeError
+from doedesign.camera import Camera
+from doedesign.design import Design
+from doedesign.errors import DesignFileError
+from doedesign.fileio import dumps_json, json_ready, write_json
 
 
-def test_temporary_has_no_final_extension_and_is_renamed(tmp_path):
-    target = tmp_path / "masks.gds"
-    with fileio.atomic_path(target) as tmp:
-        assert not tmp.name.endswith(".gds") and tmp.name.endswith(fileio.TEMP_SUFFIX)
-        tmp.write_bytes(b"data")
-    assert target.read_bytes() == b"data"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["masks.gds"]
+def _strict(text):
+    def reject(name):
+        raise ValueError(name)
+
+    return json.loads(text, parse_constant=reject)
 
 
-def test_stale_temporary_of_dead_process_is_removed_live_one_kept(tmp_path):
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True).stdout.strip()
-    stale = tmp_path / f".a.gds.{dead}-xyz{fileio.TEMP_SUFFIX}"
-    live = tmp_path / f".a.gds.{os.getpid()}-abc{fileio.TEMP_SUFFIX}"
-    stale.write_bytes(b"old")
-    live.write_bytes(b"writing")
-    fileio.write_json(tmp_path / "r.json", {"a": 1})
-    assert not stale.exists() and live.exists()
+def test_nan_and_infinity_become_null_numpy_becomes_plain(tmp_path):
+    obj = {"a": np.float32(1.5), "b": np.array([[1, 2], [3, 4]], np.int16), "c": (np.nan, -np.inf, 2.0),
+           "d": np.array([np.inf, 0.25]), 3: Path("x/y"), "e": np.bool_(True), "f": math.nan}
+    back = _strict(write_json(tmp_path / "r.json", obj).read_text())
+    assert back == {"a": 1.5, "b": [[1, 2], [3, 4]], "c": [None, None, 2.0], "d": [None, 0.25], "3": "x/y",
+                    "e": True, "f": None}
+    assert isinstance(json_ready(np.int64(7)), int) and type(json_ready(np.float64(0.1))) is float
+    with pytest.raises(TypeError):
+        dumps_json({"x": object()})
 
 
-def test_result_path_taken_by_folder_or_out_is_file(tmp_path, monkeypatch):
-    (tmp_path / "report.json").mkdir()
-    with pytest.raises(DoeError, match="taken by a folder"):
-        fileio.write_json(tmp_path / "report.json", {})
-    (tmp_path / "f").write_text("x")
-    with pytest.raises(DoeError, match="existing file"):
-        fileio.ensure_output_dir(tmp_path / "f")
-    with pytest.raises(DoeError, match="existing folder"):
-        fileio.ensure_output_file(tmp_path / "report.json")
-    with pytest.raises(DoeError, match="cannot create"):
-        fileio.ensure_output_dir(tmp_path / "f" / "sub")
-    assert fileio.ensure_output_dir(tmp_path / "new" / "sub") == tmp_path / "new" / "sub"
-    assert not (tmp_path / "new").exists()
-    monkeypatch.setattr(fileio.os, "access", lambda *a: False)  # a read-only folder (tests run as root)
-    with pytest.raises(DoeError, match="not writable"):
-        fileio.ensure_output_dir(tmp_path)
+def test_camera_at_infinity_round_trips_through_the_design_file(tmp_path):
+    cam = Camera(focus_distance_m=np.inf, window_shape=(64, 64), axis_pixel=(32, 32))
+    design = Design(height_m=np.zeros((4, 4)), pitch_m=5.4e-6, metadata={"camera": cam.to_dict()})
+    design.save(tmp_path / "d.npz")
+    with np.load(tmp_path / "d.npz") as npz:
+        _strict(str(npz["metadata"]))
+    back = Design.load(tmp_path / "d.npz").camera()
+    assert back == cam and np.isinf(back.focus_distance_m)
+    # The focal length of a lens focused at infinity is its sensor distance.
+    assert back.focal_length_m == pytest.approx(cam.sensor_distance_m)
 
 
-def test_output_run_marks_incomplete_until_done(tmp_path):
-    with fileio.output_run(tmp_path / "o", "doe test") as folder:
-        assert (folder / fileio.INCOMPLETE_MARKER).exists()
-    assert not (tmp_path / "o" / fileio.INCOMPLETE_MARKER).exists()
-    with pytest.raises(RuntimeError):
-        with fileio.output_run(tmp_path / "o", "doe test") as folder:
-            fileio.write_json(folder / "first.json", {})
-            raise RuntimeError("killed")
-    assert (tmp_path / "o" / fileio.INCOMPLETE_MARKER).exists()
-    with pytest.raises(RuntimeError):  # a failure before any output leaves nothing
-        with fileio.output_run(tmp_path / "p", "doe test"):
-            raise RuntimeError("refused")
-    assert not (tmp_path / "p").exists()
+def test_design_camera_missing_and_broken():
+    d = Design(height_m=np.zeros((2, 2)), pitch_m=5.4e-6)
+    assert d.camera() == Camera() and d.camera(missing="none") is None
+    bad = Design(height_m=np.zeros((2, 2)), pitch_m=5.4e-6, metadata={"name": "b", "camera": {"doe_side": "up"}})
+    with pytest.raises(DesignFileError, match="b: metadata camera"):
+        bad.camera()
+    with pytest.raises(DesignFileError, match="JSON object"):
+        Design(height_m=np.zeros((2, 2)), pitch_m=5.4e-6, metadata={"camera": 3}).camera()
 
 
-def test_npz_claimed_size_and_objects_refused(tmp_path):
-    path = tmp_path / "obj.npz"
-    np.savez(path, a=np.array([{"x": 1}], dtype=object))
-    with pytest.raises(DoeError) as exc:
-        fileio.read_npz(path, ["a"], "thing")
-    assert "allow_pickle" not in str(exc.value) and "objects" in str(exc.value)
-    with pytest.raises(DoeError, match="no such file"):
-        fileio.read_npz(tmp_path / "missing.npz", [], "thing")
-    fifo = tmp_path / "pipe.npz"
-    os.mkfifo(fifo)
-    with pytest.raises(DoeError, match="not a regular file"):
-        fileio.read_npz(fifo, [], "thing")
+def test_progress_switch_and_counts(monkeypatch):
+    import io
+
+    from doedesign.progress import Progress
+
+    stream = io.StringIO()
+    monkeypatch.setenv("DOE_PROGRESS", "1")
+    with Progress(4, desc="work", stream=stream) as bar:
+        for i in range(6):
+            bar.update(1, status=f"loss {i}")
+    assert bar.count == 4 and "work" in stream.getvalue() and "4/4" in stream.getvalue()
+    monkeypatch.setenv("DOE_PROGRESS", "0")
+    quiet = io.StringIO()
+    with Progress(3, desc="quiet", stream=quiet) as bar:
+        bar.update(3)
+    assert quiet.getvalue() == "" and bar.count == 3
