@@ -41,8 +41,10 @@ from metrology.diagnosis.noise import NoiseEstimate
 log = logging.getLogger(__name__)
 
 DEFAULT_THRESHOLD = 10.0
-# Iterations of the short fit that screens each candidate.
+# Iterations of the short fit that screens each candidate (on a screening crop: fewer, the
+# close candidates are refitted on the whole problem anyway).
 SCREEN_ITER = 4
+SCREEN_ITER_CROP = 2
 # Finite-difference step of the Jacobian, in units of each parameter's scale.
 JAC_STEP = 0.02
 # Fraction of the noise floor above which a final residual is reported unexplained even when
@@ -169,7 +171,8 @@ class Diagnosis:
 class Problem:
     """What a domain supplies to the fitting loop.
 
-    Subclasses set ``effects`` (candidate Effect objects), ``noise`` (NoiseEstimate) and
+    Subclasses set ``effects`` (candidate Effect objects), ``noise`` (NoiseEstimate), optionally
+    ``screening`` (a cheaper Problem with the same effects to screen candidates on), and
     implement ``residual(model) -> 1-D array`` (measured minus model, on the compared samples),
     ``residual_map(model) -> 2-D array`` and ``breakdown(residual_map) -> dict``.
     """
@@ -339,7 +342,8 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
     candidates : list of str, optional
         Restrict the candidates (default: every registered effect of the domain).
     screen_iter : int
-        Iterations of each candidate's screening fit (the candidate with the named effects).
+        Iterations of each candidate's screening fit (the candidate with the named effects),
+        on ``problem.screening`` when the problem offers a cheaper crop of itself.
         A short fit over-estimates the RSS, so its criterion change is conservative; the
         chosen effect is then fitted to convergence jointly with all effects and nuisances.
     stop_at_floor : bool
@@ -350,6 +354,7 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
     Diagnosis
     """
     nuisance = list(getattr(problem, "nuisance", {}))
+    screen = getattr(problem, "screening", None) or problem
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
     model = {}
     if nuisance:
@@ -375,6 +380,16 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
         scores = {}
         fits = {}
         k_now = sum(problem.effects[m].n_params for m in model)
+        # Candidates are screened on the problem's cheaper crop when it has one; the criterion
+        # change there is scaled by the ratio of effective sample counts (the best candidates
+        # are then refitted on the whole problem).
+        n_s, n_eff_s, crit_s, iters = n, n_eff, crit, screen_iter
+        if screen is not problem:
+            iters = min(screen_iter, SCREEN_ITER_CROP)
+            r_s = screen.residual(model)
+            n_s = r_s.size
+            n_eff_s = max(n_s / screen.noise.corr_area_px, 2.0)
+            crit_s = bic_eff(float(np.sum(r_s ** 2)), n_s, n_eff_s, k_now)
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
             for name in pending:
                 eff = problem.effects[name]
@@ -383,8 +398,8 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
                 # The named effects refit with the candidate: partly degenerate effects (a blur
                 # and a sidewall ramp) must be able to share what one of them took alone.
                 free = [m for m in model if m not in nuisance] + [name]
-                fitted, rss_c, _ = _fit(problem, trial, free, max_iter=screen_iter)
-                scores[name] = bic_eff(rss_c, n, n_eff, k_now + eff.n_params) - crit
+                fitted, rss_c, _ = _fit(screen, trial, free, max_iter=iters)
+                scores[name] = (bic_eff(rss_c, n_s, n_eff_s, k_now + eff.n_params) - crit_s) * n_eff / n_eff_s
                 fits[name] = fitted
                 bar.update(1, status=f"{name} {scores[name]:+.1f}")
         if not scores:
@@ -403,6 +418,8 @@ def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="hei
             refits[c] = _fit(problem, fits[c], list(model) + [c])
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         best = min(close, key=scores.get)
+        if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
+            break
         tied = [c for c in close if scores[c] <= scores[best] + threshold]
         artefacts = [c for c in tied if problem.effects[c].kind == "artefact"]
         if artefacts:

@@ -6,6 +6,9 @@ channel's light per pixel.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
+
 import numpy as np
 import scipy.ndimage as ndi
 
@@ -15,16 +18,27 @@ from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
+from metrology.diagnosis.window import window_sums
+
+log = logging.getLogger(__name__)
+
+# Windows larger than twice this square (pixels per side) screen candidates on a crop of it.
+SCREEN_WINDOW_PX = 128
+# Rendered stacks kept for reuse (a full-size stack of 5 wavelengths is 21 MB).
+RESULT_CACHE_BYTES = 512 * 2 ** 20
 
 
 class PsfRenderer:
     """Ideal PSFs of a design for any wavelengths and source distance, engines and results cached.
 
+    ``cache_size`` engines are kept (each holds its kernels); rendered stacks up to
+    ``RESULT_CACHE_BYTES``.
+
     ``render(height_m, wavelengths_m, depth_m)`` returns (views, wavelengths, rows, cols) for
     the views ``("coded", "uncoded")``.
     """
 
-    def __init__(self, camera, pitch_m, shape, material="fused_silica", doe_oversample=1, cache_size=16):
+    def __init__(self, camera, pitch_m, shape, material="fused_silica", doe_oversample=1, cache_size=4):
         self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
         self.material, self.q = material, int(doe_oversample)
         self._engines = {}
@@ -47,7 +61,7 @@ class PsfRenderer:
                                             (float(depth_m),), self.q)
         self.calls += 1
         out = self._engines[ekey].psf(height_m, views=VIEWS).psf[:, 0]
-        if len(self._results) > self.cache_size:
+        while self._results and sum(v.nbytes for v in self._results.values()) + out.nbytes > RESULT_CACHE_BYTES:
             self._results.pop(next(iter(self._results)))
         self._results[key] = out
         return out
@@ -119,7 +133,8 @@ class PsfProblem(Problem):
     units = "fraction of the channel's light per pixel"
 
     def __init__(self, design_height_m, pitch_m, camera, measured, views, wavelengths_m, depth_m, effects,
-                 material="fused_silica", doe_oversample=1, renderer=None):
+                 material="fused_silica", doe_oversample=1, renderer=None, screen_window_px=SCREEN_WINDOW_PX,
+                 noise=None):
         meas = np.asarray(measured, dtype=float)
         self.views = tuple(views)
         self.wavelengths_m = np.asarray(wavelengths_m, dtype=float)
@@ -131,21 +146,25 @@ class PsfProblem(Problem):
             raise DoeError("a channel of the measured PSF stack holds no light (sum <= 0)")
         self.measured = meas / sums
         self.height_m = np.asarray(design_height_m, dtype=float)
+        self.pitch_m, self.material, self.doe_oversample = float(pitch_m), material, doe_oversample
         self.depth_m = float(depth_m)
+        self.camera = camera
         self.render = renderer or PsfRenderer(camera, pitch_m, self.height_m.shape, material, doe_oversample)
         self.channels = [f"{v}_{wl * 1e9:.0f}nm" for v in self.views for wl in self.wavelengths_m]
-        self.effects = {e.name: e.for_channels(self.channels) for e in effects}
+        self._effect_list = list(effects)
+        self.effects = {e.name: e.for_channels(self.channels) for e in self._effect_list}
         self.axis_pixel = camera.axis_pixel
         self.valid = np.isfinite(self.measured)
+        self.screening = None
+        if noise is not None:  # a screening crop shares the noise of the whole window
+            self.noise = noise
+            return
         # Where no light of either view falls in the ideal model, the measurement is noise
         # (plus a smooth background): the noise floor comes from those pixels in 8 x 8 tiles.
-        from doedesign.psf import VIEWS
-
         full = self.render(self.height_m, self.wavelengths_m, self.depth_m)
         light = full / full.sum(axis=(-2, -1), keepdims=True)
         lit = (light > 1e-3 * light.max(axis=(-2, -1), keepdims=True)).any(axis=0)
         lit = ndi.binary_dilation(lit, structure=np.ones((1, 7, 7), dtype=bool))
-        self.ideal = light[[VIEWS.index(v) for v in self.views]]
         rows, cols = camera.window_shape
         tiles = (np.arange(rows)[:, None] // 8) * ((cols + 7) // 8) + np.arange(cols)[None, :] // 8 + 1
         n_tiles = int(tiles.max())
@@ -155,6 +174,21 @@ class PsfProblem(Problem):
                 ci = vi * self.wavelengths_m.size + wi
                 groups[vi, wi] = np.where(~lit[wi] & self.valid[vi, wi], tiles + ci * n_tiles, 0)
         self.noise = estimate_noise(_mosaic(self.measured), np.nan_to_num(_mosaic(groups)).astype(int))
+        if screen_window_px and rows * cols > 2 * screen_window_px ** 2:
+            self.screening = self._crop(light.sum(axis=(0, 1)), screen_window_px)
+
+    def _crop(self, light, size_px):
+        """The same problem on the ``size_px`` square of the window holding the most ideal light:
+        candidates are screened there, where each model evaluation costs a fraction."""
+        h, w = min(size_px, light.shape[0]), min(size_px, light.shape[1])
+        sums = window_sums(light, h, w)
+        r0, c0 = (int(v) for v in np.unravel_index(np.argmax(sums), sums.shape))
+        camera = dataclasses.replace(self.camera, window_shape=(h, w),
+                                     axis_pixel=(self.axis_pixel[0] - r0, self.axis_pixel[1] - c0))
+        log.info("candidates screened on the %d x %d window at (%d, %d)", h, w, r0, c0)
+        return PsfProblem(self.height_m, self.pitch_m, camera, self.measured[..., r0:r0 + h, c0:c0 + w], self.views,
+                          self.wavelengths_m, self.depth_m, self._effect_list, self.material, self.doe_oversample,
+                          noise=self.noise)
 
     def stack(self, model):
         return psf_forward(model, self.effects, self.render, self.height_m, self.wavelengths_m, self.depth_m,

@@ -40,10 +40,10 @@ def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
     edges = np.zeros(levels.shape)
     edges[:, :-1] += levels[:, 1:] != levels[:, :-1]
     edges[:-1, :] += levels[1:, :] != levels[:-1, :]
-    counts = _window_sums(edges, h, w)
+    counts = window_sums(edges, h, w)
     if need_flat:
         flat = (ndi.maximum_filter(levels, size=3) == ndi.minimum_filter(levels, size=3)).astype(float)
-        counts = counts * _window_sums(flat, h, w)
+        counts = counts * window_sums(flat, h, w)
     rr, cc = np.mgrid[:counts.shape[0], :counts.shape[1]]
     centre = np.hypot(rr - (rows - h) / 2, cc - (cols - w) / 2)
     score = counts - 1e-6 * centre
@@ -58,7 +58,7 @@ def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
     return (r0, r0 + h, c0, c0 + w)
 
 
-def _window_sums(a, h, w):
+def window_sums(a, h, w):
     """Sum of ``a`` over every ``h x w`` window (summed-area table), indexed by the top-left pixel."""
     sat = np.pad(a.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     return sat[h:, w:] - sat[:-h, w:] - sat[h:, :-w] + sat[:-h, :-w]

@@ -27,12 +27,12 @@ def _diagnose_height_case(effects, seed, **kw):
     return case, diag
 
 
-def _diagnose_psf_case(effects, seed, stop_at_floor=True):
+def _diagnose_psf_case(effects, seed, stop_at_floor=True, **kw):
     case = make_psf_case(effects, seed)
     d = case.data
     problem = PsfProblem(d["design"].height_m, d["design"].pitch_m, d["camera"], d["measured_psf"], d["views"],
                          d["wavelengths_m"], d["camera"].focus_distance_m, effects_for("psf"),
-                         renderer=d["renderer"])
+                         renderer=d["renderer"], **kw)
     return case, run_diagnosis(problem, domain="psf", stop_at_floor=stop_at_floor)
 
 
@@ -114,6 +114,39 @@ def test_missing_effect_is_reported_unexplained():
 def test_single_hidden_psf_effect(effect):
     case, diag = _diagnose_psf_case([effect], 2000 + PSF_EFFECTS.index(effect))
     _check(case, diag)
+
+
+@pytest.mark.parametrize("effect", ["dual_pixel_crosstalk", "depth_scale", "defocus", "source_bandwidth"])
+def test_candidates_screened_on_a_crop_name_the_same_effect(effect):
+    # A 24 x 24 crop of the 40 x 72 window: the crop holds the most ideal light; the named
+    # effect is then fitted on the whole window, to the same accuracy.
+    case, diag = _diagnose_psf_case([effect], 2000 + PSF_EFFECTS.index(effect), screen_window_px=24)
+    _check(case, diag)
+
+
+def test_screening_crop_holds_the_most_light_and_shares_the_noise():
+    case = make_psf_case([], 5)
+    d = case.data
+    problem = PsfProblem(d["design"].height_m, d["design"].pitch_m, d["camera"], d["measured_psf"], d["views"],
+                         d["wavelengths_m"], d["camera"].focus_distance_m, effects_for("psf"), screen_window_px=24)
+    crop = problem.screening
+    assert crop.measured.shape[-2:] == (24, 24) and crop.noise is problem.noise
+    assert crop.screening is None and list(crop.effects) == list(problem.effects)
+    # The axis moves with the crop; the crop lies inside the window.
+    r0 = problem.axis_pixel[0] - crop.axis_pixel[0]
+    c0 = problem.axis_pixel[1] - crop.axis_pixel[1]
+    assert 0 <= r0 <= 40 - 24 and 0 <= c0 <= 72 - 24
+    cut = problem.measured[..., r0:r0 + 24, c0:c0 + 24]
+    np.testing.assert_allclose(crop.measured, cut / cut.sum(axis=(-2, -1), keepdims=True))
+    # No other 24 x 24 window holds more ideal light (brute force).
+    full = problem.render(problem.height_m, problem.wavelengths_m, problem.depth_m)
+    light = (full / full.sum(axis=(-2, -1), keepdims=True)).sum(axis=(0, 1))
+    best = max(light[r:r + 24, c:c + 24].sum() for r in range(40 - 23) for c in range(72 - 23))
+    assert light[r0:r0 + 24, c0:c0 + 24].sum() == pytest.approx(best)
+    # A window at most twice the crop's area is not cropped (every existing small case).
+    small = PsfProblem(d["design"].height_m, d["design"].pitch_m, d["camera"], d["measured_psf"], d["views"],
+                       d["wavelengths_m"], d["camera"].focus_distance_m, effects_for("psf"))
+    assert small.screening is None
 
 
 UNSEPARABLE_AT_MODEL_GRID = {"instrument_blur", "sidewall_slope"}
