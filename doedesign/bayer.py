@@ -31,6 +31,10 @@ from scipy import ndimage, signal
 
 from .errors import DoeError
 
+__all__ = ["IMAGES", "Method", "NOISE_SIGMA", "PAPER_TABLE1", "TARGET_OFFSETS", "apply_psf",
+           "bilinear_demosaic", "delta_kernels", "evaluate", "figure", "load_images", "mosaic",
+           "nearest_neighbour", "psf_kernels", "psnr_scores", "rggb_masks", "standard_methods"]
+
 log = logging.getLogger(__name__)
 
 # Natural colour images shipped inside scikit-image (load offline).

@@ -15,6 +15,8 @@ import numpy as np
 
 from .errors import DoeError
 
+__all__ = ["Camera", "SIDES"]
+
 SIDES = ("left", "right", "full")
 
 

@@ -36,6 +36,8 @@ from .fileio import atomic_path, dumps_json, read_npz
 from .levels import N_LEVELS, level_step_m, quantize
 from .materials import get_material
 
+__all__ = ["Design", "FORMAT_VERSION", "REQUIRED"]
+
 FORMAT_VERSION = 1
 MAX_NAME_CHARS = 200
 REQUIRED = ("height_m", "pitch_m", "material", "design_wavelength_m", "metadata")

@@ -26,6 +26,9 @@ import numpy as np
 
 from .errors import DoeError
 
+__all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
+           "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run"]
+
 TEMP_SUFFIX = ".part"
 INCOMPLETE_MARKER = "INCOMPLETE"
 _TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)-[^.]+" + re.escape(TEMP_SUFFIX) + "$")

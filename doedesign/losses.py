@@ -34,6 +34,9 @@ import numpy as np
 
 from .errors import DoeError
 
+__all__ = ["DEFAULT_EPS", "LossSpec", "PEAK_POWER", "TERMS", "energy_loss", "l2_loss", "make_loss",
+           "peak_loss", "reweight_target", "smooth_l1", "target_metrics", "uniformity_loss"]
+
 TERMS = ("l1", "energy", "l2", "peak", "uniformity")
 DEFAULT_EPS = 1e-6
 PEAK_POWER = 8

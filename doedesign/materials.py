@@ -12,6 +12,8 @@ import numpy as np
 
 from .errors import MaterialError
 
+__all__ = ["FUSED_SILICA", "Material", "cauchy", "get_material", "register_material", "sellmeier", "table"]
+
 
 @dataclass(frozen=True)
 class Material:

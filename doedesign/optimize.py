@@ -49,6 +49,10 @@ from .materials import get_material
 from .progress import Progress
 from .psf import PSFEngine
 
+__all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OptimizerSettings",
+           "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
+           "isolation_penalty", "level_penalty", "minimize"]
+
 log = logging.getLogger(__name__)
 
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")

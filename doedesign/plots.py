@@ -10,6 +10,8 @@ import numpy as np
 
 from .fileio import save_figure
 
+__all__ = ["height_map_figure", "psf_figure", "save"]
+
 
 def height_map_figure(height_m, pitch_m, title="height map", ax=None):
     """Height map in nm with a micrometre scale (row 0 at the top)."""

@@ -37,6 +37,9 @@ from .errors import DoeError, SamplingError
 from .fileio import dumps_json, read_npz, write_npz
 from .materials import get_material
 
+__all__ = ["KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "PSFEngine", "PSFResult", "VIEWS",
+           "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
+
 log = logging.getLogger(__name__)
 
 VIEWS = ("coded", "uncoded")

@@ -12,6 +12,8 @@ import numpy as np
 
 from .errors import DoeError
 
+__all__ = ["RGB_BANDS_M", "bandpass", "gaussian_band", "rgb_response", "tabulated"]
+
 # Centre and full width at half maximum (m) of the approximate R, G, B responses.
 RGB_BANDS_M = {"R": (600e-9, 80e-9), "G": (535e-9, 90e-9), "B": (460e-9, 70e-9)}
 

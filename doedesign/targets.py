@@ -57,6 +57,10 @@ import numpy as np
 from .camera import Camera
 from .errors import DoeError
 
+__all__ = ["HYPERSPECTRAL_WAVELENGTHS_M", "KINDS", "RGB_WAVELENGTHS_M", "SEED_GRATING_PERIOD_M", "Target",
+           "bayer", "build", "combine", "depth_ring", "from_dict", "grating_order_offset_px", "hdr_streak",
+           "hyperspectral", "image", "load_toml", "seed_ring_radius_px", "spots"]
+
 log = logging.getLogger(__name__)
 
 RGB_WAVELENGTHS_M = (656e-9, 589e-9, 486e-9)

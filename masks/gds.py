@@ -41,6 +41,11 @@ from doedesign.progress import Progress
 from .decompose import masks_to_levels
 from .polygons import mask_polygons
 
+__all__ = ["APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER", "ELEMENT_CELL", "GdsBoundaries", "MAX_VERTICES",
+           "PRECISION_M", "PixelGrid", "TEXT_LAYER", "TONES", "UNIT_M", "WORKERS", "boundary_records",
+           "drawn_masks", "element_cell", "export_masks", "rasterize_layer", "rasterize_points",
+           "read_gds_boundaries", "read_library", "verify_file", "write_element_gds", "write_verified"]
+
 log = logging.getLogger(__name__)
 
 UNIT_M = 1e-6

@@ -17,6 +17,11 @@ from doedesign.errors import DoeError
 
 from . import gds
 
+__all__ = ["APERTURE_SEGMENTS", "DieSettings", "EDGE_EXCLUSION_M", "PLATE_LAYER", "PLATE_SIZE_M",
+           "PlateDesign", "VERNIER_BARS", "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "WAFER_DIAMETER_M",
+           "WAFER_LAYER", "aperture_polygons", "die_cells", "mark_site", "marks_cell", "plate_layout",
+           "test_structures_cell", "write_plate"]
+
 APERTURE_SEGMENTS = 720  # chord sag 0.04 um on a 4.32 mm radius
 VERNIER_PITCH_UM = 10.0
 VERNIER_STEP_UM = 0.25  # reading resolution: main pitch minus vernier pitch

@@ -12,6 +12,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
+__all__ = ["blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable", "move",
+           "upsample_mask"]
+
 
 def upsample_mask(mask, upsample):
     """Nearest-neighbour upsampling of a binary design mask to float32 coverage.

@@ -23,6 +23,8 @@ from scipy.sparse.csgraph import connected_components
 
 from doedesign.errors import DoeError
 
+__all__ = ["PolygonSet", "mask_polygons", "run_chain_polygons", "traced_outlines"]
+
 
 @dataclass
 class PolygonSet:

@@ -24,6 +24,9 @@ from doedesign.design import Design
 from doedesign.fileio import atomic_path, json_ready, write_json
 from doedesign.psf import compute_psf
 
+__all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
+           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo"]
+
 log = logging.getLogger(__name__)
 
 RGB_NM = (656.0, 589.0, 486.0)

@@ -35,6 +35,12 @@ from scipy.interpolate import make_smoothing_spline
 from doedesign.errors import DoeError
 from doedesign.fileio import dumps_json, write_npz
 
+__all__ = ["CFA_PATTERNS", "CHANNELS", "CrosstalkCalibration", "MAX_NEGATIVE_FRACTION", "MIN_CLIPPED_PIXELS",
+           "RAW_SUFFIXES", "VIEW_NAMES", "apply_channel_gains", "calibrate_crosstalk", "cfa_channels",
+           "coded_view_name", "column_ratios", "compensate_crosstalk", "demosaic_bilinear",
+           "grey_world_gains", "load_frame", "mosaic_channel_gains", "saturation_from_data",
+           "smooth_columns", "split_views", "white_balance"]
+
 log = logging.getLogger(__name__)
 
 CHANNELS = ("R", "G1", "G2", "B")

@@ -30,6 +30,12 @@ from doedesign.fileio import atomic_path, dumps_json, write_npz
 from doedesign.progress import Progress
 from doedesign.psf import VIEWS, read_psf_arrays
 
+__all__ = ["BACKGROUNDS", "NORMALIZATIONS", "PSFStack", "WAVELENGTH_TOLERANCE_M", "as_stack",
+           "band_centroid_fwhm", "build_stack", "calibrate_capture", "centroid", "check_wavelengths",
+           "compare_stacks", "crop_to_window", "estimate_background", "extrapolate_orders", "find_peak",
+           "load_stack", "locate_orders", "network_array", "order_energies", "read_stack",
+           "save_network_npy", "save_stack"]
+
 log = logging.getLogger(__name__)
 
 NORMALIZATIONS = ("uncoded", "per_view")

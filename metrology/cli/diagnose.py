@@ -33,6 +33,12 @@ def register(subparsers):
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
     p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
                    help="model samples per design pixel per axis (height maps; default 5)")
+    p.add_argument("--frame", choices=("design", "camera"), default="design",
+                   help="height maps: fit on the design's model grid after resampling the data (design, "
+                        "the default), or render the model into the profilometer's own pixels with blur, "
+                        "pixel integration and placement fitted as nuisances (camera)")
+    p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
+                   help="camera pixels per side of the window diagnosed with --frame camera (default 160)")
     p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
                    default=[75, 150, 300, 600],
                    help="etch depths the process was asked for, one per mask (the ideal model; "
@@ -52,7 +58,9 @@ def run(args):
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
-    if args.measured:
+    if args.measured and args.frame == "camera":
+        diag, inputs = _camera(design, Path(args.measured), args, candidates)
+    elif args.measured:
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
@@ -74,6 +82,27 @@ def _heights(design, path, args, candidates):
                                         candidates=candidates, threshold=args.threshold, source=str(path),
                                         force=args.force)
     return diag, {"measured": str(path), **inputs}
+
+
+def _camera(design, path, args, candidates):
+    from doedesign.levels import design_levels
+    from metrology.diagnosis.camera import diagnose_camera
+    from metrology.formats.readers import read_measurement
+    from metrology.matching.compare import compare_measurement
+    from metrology.matching.instrument import Placement
+
+    if args.window_px < 16:
+        raise DoeError(f"--window-px must be at least 16, got {args.window_px}")
+    meas = read_measurement(path)
+    # The comparison's registration is the starting placement; the data stay as read.
+    comp = compare_measurement(meas, design)
+    depths = [v * 1e-9 for v in args.depths_nm]
+    diag = diagnose_camera(design_levels(design), design.pitch_m, meas.height_m,
+                           Placement.from_registration(comp.registration), depths_m=depths,
+                           candidates=candidates, threshold=args.threshold, window_px=args.window_px)
+    return diag, {"measured": str(path), "frame": "camera", "window_camera_px": diag.window_camera_px,
+                  "placement": diag.placement, "excluded_pixels": diag.excluded_pixels,
+                  "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths}
 
 
 def _psf(design, path, args, candidates):

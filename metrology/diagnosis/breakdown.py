@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["binned", "radial_psd"]
+
 
 def binned(values, key, edges):
     """Mean, rms and count of ``values`` in bins of ``key`` (NaN values ignored)."""

@@ -38,6 +38,10 @@ from scipy.special import erf
 
 from doedesign.errors import DoeError
 
+__all__ = ["DOMAINS", "Effect", "EffectError", "FWHM_PER_SIGMA", "KINDS", "Parameter", "REGISTRY", "STAGES",
+           "batwing_profile", "effects_for", "gaussian_blur", "get_effect", "register_effect",
+           "unregister_effect"]
+
 DOMAINS = ("height", "psf")
 STAGES = {"height": ("process", "surface"), "psf": ("height", "optics", "sensor")}
 KINDS = ("fabrication", "artefact", "calibration")

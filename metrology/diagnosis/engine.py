@@ -38,6 +38,9 @@ from doedesign.progress import Progress
 
 from metrology.diagnosis.noise import NoiseEstimate
 
+__all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem", "SCREEN_ITER", "Step",
+           "UNEXPLAINED_RATIO", "bic_eff", "run_diagnosis"]
+
 log = logging.getLogger(__name__)
 
 DEFAULT_THRESHOLD = 10.0

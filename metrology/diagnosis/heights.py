@@ -16,6 +16,9 @@ from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
 from metrology.diagnosis.window import busiest_window
 
+__all__ = ["HeightProblem", "INTERIOR_MARGIN_M", "REGISTRATION", "diagnose_heights", "diagnose_measurement",
+           "signed_edge_distance_m"]
+
 # Margin (m) around design edges excluded from the flat interiors used for the noise floor:
 # wider than plausible overlay / bias slivers plus instrument blur.
 INTERIOR_MARGIN_M = 1.6e-6

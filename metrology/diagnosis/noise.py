@@ -13,6 +13,8 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
+__all__ = ["MAX_LAG_PX", "NoiseEstimate", "estimate_noise"]
+
 # Lags (pixels) over which the noise autocorrelation is summed into the correlation area.
 MAX_LAG_PX = 3
 

@@ -6,6 +6,8 @@ import numpy as np
 
 from doedesign.fileio import save_figure
 
+__all__ = ["plot_breakdown", "plot_steps"]
+
 
 def plot_steps(diag, path):
     """Residual map before and after each step (row 0 at the top); returns the path."""

@@ -27,6 +27,8 @@ SCREEN_WINDOW_PX = 128
 # Rendered stacks kept for reuse (a full-size stack of 5 wavelengths is 21 MB).
 RESULT_CACHE_BYTES = 512 * 2 ** 20
 
+__all__ = ["PsfProblem", "PsfRenderer", "diagnose_psf", "psf_forward"]
+
 
 class PsfRenderer:
     """Ideal PSFs of a design for any wavelengths and source distance, engines and results cached.

@@ -15,6 +15,9 @@ import scipy.ndimage as ndi
 
 from metrology.diagnosis.effects import get_effect
 
+__all__ = ["HEIGHT_EFFECTS", "HiddenCase", "PSF_EFFECTS", "correlated_noise", "make_height_case",
+           "make_psf_case", "parameter_errors", "psf_test_setup", "random_levels"]
+
 HEIGHT_EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope",
                   "etch_loading", "instrument_blur", "batwing")
 PSF_EFFECTS = ("dual_pixel_crosstalk", "source_bandwidth", "defocus", "depth_scale", "background")

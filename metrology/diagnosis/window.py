@@ -13,6 +13,8 @@ import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
 
+__all__ = ["busiest_window"]
+
 
 def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
     """The window of ``size_px`` design pixels per side with the most level edges.

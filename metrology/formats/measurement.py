@@ -16,6 +16,8 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.fileio import json_ready
 
+__all__ = ["Measurement", "MeasurementFileError", "read_head"]
+
 
 class MeasurementFileError(DoeError):
     """A measurement file is missing, foreign, truncated or inconsistent.

@@ -29,6 +29,9 @@ from metrology.formats.zygo_ascii import read_asc, read_xyz
 from metrology.formats.zygo_dat import MAGIC, read_dat
 from metrology.formats.zygo_datx import HDF5_SIGNATURE, read_datx
 
+__all__ = ["CSV_UNITS_M", "EXTENSIONS", "FORMATS", "detect_format", "read_array", "read_measurement",
+           "read_profile_csv", "read_tiff"]
+
 log = logging.getLogger(__name__)
 
 FORMATS = ("dat", "datx", "xyz", "asc", "csv", "npy", "npz", "tiff")

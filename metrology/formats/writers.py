@@ -25,6 +25,9 @@ from metrology.formats.zygo_ascii import NO_DATA, TITLE_ASC, TITLE_XYZ, header_l
 from metrology.formats.zygo_dat import FIELDS, MAGIC_BY_FORMAT, height_step_m, height_to_counts
 from metrology.formats.zygo_datx import LENGTH_UNITS_M
 
+__all__ = ["DATX_LAYOUTS", "DATX_NO_DATA", "HELIUM_NEON_M", "write_asc", "write_dat", "write_datx",
+           "write_measurement", "write_npy", "write_npz", "write_profile_csv", "write_tiff", "write_xyz"]
+
 DATX_LAYOUTS = ("metadata", "data_surface", "measurement_surface")
 DATX_NO_DATA = np.finfo(np.float64).max
 HELIUM_NEON_M = 632.8e-9
@@ -289,9 +292,8 @@ def write_npy(path, height_m):
 
 def write_npz(path, height_m, pixel_size_m, metadata=None):
     """Write a ``.npz`` with ``height_m``, ``pixel_size_m`` and a JSON ``metadata`` string."""
-    from doedesign.fileio import write_npz as _write
-
     from doedesign.fileio import dumps_json
+    from doedesign.fileio import write_npz as _write
 
     return _write(path, height_m=_height(height_m), pixel_size_m=np.float64(pixel_size_m),
                   metadata=np.array(dumps_json(metadata or {}, indent=None)))

@@ -43,6 +43,8 @@ from metrology.formats.measurement import Measurement, MeasurementFileError
 from metrology.formats.plausibility import check_claimed_pixels
 from metrology.formats.zygo_dat import PHASE_RES_COUNTS, counts_to_height, height_step_m, unix_to_iso
 
+__all__ = ["NO_DATA", "TITLE_ASC", "TITLE_XYZ", "header_lines", "parse_header", "read_asc", "read_xyz"]
+
 log = logging.getLogger(__name__)
 
 TITLE_XYZ = "Zygo XYZ Data File - Format 1"

@@ -25,6 +25,9 @@ import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError
 
+__all__ = ["FIELDS", "INVALID_INTENSITY", "INVALID_PHASE", "MAGIC", "MAGIC_BY_FORMAT", "PHASE_RES_COUNTS",
+           "counts_to_height", "height_step_m", "height_to_counts", "read_dat", "read_header", "unix_to_iso"]
+
 log = logging.getLogger(__name__)
 
 # magic -> (header_format, header_size)

@@ -26,6 +26,9 @@ import numpy as np
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
 from metrology.formats.plausibility import check_claimed_pixels, check_value
 
+__all__ = ["FRINGES", "HDF5_SIGNATURE", "LENGTH_UNITS_M", "NOT_HEIGHT_UNITS", "converter_parameters",
+           "find_surface", "read_datx"]
+
 log = logging.getLogger(__name__)
 
 # Length units of the surface data, in metres. "Fringes" is handled separately.

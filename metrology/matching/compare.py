@@ -28,6 +28,11 @@ from masks.process import ProcessParams, simulate_surface
 
 from metrology.matching.register import design_on_measurement
 
+__all__ = ["Comparison", "DepthFit", "EdgeFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MAX_EDGE_BAND_PITCH",
+           "MAX_FIT_POINTS", "WIDTH_10_90_PER_SIGMA", "binary_code_matrix", "compare_measurement",
+           "crop_registration", "design_height_on_measurement", "error_map", "fit_edges", "fit_etch_depths",
+           "fitted_process", "interior_mask", "level_heights", "process_on_measurement", "shift_registration"]
+
 log = logging.getLogger(__name__)
 
 # Repeatability floor (m) added in quadrature to each level mean's standard error in the

@@ -19,6 +19,10 @@ from scipy import ndimage, signal
 
 from doedesign.errors import DoeError
 
+__all__ = ["DEFAULT_SPIKE_THRESHOLD_M", "HIST_BIN_M", "LevelResult", "MIN_CLUSTER_SEPARATION_M",
+           "classify_by_histogram", "fit_plane", "level_joint", "level_on_top", "plane_image",
+           "remove_spikes", "top_level_mask"]
+
 log = logging.getLogger(__name__)
 
 # A spike (fringe-order slip, dust, bat-wing outlier) stands above or below all of its

@@ -28,6 +28,9 @@ from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
 from masks.process import simulate_surface
 
+__all__ = ["DEFAULT_TARGET_FRACTION", "MIN_APERTURE_PX_COARSE_DESIGN", "PSFComparison", "compare_psf",
+           "target_from_psf"]
+
 
 log = logging.getLogger(__name__)
 

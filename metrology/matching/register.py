@@ -32,6 +32,9 @@ from scipy import ndimage, optimize
 
 from doedesign.errors import DoeError
 
+__all__ = ["GOOD_MATCH_NCC", "MIN_MATCH_NCC", "ORIENTATIONS", "Registration", "SCALE_CANDIDATES",
+           "design_on_measurement", "orient", "register", "resample_to_design"]
+
 log = logging.getLogger(__name__)
 
 # Bin (measurement pixels) of the 1-D edge-energy projections; far below the ~5 px period.

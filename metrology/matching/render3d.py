@@ -13,6 +13,8 @@ import numpy as np
 
 from doedesign.fileio import atomic_path
 
+__all__ = ["render_surface"]
+
 log = logging.getLogger(__name__)
 
 

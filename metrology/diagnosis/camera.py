@@ -1,0 +1,281 @@
+"""Diagnosis in the camera's frame: the measurement model is part of the fitted model.
+
+The measured heights stay on the profilometer's own pixels (never resampled or smoothed). The
+model (design + process effects) is rendered into those pixels by
+:class:`metrology.matching.instrument.InstrumentModel`: objective blur and pixel-area
+integration under the placement (rotation, per-axis scale, shift, mirror); piston and tilt
+are projected out. The placement and the blur are nuisance parameters refitted with every
+model (started from the registration), so the fabrication effects are judged on what the
+instrument leaves. Spikes and invalid pixels are excluded by a robust rule on the residual of
+the model that explains the data; the loop runs again if the final model re-admits pixels.
+
+Arrays are row-major with row 0 at the top of the camera image.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from doedesign.errors import DoeError
+from metrology.diagnosis import engine as dg
+from metrology.diagnosis.breakdown import binned, radial_psd
+from metrology.diagnosis.effects import Effect, Parameter, effects_for
+from metrology.diagnosis.heights import INTERIOR_MARGIN_M
+from metrology.diagnosis.noise import estimate_noise
+from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
+                                           robust_valid)
+
+log = logging.getLogger(__name__)
+
+_UM = 1e-6
+
+
+def _no_op(*args):
+    return args[0]
+
+
+# The camera placement and the objective blur: always fitted, never named.
+CAMERA = Effect(
+    "camera", "height", "surface",
+    [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
+     Parameter("rotation_rad", "rad", -0.01, 0.01, 2e-5), Parameter("scale_row", "1", -0.03, 0.03, 2e-4),
+     Parameter("scale_col", "1", -0.03, 0.03, 2e-4),
+     Parameter("blur_sigma_m", "m", 0.05 * _UM, 1.5 * _UM, 0.05 * _UM, 0.4 * _UM)],
+    _no_op, "Placement of the camera field on the design and the objective's blur (nuisance).",
+    kind="artefact", order=-1)
+# Effects the camera model already holds (the blur is part of its kernel).
+SUBSUMED = ("instrument_blur",)
+
+
+class CameraHeightProblem(dg.Problem):
+    """Measured camera heights against the design through process and instrument models.
+
+    Parameters
+    ----------
+    levels : ndarray of int (rows, cols)
+        Design levels, row 0 at the top.
+    pitch_m : float
+    measured_height_m : ndarray
+        Camera heights (m), NaN = invalid; row 0 at the top of the camera image.
+    placement : Placement
+        Starting placement (from the registration).
+    base_params : ProcessParams
+    effects : list of Effect
+    step_m : float
+        Fine-grid spacing of the process model.
+    curvature : bool
+        Also project out a curvature term in the levelling.
+    keep : ndarray of bool, optional
+        Pixels compared (default: the finite ones).
+    """
+
+    units = "m"
+
+    def __init__(self, levels, pitch_m, measured_height_m, placement, base_params, effects, step_m=None,
+                 curvature=False, keep=None):
+        from masks.decompose import levels_to_masks
+
+        self.levels = np.asarray(levels)
+        self.pitch_m = float(pitch_m)
+        self.measured = np.asarray(measured_height_m, float)
+        self.placement = placement
+        kw = {} if step_m is None else {"step_m": step_m}
+        self.instrument = InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
+        self.base = base_params
+        self.effects = {e.name: e for e in effects if e.name not in SUBSUMED}
+        self.effects[CAMERA.name] = CAMERA
+        self.nuisance = {CAMERA.name: CAMERA}
+        self.curvature = curvature
+        self.keep = np.isfinite(self.measured) if keep is None else np.asarray(keep, bool)
+        if self.keep.sum() < 100:
+            raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed field")
+        self.leveller = Leveller(self.measured.shape, self.keep, curvature)
+        self._cache = {}
+        # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
+        # the structure test and the breakdown.
+        r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
+        ri = np.clip(np.rint(r).astype(int), 0, self.levels.shape[0] - 1)
+        ci = np.clip(np.rint(c).astype(int), 0, self.levels.shape[1] - 1)
+        self.cam_levels = self.levels[ri, ci]
+        masks = levels_to_masks(self.levels, len(base_params.etch_depth))
+        # Distance (m) of each camera pixel centre to the nearest edge of each mask, signed
+        # (positive inside the opening), from the design pixel geometry.
+        fr, fc = r - np.rint(r), c - np.rint(c)
+        self.edge_m = np.stack([self._edge_distance(m, ri, ci, fr, fc) for m in masks])
+        self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
+        self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
+        flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
+        groups, _ = ndi.label(flat & (self.cam_levels >= 0))
+        first = self.measured - self.render({CAMERA.name: CAMERA.start_values()})
+        levelled = np.full(first.shape, np.nan)
+        levelled[self.keep] = self.leveller(first[self.keep])
+        self.noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+
+    def _edge_distance(self, mask, ri, ci, fr, fc):
+        here = mask[ri, ci]
+        rows, cols = mask.shape
+        best = np.full(ri.shape, 2.0)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                i, j = np.clip(ri + di, 0, rows - 1), np.clip(ci + dj, 0, cols - 1)
+                other = mask[i, j] != here
+                d = np.maximum(np.maximum(np.abs(fr - di) - 0.5, 0), np.maximum(np.abs(fc - dj) - 0.5, 0))
+                best = np.where(other & (d < best), d, best)
+        return np.where(here, best, -best) * self.pitch_m
+
+    def _process_key(self, model):
+        return tuple((n, tuple(np.round(np.asarray(v, float), 15))) for n, v in sorted(model.items())
+                     if n != CAMERA.name and self.effects[n].stage == "process")
+
+    def render(self, model):
+        """Model heights in the camera frame (before levelling)."""
+        cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
+        chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
+                        key=lambda e: (("process", "surface").index(e.stage), e.order))
+        key = (self._process_key(model),
+               tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in chosen if e.stage == "surface"),
+               float(cam[5]))
+        coeffs = self._cache.get(key)
+        if coeffs is None:
+            params = self.base
+            for e in chosen:
+                if e.stage == "process":
+                    params = e.apply(params, e.check(model[e.name]))
+            fine = self.instrument.fine_surface(params)
+            for e in chosen:
+                if e.stage == "surface":
+                    fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
+            coeffs = self.instrument.camera_map(fine, float(cam[5]))
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[key] = coeffs
+        return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape))
+
+    def residual(self, model):
+        return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
+
+    def residual_map(self, model):
+        out = np.full(self.measured.shape, np.nan)
+        out[self.keep] = self.residual(model)
+        return out
+
+    def structure_groups(self):
+        """Level x edge distance, level x 4 x 4 field tiles, signed distance to two masks' edges."""
+        dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
+        rows, cols = self.keep.shape
+        tile = (np.arange(rows)[:, None] * 4 // rows) * 4 + (np.arange(cols)[None, :] * 4 // cols)
+        signed = [np.digitize(d, np.linspace(-3e-6, 3e-6, 13)) for d in self.edge_m]
+        maps = [self.cam_levels * 8 + dist_bin, self.cam_levels * 16 + tile,
+                sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2]))]
+        return [np.where(self.keep, m + 1, 0) for m in maps]
+
+    def breakdown(self, residual_map):
+        """Residual by signed distance to each mask's edges, level, field position, frequency."""
+        out = {}
+        edges_d = np.linspace(-4e-6, 4e-6, 17)
+        for j, d in enumerate(self.edge_m):
+            out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
+        out["level"] = binned(residual_map, self.cam_levels.astype(float), np.arange(-0.5, 16.5))
+        rows, cols = residual_map.shape
+        yy, xx = np.mgrid[:rows, :cols]
+        radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * self.pixel_m
+        out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
+        out["spatial_frequency_per_m"] = radial_psd(residual_map, self.pixel_m)
+        return out
+
+    def placement_report(self, model, errors=None):
+        """The refined placement with uncertainties (camera pixels and degrees)."""
+        cam = np.asarray(model[CAMERA.name], float)
+        err = np.asarray((errors or {}).get(CAMERA.name, np.full(6, np.nan)), float)
+        px_per_design = self.pitch_m / self.pixel_m
+        final = self.placement.refined(cam[:5], self.measured.shape)
+        return {"refinement": {name: float(v) for name, v in zip(PLACEMENT_PARAMS, cam[:5])},
+                "shift_uncertainty_camera_px": [float(e * px_per_design) for e in err[:2]],
+                "rotation_uncertainty_deg": float(np.degrees(err[2])),
+                "scale_uncertainty": [float(e) for e in err[3:5]],
+                "blur_sigma_um": float(cam[5] * 1e6), "blur_sigma_uncertainty_um": float(err[5] * 1e6),
+                "matrix": final.matrix.tolist(), "offset": final.offset.tolist(),
+                "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}
+
+
+def busiest_window(levels, placement, shape, size):
+    """The ``size`` x ``size`` camera window (row0, col0) with the most design edges inside."""
+    if size >= min(shape):
+        return 0, 0
+    r, c = placement.to_design(*np.mgrid[:shape[0], :shape[1]].astype(float))
+    ri = np.clip(np.rint(r).astype(int), 0, levels.shape[0] - 1)
+    ci = np.clip(np.rint(c).astype(int), 0, levels.shape[1] - 1)
+    lev = levels[ri, ci]
+    edges = np.zeros(shape)
+    edges[:, :-1] += lev[:, 1:] != lev[:, :-1]
+    edges[:-1, :] += lev[1:, :] != lev[:-1, :]
+    sums = ndi.uniform_filter(edges, size, mode="constant")
+    h = size // 2
+    inner = sums[h:shape[0] - (size - h) + 1, h:shape[1] - (size - h) + 1]
+    r0, c0 = np.unravel_index(np.argmax(inner), inner.shape)
+    return int(r0), int(c0)
+
+
+def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths_m=None, candidates=None,
+                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None):
+    """Diagnose a measured height map on the camera's own pixels.
+
+    Parameters
+    ----------
+    design_levels : ndarray of int
+    pitch_m : float
+    measured_height_m : ndarray
+        Camera heights (m, z up), NaN = invalid; row 0 at the top of the camera image.
+    placement : Placement
+        Camera pixel -> design pixel (from :func:`metrology.matching.register.register`).
+    window_px : int
+        The fit uses the camera window of this many pixels per side with the most design edges
+        (cropped, not resampled).
+
+    Returns
+    -------
+    Diagnosis
+        With ``placement`` (the refined placement and its uncertainties) and ``excluded_pixels``.
+    """
+    from masks.process import ProcessParams
+
+    meas = np.asarray(measured_height_m, float)
+    r0, c0 = busiest_window(np.asarray(design_levels), placement, meas.shape, window_px)
+    size = min(window_px, *meas.shape)
+    crop = meas[r0:r0 + size, c0:c0 + size]
+    start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
+    base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
+    effects = effects_for("height", candidates)
+    finite = np.isfinite(crop)
+    first = CameraHeightProblem(design_levels, pitch_m, crop, start, base, [], step_m=step_m)
+    keep = robust_valid(first.residual_map({CAMERA.name: CAMERA.start_values()}), finite)
+    diag = problem = None
+    for _ in range(3):
+        problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep)
+        diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height")
+        new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
+                                - _plane(problem, crop, diag.model), np.isfinite(crop))
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    diag.map_step_m = problem.pixel_m
+    # The nuisance's uncertainties at the final model (only the camera parameters refitted).
+    _, _, errors = dg._fit(problem, diag.model, [CAMERA.name])
+    diag.placement = problem.placement_report(diag.model, errors)
+    diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
+    diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
+    return diag
+
+
+def _plane(problem, crop, model):
+    """The levelling fitted to the residual (on the kept pixels), evaluated everywhere."""
+    from metrology.matching.instrument import levelling_basis
+
+    r = crop - problem.render(model)
+    basis = levelling_basis(crop.shape, problem.curvature)
+    k = problem.keep.ravel()
+    coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(r), r, 0).ravel()[k], rcond=None)
+    return (basis @ coef).reshape(crop.shape)

@@ -1,0 +1,108 @@
+"""The measurement model against analytic moments and the independent file generator."""
+
+import numpy as np
+import pytest
+
+from masks.process import ProcessParams
+from metrology.matching.instrument import (InstrumentModel, Leveller, Placement, footprint_kernel,
+                                           levelling_basis, robust_valid)
+
+import filegen
+
+QUIET = dict(noise_m=0.0, n_spikes=0, invalid_fraction=0.0, tilt_rad=np.zeros(2), piston_m=0.0)
+
+
+def _moments(kernel, step):
+    k = kernel.shape[0] // 2
+    x = np.arange(-k, k + 1) * step
+    cov = np.empty((2, 2))
+    for a, xa in enumerate((x[:, None], x[None, :])):
+        for b, xb in enumerate((x[:, None], x[None, :])):
+            cov[a, b] = np.sum(kernel * xa * xb)
+    return np.array([np.sum(kernel * x[:, None]), np.sum(kernel * x[None, :])]), cov
+
+
+@pytest.mark.parametrize("angle_deg,flip", [(0.0, False), (0.8, True), (30.0, False)])
+def test_kernel_moments_are_pixel_box_plus_blur(angle_deg, flip):
+    # A uniform parallelogram footprint M [-1/2, 1/2]^2 has covariance M M^T / 12; the blur adds
+    # sigma^2 I, the fine cell step^2 / 12 I. Centred, unit sum.
+    pitch, step, sigma = 5.4e-6, 5.4e-6 / 40, 0.35e-6
+    a = np.radians(angle_deg)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    matrix = 1.1e-6 / pitch * rot @ np.diag([1.0, -1.0 if flip else 1.0]) @ np.diag([1.0, 1.003])
+    kern = footprint_kernel(matrix, pitch, step, sigma)
+    mean, cov = _moments(kern, step)
+    m = matrix * pitch
+    expect = m @ m.T / 12 + (sigma ** 2 + step ** 2 / 12) * np.eye(2)
+    assert kern.sum() == pytest.approx(1.0)
+    assert np.abs(mean).max() < 1e-3 * step
+    assert np.allclose(cov, expect, rtol=2e-3, atol=1e-4 * 1.1e-6 ** 2)
+
+
+def test_leveller_removes_plane_and_curvature_only():
+    shape = (40, 50)
+    rng = np.random.default_rng(0)
+    valid = rng.random(shape) > 0.1
+    basis = levelling_basis(shape, curvature=True)
+    plane = (basis @ np.array([3.0, -2.0, 0.5, 0.7])).reshape(shape)
+    signal = rng.standard_normal(shape)
+    out = Leveller(shape, valid, curvature=True)((plane + signal)[valid])
+    ref = Leveller(shape, valid, curvature=True)(signal[valid])
+    assert np.allclose(out, ref)
+    assert np.std(out) > 0.95 * np.std(signal)
+
+
+def test_robust_rule_excludes_spikes_not_noise():
+    rng = np.random.default_rng(1)
+    r = rng.standard_normal((100, 100)) * 1e-9
+    r[10, 10] += 3e-7
+    r[50, 60] -= 1e-6
+    keep = robust_valid(r, np.ones(r.shape, bool))
+    assert not keep[10, 10] and not keep[50, 60]
+    assert keep.sum() >= r.size - 10
+
+
+def _truth_params(truth):
+    p = ProcessParams.ideal()
+    if "mask_overlay" in truth:
+        ov = np.zeros((4, 3))
+        ov[truth["mask_overlay"]["mask"], :2] = truth["mask_overlay"]["shift_m"]
+        p = p.copy(mask_overlay=ov)
+    if "linewidth_bias" in truth:
+        p = p.copy(linewidth_bias=truth["linewidth_bias"]["bias_m"])
+    if "etch_depth" in truth:
+        p = p.copy(etch_depth=p.etch_depth * (1 + truth["etch_depth"]["error"]))
+    return p
+
+
+@pytest.mark.parametrize("effects,seed", [([], 3), (["mask_overlay"], 5), (["linewidth_bias"], 3),
+                                          (["etch_depth"], 7)])
+def test_model_renders_the_independent_camera_to_its_noise(effects, seed):
+    # Truth placement and process: the only difference left is the generator's noise, spikes
+    # and invalid pixels (excluded by the robust rule) and its tilt (levelled out).
+    case = filegen.make_case(effects, seed, design_px=36, field_px=120)
+    inst = case.instrument
+    pl = Placement(inst["matrix"], inst["offset"])
+    model = InstrumentModel(case.levels, filegen.PITCH_M, case.height_m.shape, pl)
+    r = case.height_m - model.render(_truth_params(case.truth), pl, inst["blur_sigma_m"])
+    valid = np.isfinite(r)
+    first = np.full(r.shape, np.nan)
+    first[valid] = Leveller(r.shape, valid)(r[valid])
+    keep = robust_valid(first, valid)
+    rms = np.std(Leveller(r.shape, keep)(r[keep]))
+    assert rms < 1.3 * inst["noise_m"]
+    # A placement off by 0.03 camera pixels is visible far above the noise.
+    off = pl.refined([0.03 * inst["pixel_m"] / filegen.PITCH_M, 0, 0, 0, 0], r.shape)
+    r2 = case.height_m - model.render(_truth_params(case.truth), off, inst["blur_sigma_m"])
+    assert np.std(Leveller(r.shape, keep)(r2[keep])) > 2 * rms
+
+
+def test_generator_is_independent_of_the_model():
+    # The generator must not import the model it tests (only the file writers and Design).
+    import ast
+    import inspect
+
+    tree = ast.parse(inspect.getsource(filegen))
+    names = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    names |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert not any(m.startswith(("masks", "metrology.diagnosis", "metrology.matching")) for m in names)
