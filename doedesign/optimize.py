@@ -29,8 +29,17 @@ and the heights re-optimized for ``reweight_iter`` evaluations. The weights keep
 before each annealing stage, so the quantized design stays balanced; the final weights are
 in the report. On targets with one pixel per plane (Bayer) the update does nothing.
 
-Metrics (energy on target per wavelength and depth, efficiency, L1) are reported for the
-continuous, the plainly rounded and the final quantized design.
+Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.losses.LossSpec`
+terms; ``"softmin"`` the negative soft minimum of the per-plane energies on target over their
+``colour_weights``; ``"maxmin"`` runs the continuous stage as nlopt's auxiliary-variable max-min
+(:func:`doedesign.objectives.maximize_min`, LD_MMA or LD_CCSAQ) and anneals with the soft-min.
+``init="router"`` starts from the coherent pupil model's max-min (:mod:`doedesign.router`);
+``starts`` adds initial designs for a multi-start (a short stage each, the best goes on; all
+are in the report).
+
+Metrics (energy on target per wavelength and depth, efficiency, L1, and each plane's energy
+beside its single-colour bound, :mod:`doedesign.bounds`) are reported for the continuous, the
+plainly rounded and the final quantized design.
 """
 
 from __future__ import annotations
@@ -41,13 +50,16 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .bounds import bound_report, spot_bound
 from .design import Design
 from .errors import DoeError
 from .losses import LossSpec, make_loss, reweight_target, target_metrics
 from .levels import N_LEVELS, level_step_m, quantize, wrap_height_m
 from .materials import get_material
+from .objectives import maxmin_stage, plane_weights, softmin_loss
 from .progress import Progress
 from .psf import PSFEngine
+from .router import router_start
 
 __all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OptimizerSettings",
            "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
@@ -56,7 +68,8 @@ __all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS
 log = logging.getLogger(__name__)
 
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
-INITS = ("random", "zeros", "streak", "grating", "lens")
+INITS = ("random", "zeros", "streak", "grating", "lens", "router")
+OBJECTIVES = ("loss", "softmin", "maxmin")
 HEIGHT_RANGES = ("process", "2pi", "wrap")
 # Bounds of the "wrap" range in 2 pi heights: wide enough never to bind, finite for nlopt.
 WRAP_SPAN = 8
@@ -211,8 +224,23 @@ class OptimizerSettings:
     reweight_rounds: int = 0
     reweight_alpha: float = 1.0
     reweight_iter: int | None = None  # None: max_iter
+    objective: str = "loss"
+    colour_weights: list | None = None  # per wavelength (or per plane) for softmin / maxmin
+    softmin_tau: float = 0.01
+    starts: tuple = ()  # further initial designs for a multi-start; the best after start_iter is kept
+    start_iter: int | None = None  # None: max(max_iter // 4, 3)
+    router_grid_px: int = 100
+    router_iter: int = 150
 
     def __post_init__(self):
+        if self.objective not in OBJECTIVES:
+            raise DoeError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
+        self.starts = tuple(self.starts)
+        for s in (self.init, *self.starts):
+            if s not in INITS:
+                raise DoeError(f"unknown initialization {s!r}; choose from {', '.join(INITS)}")
+        if not self.softmin_tau > 0:
+            raise DoeError(f"softmin_tau must be positive, got {self.softmin_tau}")
         if self.algorithm not in ALGORITHMS:
             raise DoeError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         if int(self.max_iter) < 1:
@@ -348,22 +376,33 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     lower, upper = height_bounds(step, settings.n_levels, settings.height_range)
     support = coded_support(camera, pitch_m, tuple(shape))
     rng = np.random.default_rng(settings.seed)
+    report = {}
+
+    def start_height(kind):
+        if kind == "router":
+            return router_start(target, camera, pitch_m, tuple(shape), material, lower, settings)
+        period_m = target.meta.get("period_m")
+        finite = target.depths_m[np.isfinite(target.depths_m)]
+        return initial_height(kind, tuple(shape), step, lower, rng, settings.n_levels,
+                              period_px=int(round(period_m / pitch_m)) if period_m else 16,
+                              arms=target.meta.get("arms", "+"), pitch_m=pitch_m, camera=camera,
+                              design_wavelength_m=design_wavelength_m, material=material,
+                              focus_depth_m=float(np.median(finite)) if finite.size else None)
+
     if init_height_m is not None:
         h0 = np.asarray(init_height_m, dtype=float)
         if h0.shape != tuple(shape):
             raise DoeError(f"initial height map has shape {h0.shape}, the design is {tuple(shape)}")
         h0 = np.clip(h0, lower, upper)
     else:
-        period_m = target.meta.get("period_m")
-        finite = target.depths_m[np.isfinite(target.depths_m)]
-        h0 = initial_height(settings.init, tuple(shape), step, lower, rng, settings.n_levels,
-                            period_px=int(round(period_m / pitch_m)) if period_m else 16,
-                            arms=target.meta.get("arms", "+"), pitch_m=pitch_m, camera=camera,
-                            design_wavelength_m=design_wavelength_m, material=material,
-                            focus_depth_m=float(np.median(finite)) if finite.size else None)
+        h0 = start_height(settings.init)
     h0 = np.where(support, h0, 0.0)
     # The reweighting rounds replace the target (its pixel weights) between stages.
-    state = {"target": target, "loss": make_loss(target, loss)}
+    weights = plane_weights(target, settings.colour_weights)
+    balanced = settings.objective != "loss"
+    state = {"target": target, "loss": softmin_loss(target, weights, settings.softmin_tau) if balanced
+             else make_loss(target, loss)}
+    bound = spot_bound(camera, pitch_m, tuple(shape), target, material)
 
     def objective(h, extra=None):
         value, grad = engine.value_and_grad(h, state["loss"])
@@ -381,10 +420,11 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         psf = engine.psf(h, views=("coded",)).psf[0]
         out = target_metrics(psf, target)
         out["loss"] = float(objective(h)[0])
+        out["bound"] = bound_report(out["energy_on_target"], bound)
         return out
 
     def reweight(h):
-        if settings.reweight_rounds:
+        if settings.reweight_rounds and not balanced:
             psf = engine.psf(h, views=("coded",)).psf[0]
             state["target"] = reweight_target(state["target"], psf, settings.reweight_alpha)
             state["loss"] = make_loss(state["target"], loss)
@@ -409,7 +449,24 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
                            settings.ftol_rel, max_time, stage_callback, desc=desc)
         return full(x), hist
 
-    h_cont, hist_cont = run_stage(objective, h0, settings.max_iter, settings.max_time_s, "design")
+    starts = list(dict.fromkeys((settings.init, *settings.starts))) if init_height_m is None else ["user"]
+    if len(starts) > 1:
+        # Multi-start: a short stage from each initial design, the best one goes on.
+        start_iter = settings.start_iter or max(settings.max_iter // 4, 3)
+        tried = []
+        for kind in starts:
+            hs, hist = run_stage(objective, h0 if kind == settings.init else np.where(support, start_height(kind), 0.0),
+                                 start_iter, settings.max_time_s, f"start {kind}")
+            tried.append({"init": kind, "loss": min(hist), "height": hs,
+                          "energy_on_target": metrics(hs)["energy_on_target"]})
+        best = min(tried, key=lambda r: r["loss"])
+        h0 = best["height"]
+        report["multistart"] = [{k: v for k, v in r.items() if k != "height"} for r in tried]
+        report["multistart_best"] = best["init"]
+    if settings.objective == "maxmin":
+        h_cont, hist_cont = maxmin_stage(engine, target, weights, h0, support, lower, upper, settings)
+    else:
+        h_cont, hist_cont = run_stage(objective, h0, settings.max_iter, settings.max_time_s, "design")
     for r in range(int(settings.reweight_rounds)):
         reweight(h_cont)
         h_cont, hist = run_stage(objective, h_cont, settings.reweight_iter or settings.max_iter,
@@ -419,7 +476,7 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         lower, upper = height_bounds(step, settings.n_levels, "2pi")
         h_cont = wrap_height_m(h_cont, step, settings.n_levels)
     history = {"continuous": hist_cont}
-    report = {"continuous": metrics(h_cont)}
+    report["continuous"] = metrics(h_cont)
     q = quantize(h_cont, step, settings.n_levels)
     levels, h_final = q.levels, q.height_m
     if settings.quantize:
@@ -458,6 +515,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         "isolated_pixels": isolated_pixels(levels) if levels is not None else None,
         "settings": asdict(settings),
         "loss_spec": asdict(loss),
+        "objective": settings.objective,
+        "plane_weights": weights.tolist(),
         "final_pixel_weight_range": [float(f(np.broadcast_to(state["target"].pixel_weight, target.intensity.shape)
                                               [target.mask])) for f in (np.min, np.max)],
         "target": target.summary(),
@@ -472,3 +531,4 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
                     metadata={"name": target.name, "target": target.summary(), "camera": camera.to_dict(),
                               "optimizer": asdict(settings), "n_levels": settings.n_levels})
     return DesignRun(design=design, continuous_height_m=h_cont, history=history, report=report)
+

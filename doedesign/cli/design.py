@@ -17,18 +17,23 @@ from ..design import Design
 from ..errors import DoeError
 from ..fileio import ensure_output_dir, ensure_output_file, write_json
 from ..losses import LossSpec
-from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OptimizerSettings, design_doe
+from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PITCH_M = 5.4e-6
 DEFAULT_SIZE_PX = 192
 FULL_APERTURE_PX = 1600
-DEFAULT_INIT = {"bayer": "zeros", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
+# The paper's simulation: 1.8 um DOE pixels, 4500 across (8.1 mm); each 5.4 um sensor pixel is the
+# 3 x 3 pooling of 1.8 um samples, which the engine's exact pixel integral already is.
+PAPER_PITCH_M, PAPER_PX = 1.8e-6, 4500
+DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
                 "spots": "random", "image": "random"}
 # L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a
 # real sensor is still stray light; spot targets add the energy-on-target term.
 DEFAULT_LOSS = {"bayer": "l1,energy", "spots": "l1,energy"}
+# Colour sorting is judged by its weakest colour: the max-min of the per-colour energies.
+DEFAULT_OBJECTIVE = {"bayer": "maxmin"}
 
 DESIGN_HELP = """\
 TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a TOML file of
@@ -43,7 +48,8 @@ TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a 
 sensor_distance_m, pixel_pitch_m, window_shape, axis_pixel, doe_side), [optimize]
 (size_px, pitch_m, material, design_wavelength_m, loss, and OptimizerSettings fields:
 algorithm, max_iter, ftol_rel, max_time_s, seed, init, height_range, anneal_iter, fab_weight,
-reweight_rounds, reweight_alpha, reweight_iter)
+reweight_rounds, reweight_alpha, reweight_iter, objective, colour_weights, softmin_tau, starts,
+start_iter, router_grid_px, router_iter)
 and [target] options for a built-in target. Command-line options override the file.
 
 The default is a reduced aperture (a 192 px = 1.04 mm circular pupil, the DOE on its left
@@ -64,6 +70,9 @@ def register(subparsers):
     p.add_argument("--size", type=Number(int, 8, 16384, unit="px"), help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
     p.add_argument("--full-aperture", action="store_true",
                    help=f"the camera's full 8.64 mm aperture: {FULL_APERTURE_PX} px at 5.4 um")
+    p.add_argument("--paper-setting", action="store_true",
+                   help=f"the paper's simulation: {PAPER_PX} px of {PAPER_PITCH_M * 1e6:g} um (8.1 mm), 5.4 um sensor "
+                        "pixels (3 x 3 pooling); about 8x the memory and time of --full-aperture")
     p.add_argument("--iterations", type=Number(int, 1, 10**6), help="continuous-stage evaluations (default 100)")
     p.add_argument("--wavelengths", help="nm, e.g. 656,589,486 or 400:700:10 (built-in targets)")
     p.add_argument("--side", choices=("left", "right", "full"), help="aperture half carrying the DOE (default left)")
@@ -82,6 +91,11 @@ def register(subparsers):
                         "(spot arrays; default 0)")
     p.add_argument("--reweight-alpha", type=Number(float, 0, 100, lo_open=True), help="exponent of the reweighting (default 1)")
     p.add_argument("--reweight-iterations", type=Number(int, 1, 10**6), help="evaluations per reweighting round (default --iterations)")
+    p.add_argument("--objective", choices=OBJECTIVES,
+                   help="loss: the --loss terms; softmin / maxmin: the weakest colour's energy on target "
+                        "(maxmin: nlopt auxiliary variable with LD_MMA/LD_CCSAQ; default maxmin for bayer, else loss)")
+    p.add_argument("--colour-weights", help="per-wavelength weights of the balanced objective, e.g. 1,1.2,1")
+    p.add_argument("--starts", help="further initial designs for a multi-start, e.g. zeros,random,lens")
     p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
     p.set_defaults(func=cmd_design)
 
@@ -95,6 +109,9 @@ def register(subparsers):
     q.add_argument("--quick-size", type=Number(int, 8, 4096, unit="px"), default=128, help="DOE size of the built-in optimization")
     q.add_argument("--quick-iterations", type=Number(int, 1, 10**6), default=60, help="evaluations of the built-in optimization")
     q.add_argument("--no-doe", action="store_true", help="skip the optimized-DOE row")
+    q.add_argument("--baseline-design", help="a second design for comparison (row baseline_doe), e.g. a plain L1 design")
+    q.add_argument("--front", type=Number(int, 0, 1), default=1, choices=(0, 1),
+                   help="1: sweep the colour weights, plot the Pareto front with the bounds (front.png); 0: skip")
     q.set_defaults(func=cmd_evaluate_bayer)
 
 
@@ -123,6 +140,15 @@ def _camera(section, size_px, pitch_m, side, source):
     return Camera.from_dict(opts)
 
 
+def _floats(text, what):
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise DoeError(f"{what} {text!r}: give numbers separated by commas") from None
+
+
 def cmd_design(args):
     from ..psf import parse_wavelengths_nm
 
@@ -139,6 +165,10 @@ def cmd_design(args):
     if size < 8:
         raise DoeError(f"--size {size}: a DOE needs at least 8 x 8 pixels")
     pitch = float(opt.pop("pitch_m", DEFAULT_PITCH_M))
+    if args.paper_setting:
+        if args.full_aperture:
+            raise DoeError("--paper-setting and --full-aperture exclude each other")
+        size, pitch = PAPER_PX, PAPER_PITCH_M
     material = str(opt.pop("material", "fused_silica"))
     design_wl = float(opt.pop("design_wavelength_m", 550e-9))
     loss_text = args.loss or opt.pop("loss", None)
@@ -152,8 +182,8 @@ def cmd_design(args):
     elif kind == "bayer":
         # The Bayer target is at optical infinity: focus there, or the 5 m focus adds a 16 px blur.
         cam_section.setdefault("focus_distance_m", math.inf)
-    if args.full_aperture:
-        cam_section["aperture_diameter_m"] = FULL_APERTURE_PX * pitch
+    if args.full_aperture or args.paper_setting:
+        cam_section["aperture_diameter_m"] = size * pitch
     camera = _camera(cam_section, size, pitch, args.side, source)
     if is_file:
         if args.wavelengths:
@@ -174,10 +204,14 @@ def cmd_design(args):
                        ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),
                        ("anneal_iter", args.anneal_iterations), ("fab_weight", args.fab_weight),
                        ("reweight_rounds", args.reweight_rounds), ("reweight_alpha", args.reweight_alpha),
-                       ("reweight_iter", args.reweight_iterations)):
+                       ("reweight_iter", args.reweight_iterations), ("objective", args.objective),
+                       ("colour_weights", _floats(args.colour_weights, "--colour-weights")),
+                       ("starts", tuple(v.strip() for v in args.starts.split(",") if v.strip()) if args.starts
+                        else None)):
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
+    opt.setdefault("objective", DEFAULT_OBJECTIVE.get(kind, "loss"))
     opt.setdefault("max_time_s", 45.0)
     opt.setdefault("anneal_iter", 10)
     if args.no_quantize:
@@ -200,6 +234,9 @@ def cmd_design(args):
                "efficiency_continuous": run.report["continuous"]["efficiency"]}
     if "quantized" in run.report:
         summary["efficiency_quantized"] = run.report["quantized"]["efficiency"]
+    final = run.report["quantized" if "quantized" in run.report else "continuous"]["bound"]
+    summary["energy_on_target"] = [[round(v, 4) for v in row] for row in final["energy"]]
+    summary["fraction_of_bound"] = [[round(v, 3) for v in row] for row in final["fraction_of_bound"]]
     print_json(summary)
     return 0
 
@@ -208,13 +245,12 @@ def quick_bayer_design(size_px=128, iterations=60, seed=0):
     """A small Bayer design for the study when no design file is given (reduced aperture)."""
     camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
     target = targets.bayer(camera)
-    settings = OptimizerSettings(max_iter=iterations, seed=seed, anneal_iter=max(iterations // 6, 2))
+    settings = OptimizerSettings(max_iter=iterations, seed=seed, anneal_iter=max(iterations // 6, 2),
+                                 init=DEFAULT_INIT["bayer"], objective=DEFAULT_OBJECTIVE["bayer"])
     return design_doe(target, camera, DEFAULT_PITCH_M, (size_px, size_px), settings=settings).design
 
 
 def cmd_evaluate_bayer(args):
-    from ..psf import compute_psf
-
     t0 = time.perf_counter()
     out = ensure_output_dir(args.out)
     names = [n.strip() for n in args.images.split(",") if n.strip()]
@@ -223,7 +259,7 @@ def cmd_evaluate_bayer(args):
     if args.crop is not None and args.crop < 16:
         raise DoeError(f"--crop {args.crop}: use at least 16 pixels")
     images = bayer.load_images(names, crop=args.crop)
-    doe_psf, axis, doe_info = None, (256, 256), None
+    doe_psf, axis, doe_info, front = None, (256, 256), None, None
     if not args.no_doe:
         if args.design:
             design = Design.load(args.design)
@@ -231,15 +267,15 @@ def cmd_evaluate_bayer(args):
         else:
             design = quick_bayer_design(args.quick_size, args.quick_iterations, args.seed)
             source = f"built-in quick optimization ({args.quick_size} px, {args.quick_iterations} evaluations)"
-        camera = design.camera()
-        res = compute_psf(design, camera, wavelengths_m=bayer_wavelengths(design), depths_m=[np.inf],
-                          views=("coded",))
-        doe_psf, axis = res.psf[0, 0], camera.axis_pixel
-        doe_info = {"source": source, "energy_in_window": res.energy_in_window[0, 0].tolist(),
-                    "energy_on_target_pixel": [float(doe_psf[c, axis[0] + dr, axis[1] + dc])
-                                               for c, (dr, dc) in enumerate(bayer.TARGET_OFFSETS)],
-                    "quantized": design.levels is not None}
-    methods = bayer.standard_methods(doe_psf, axis)
+        doe_psf, axis, camera, doe_info = _bayer_doe_psf(design, source)
+        if args.front:
+            front = _front(design, camera, doe_info, Path(args.out) / "front.png")
+    extra = []
+    if args.baseline_design:
+        base_psf, _, _, base_info = _bayer_doe_psf(Design.load(args.baseline_design), args.baseline_design)
+        extra.append(bayer.Method("baseline_doe", bayer.psf_kernels(base_psf, axis)))
+        doe_info = {**(doe_info or {}), "baseline": base_info}
+    methods = bayer.standard_methods(doe_psf, axis) + extra
     table, per_image, recs = bayer.evaluate(images, methods, seed=args.seed)
     gain_u = table["proposed_target"]["u_db"] - table["ideal_nearest"]["u_db"]
     gain_v = table["proposed_target"]["v_db"] - table["ideal_nearest"]["v_db"]
@@ -255,13 +291,43 @@ def cmd_evaluate_bayer(args):
              "PSF (light outside the window lost, gain-corrected so lost light raises noise).")
     write_json(out / "table.json", {**table, "notes": notes, "per_image": per_image, "paper_table1": bayer.PAPER_TABLE1,
                                     "images": names, "crop": args.crop, "noise_sigma_255": 1.0, "seed": args.seed,
-                                    "doe": doe_info, "run_time_s": time.perf_counter() - t0})
+                                    "doe": doe_info, "pareto_front": front, "run_time_s": time.perf_counter() - t0})
     bayer.figure(images, recs, out / "fig2.png")
     from .common import print_json
 
     print_json({"table": str(out / "table.json"), "figure": str(out / "fig2.png"),
+                **({"front": str(out / "front.png")} if front else {}),
                 **{k: {m: round(v, 2) for m, v in row.items()} for k, row in table.items()}})
     return 0
+
+
+def _bayer_doe_psf(design, source):
+    """Coded-view R, G, B PSFs of a Bayer design, its camera and the energies beside their bounds."""
+    from ..bounds import bound_report, spot_bound
+    from ..psf import compute_psf
+
+    camera = design.camera()
+    wls = bayer_wavelengths(design)
+    res = compute_psf(design, camera, wavelengths_m=wls, depths_m=[np.inf], views=("coded",))
+    psf, axis = res.psf[0, 0], camera.axis_pixel
+    energy = [float(psf[c, axis[0] + dr, axis[1] + dc]) for c, (dr, dc) in enumerate(bayer.TARGET_OFFSETS)]
+    bound = spot_bound(camera, design.pitch_m, design.shape, targets.bayer(camera, wls), design.material)[0]
+    info = {"source": source, "energy_in_window": res.energy_in_window[0, 0].tolist(),
+            "energy_on_target_pixel": energy, "quantized": design.levels is not None,
+            "objective": design.metadata.get("optimizer", {}).get("objective", "loss"),
+            "bound": bound_report([energy], [bound])}
+    return psf, axis, camera, info
+
+
+def _front(design, camera, doe_info, path):
+    from ..pareto import front_figure, pareto_front
+
+    target = targets.bayer(camera, bayer_wavelengths(design))
+    points = pareto_front(camera, target, design.pitch_m, design.shape, design.material,
+                          design.design_wavelength_m)
+    front_figure(points, doe_info["bound"]["bound"][0], doe_info["energy_on_target_pixel"], path,
+                 chosen_label=f"this design ({doe_info['objective']})")
+    return points
 
 
 def bayer_wavelengths(design):

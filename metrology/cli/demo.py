@@ -13,6 +13,8 @@ log = logging.getLogger(__name__)
 def cmd_demo(args):
     from metrology.pipeline import DemoConfig, run_demo
 
+    if args.all:
+        seed_elements(args)
     cfg = DemoConfig.quick() if args.quick else DemoConfig()
     if args.iterations is not None:
         cfg.iterations = args.iterations
@@ -26,6 +28,17 @@ def cmd_demo(args):
     return 0
 
 
+def seed_elements(args):
+    """``--all``: the seed's HDR streak, hyperspectral and depth elements with their figures against their bounds."""
+    from pathlib import Path
+
+    from doedesign.elements import design_seed_elements
+    from doedesign.fileio import write_json
+
+    size, iterations = (48, 4) if args.quick else (160, 30)
+    write_json(Path(args.out) / "elements.json", design_seed_elements(size, iterations))
+
+
 def register(sub):
     p = sub.add_parser("demo", help="run the whole chain on the default Bayer element and write a report",
                        description="Design (nlopt) -> 16 levels -> four masks as GDSII (verified) -> simulated "
@@ -34,6 +47,8 @@ def register(sub):
                                    "OUT/report.md with figures and a 3-D rendering.")
     p.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     p.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
+    p.add_argument("--all", action="store_true",
+                   help="also design the seed's HDR streak, hyperspectral and depth elements (OUT/elements.json)")
     p.add_argument("--iterations", type=Number(int, 1, 10**6), default=None, help="optimizer iterations")
     p.add_argument("--doe-px", type=Number(int, 16, 4096, unit="px"), default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
     p.set_defaults(func=cmd_demo)

@@ -78,6 +78,13 @@ def test_cli_evaluate_bayer(tmp_path, capsys):
     # A flat DOE only blurs (no colour sorting): no chroma gain over the ideal PSF.
     assert table["proposed_doe"]["u_db"] < table["proposed_target"]["u_db"]
     assert (out / "fig2.png").stat().st_size > 1000
+    # The Pareto front of the weight sweep, with the bounds, beside the chosen design.
+    assert (out / "front.png").stat().st_size > 1000
+    front = table["pareto_front"]
+    assert len(front) == 7 and all(len(p["quantized"]) == 3 for p in front)
+    bound = table["doe"]["bound"]
+    assert all(e <= b + 1e-9 for e, b in zip(bound["energy"][0], bound["bound"][0]))
+    assert all(max(p["continuous"][c] for p in front) <= bound["bound"][0][c] + 1e-6 for c in range(3))
     capsys.readouterr()
     assert cli.main(["evaluate-bayer", "--no-doe", "--images", "nosuchimage", "--out", str(tmp_path / "bad")]) == 2
     assert "nosuchimage" in capsys.readouterr().err

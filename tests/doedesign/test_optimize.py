@@ -160,9 +160,11 @@ def test_cli_design_writes_design_and_report(tmp_path, capsys):
     rep = json.loads((tmp_path / "report.json").read_text())
     assert len(rep["loss_history"]["continuous"]) <= 4
     assert len(rep["quantized"]["energy_on_target"][0]) == 3
-    assert rep["settings"]["init"] == "zeros" and rep["loss_spec"]["energy"] == 1.0
+    # Bayer: the max-min of the colours from the router start; each colour beside its bound.
+    assert rep["settings"]["init"] == "router" and rep["objective"] == "maxmin"
+    assert len(rep["quantized"]["bound"]["fraction_of_bound"][0]) == 3
     printed = json.loads(capsys.readouterr().out)
-    assert printed["design"] == str(out)
+    assert printed["design"] == str(out) and len(printed["fraction_of_bound"][0]) == 3
     # A TOML target and a run configuration.
     (tmp_path / "t.toml").write_text('[[target]]\nkind = "spots"\npositions_px = [[256, 280]]\n')
     (tmp_path / "run.toml").write_text('[camera]\ndoe_side = "full"\n[optimize]\nsize_px = 16\nmax_iter = 3\n'

@@ -1,0 +1,112 @@
+"""The seed's other three elements designed by the tool, each scored against its bound.
+
+- HDR streak: the light on the streak pixels (fraction of the coded half's light) against
+  two bounds: the envelope limit (no phase-only DOE puts more than the largest DOE pixel
+  envelope ``sinc^2`` over the streak on it; about 1 at 5.4 um) and the light of one
+  diffraction-limited spot on the streak (:func:`doedesign.bounds.spot_bound`).
+- Hyperspectral: first-order light per band on its spot against the 16-level staircase limit
+  ``eta_1 = sinc^2(1/N) * [sin(pi (a - 1)) / (N sin(pi (a - 1) / N))]^2`` with ``a`` the phase
+  depth of one period in waves at that band (``a = 1`` at the design wavelength, where it is
+  ``sinc^2(1/16) = 0.9872``), times the light of a spot on the order's pixels.
+- Depth: the ring radius per depth (the radius holding most light, from the azimuthal sum about
+  the axis) against the target radius schedule (seed: 25 - 5 d px).
+
+Sizes are reduced (``size_px`` DOE pixels of 5.4 um, so the spot is ``1600 / size_px`` times the
+camera's) and iterations few, so all three run in minutes on 2 cores; the bounds are those of
+the same reduced aperture.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from . import targets
+from .bounds import spot_bound
+from .camera import Camera
+from .materials import get_material
+from .optimize import N_LEVELS, OptimizerSettings, design_doe
+
+log = logging.getLogger(__name__)
+
+PITCH_M = 5.4e-6
+# A 192 x 192 window holds the streak arms (48 px), the 400-700 nm first orders (43-75 px) and
+# the rings (<= 25 px) about its centre, at a seventh of the full window's cost.
+WINDOW = (192, 192)
+AXIS = (96, 96)
+
+
+def staircase_first_order(wavelengths_m, material="fused_silica", design_wavelength_m=550e-9, n_levels=N_LEVELS):
+    """First-order efficiency of an ``n_levels`` blazed staircase of one 2 pi period at the design wavelength."""
+    mat = get_material(material)
+    wl = np.asarray(wavelengths_m, dtype=float)
+    a = (mat.n(wl) - 1.0) / (mat.n(design_wavelength_m) - 1.0) * design_wavelength_m / wl
+    d = a - 1.0
+    ratio = np.where(np.abs(d) < 1e-12, 1.0, np.sin(np.pi * d) / (n_levels * np.sin(np.pi * d / n_levels) + 1e-300))
+    return np.sinc(1.0 / n_levels) ** 2 * ratio ** 2
+
+
+def ring_radius_px(psf, axis_pixel):
+    """Radius (px) of the brightest ring about the axis: the 1-px radial bin holding most light."""
+    rows, cols = psf.shape
+    rr, cc = np.meshgrid(np.arange(rows) - axis_pixel[0], np.arange(cols) - axis_pixel[1], indexing="ij")
+    r = np.rint(np.hypot(rr, cc)).astype(int)
+    sums = np.bincount(r.ravel(), weights=psf.ravel())
+    return int(np.argmax(sums))
+
+
+def _run(target, camera, size_px, settings):
+    return design_doe(target, camera, PITCH_M, (size_px, size_px), settings=settings)
+
+
+def streak_element(size_px=160, iterations=30):
+    cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
+    target = targets.hdr_streak(cam)
+    run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="streak"))
+    on = float(run.report["quantized"]["energy_on_target"][0][0])
+    spot = float(spot_bound(cam, PITCH_M, (size_px, size_px), target)[0, 0])
+    return {"element": "hdr-streak", "figure_of_merit": "light on the streak pixels (quantized)", "value": on,
+            "envelope_bound": 1.0, "spot_on_streak": spot, "fraction_of_envelope_bound": on,
+            "run_time_s": run.report["run_time_s"]}
+
+
+def hyperspectral_element(size_px=160, iterations=30, wavelengths_m=(450e-9, 550e-9, 650e-9)):
+    cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
+    target = targets.hyperspectral(cam, wavelengths_m=wavelengths_m)
+    run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="grating"))
+    on = np.array(run.report["quantized"]["energy_on_target"][0])
+    eta = staircase_first_order(target.wavelengths_m)
+    spot = spot_bound(cam, PITCH_M, (size_px, size_px), target)[0]
+    bound = eta * spot
+    return {"element": "hyperspectral", "figure_of_merit": "first-order light on each band's spot (quantized)",
+            "wavelengths_nm": (target.wavelengths_m * 1e9).round(1).tolist(), "value": on.tolist(),
+            "staircase_limit": eta.tolist(), "spot_on_order": spot.tolist(), "bound": bound.tolist(),
+            "fraction_of_bound": (on / bound).tolist(), "run_time_s": run.report["run_time_s"]}
+
+
+def depth_element(size_px=160, iterations=30, depths_m=(1.0, 2.0, 3.0, 4.0)):
+    from .psf import PSFEngine
+
+    cam = Camera(aperture_diameter_m=size_px * PITCH_M, focus_distance_m=3.5, window_shape=WINDOW, axis_pixel=AXIS)
+    target = targets.depth_ring(cam, depths_m=depths_m)
+    run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="lens"))
+    engine = PSFEngine(cam, PITCH_M, (size_px, size_px), wavelengths_m=target.wavelengths_m, depths_m=target.depths_m)
+    psf = engine.psf(run.design.height_m, views=("coded",)).psf[0]
+    measured = [ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
+    wanted = [ring_radius_px(target.intensity[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
+    return {"element": "depth", "figure_of_merit": "ring radius (px) per depth (quantized)",
+            "depths_m": list(depths_m), "radius_px": measured, "target_radius_px": wanted,
+            "energy_on_ring": run.report["quantized"]["energy_on_target"],
+            "run_time_s": run.report["run_time_s"]}
+
+
+def design_seed_elements(size_px=160, iterations=30):
+    """Design the HDR streak, hyperspectral and depth elements; their figures of merit and bounds."""
+    t0 = time.perf_counter()
+    out = [streak_element(size_px, iterations), hyperspectral_element(size_px, iterations),
+           depth_element(size_px, iterations)]
+    log.info("seed elements designed in %.0f s", time.perf_counter() - t0)
+    return {"size_px": size_px, "iterations": iterations, "elements": out,
+            "run_time_s": time.perf_counter() - t0}

@@ -1,0 +1,31 @@
+"""Figures of merit of the seed's other elements: the 16-level limit and the ring radius."""
+
+import numpy as np
+import pytest
+
+from doedesign.elements import ring_radius_px, staircase_first_order
+from doedesign.materials import FUSED_SILICA
+
+
+def staircase_dft(a, n=16):
+    """First-order power of exp(2 pi i a floor(n x) / n) over one period: a sum of exact step integrals."""
+    k = np.arange(n)
+    steps = (np.exp(-2j * np.pi * (k + 1) / n) - np.exp(-2j * np.pi * k / n)) / (-2j * np.pi)
+    return abs(np.sum(np.exp(2j * np.pi * a * k / n) * steps)) ** 2
+
+
+@pytest.mark.parametrize("wl", [400e-9, 486e-9, 550e-9, 656e-9, 700e-9])
+def test_staircase_limit_matches_a_direct_fourier_sum(wl):
+    a = (FUSED_SILICA.n(wl) - 1) / (FUSED_SILICA.n(550e-9) - 1) * 550e-9 / wl
+    assert staircase_first_order([wl])[0] == pytest.approx(staircase_dft(a), rel=1e-9)
+
+
+def test_staircase_limit_at_design_wavelength_is_sinc2():
+    assert staircase_first_order([550e-9])[0] == pytest.approx(np.sinc(1 / 16) ** 2, rel=1e-12)
+    assert staircase_first_order([550e-9])[0] == pytest.approx(0.98721, abs=1e-5)
+
+
+def test_ring_radius():
+    rr, cc = np.meshgrid(np.arange(64) - 32, np.arange(64) - 30, indexing="ij")
+    ring = np.exp(-((np.hypot(rr, cc) - 12.0) ** 2) / 2)
+    assert ring_radius_px(ring, (32, 30)) == 12
