@@ -33,12 +33,13 @@ from . import __version__
 from .camera import Camera
 from .errors import DesignFileError, DoeError
 from .fileio import atomic_path, dumps_json, read_npz
-from .levels import N_LEVELS, level_step_m
+from .levels import N_LEVELS, level_step_m, quantize
 from .materials import get_material
 
 __all__ = ["Design", "FORMAT_VERSION", "REQUIRED"]
 
 FORMAT_VERSION = 1
+MAX_NAME_CHARS = 200
 REQUIRED = ("height_m", "pitch_m", "material", "design_wavelength_m", "metadata")
 
 
@@ -163,8 +164,8 @@ class Design:
         if self.aperture is not None:
             arrays["aperture"] = self.aperture.astype(bool)
         path = Path(path)
-        with atomic_path(path, suffix=".npz") as tmp:
-            np.savez_compressed(tmp, **arrays)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
         return path
 
     @classmethod
@@ -178,11 +179,12 @@ class Design:
             raise DesignFileError(f"{path}: metadata is not valid JSON ({exc})") from None
         if not isinstance(metadata, dict):
             raise DesignFileError(f"{path}: metadata must be a JSON object")
-        if int(metadata.get("format_version", FORMAT_VERSION)) > FORMAT_VERSION:
-            raise DesignFileError(f"{path}: format_version {metadata['format_version']} is newer than this tool reads ({FORMAT_VERSION})")
+        _check_metadata(path, metadata)
         for k in ("pitch_m", "design_wavelength_m"):
-            if data[k].ndim != 0 or not np.issubdtype(data[k].dtype, np.number):
-                raise DesignFileError(f"{path}: {k} must be a number")
+            if data[k].ndim != 0 or data[k].dtype.kind not in "fiu":
+                raise DesignFileError(f"{path}: {k} must be one real number, got {data[k].dtype} {data[k].shape}")
+        if data["material"].ndim != 0 or data["material"].dtype.kind not in "US" or len(str(data["material"])) > 64:
+            raise DesignFileError(f"{path}: material must be a name (text up to 64 characters)")
         if not np.issubdtype(data["height_m"].dtype, np.floating):
             raise DesignFileError(f"{path}: height_m must be floating point, got {data['height_m'].dtype}")
         design = cls.__new__(cls)
@@ -194,7 +196,26 @@ class Design:
         design.aperture = data.get("aperture")
         design.metadata = metadata
         design.validate(source=str(path))
+        design.check_levels(source=str(path))
         return design
+
+    def check_levels(self, source="design"):
+        """Refuse levels that contradict the heights: each height must round to its stored level
+        under the level rule (:func:`doedesign.levels.quantize`: nearest step, 2 pi wrap).
+
+        A design whose ``levels`` and ``height_m`` disagree would give masks of one element
+        and PSFs of another.
+        """
+        if self.levels is None:
+            return
+        step = self.level_step_m(N_LEVELS)
+        off = quantize(self.height_m, step, N_LEVELS).levels != self.levels
+        if off.any():
+            r, c = np.argwhere(off)[0]
+            raise DesignFileError(
+                f"{source}: levels contradict height_m at {int(off.sum())} pixel(s); first at row {r}, col {c}: "
+                f"level {int(self.levels[r, c])} means {-self.levels[r, c] * step * 1e9:.1f} nm, height_m is "
+                f"{self.height_m[r, c] * 1e9:.1f} nm (step {step * 1e9:.2f} nm)")
 
     def summary(self):
         """Dictionary for ``doe inspect --json``."""
@@ -220,4 +241,19 @@ class Design:
         if self.aperture is not None:
             out["aperture_fraction"] = float(self.aperture.mean())
         return out
+
+
+def _check_metadata(path, metadata):
+    """Types of the metadata fields the tool uses (a number as a name, a text version, ...)."""
+    version = metadata.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise DesignFileError(f"{path}: metadata format_version must be an integer, got {version!r}")
+    if version > FORMAT_VERSION:
+        raise DesignFileError(f"{path}: format_version {version} is newer than this tool reads ({FORMAT_VERSION})")
+    name = metadata.get("name", "design")
+    if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_CHARS:
+        shown = repr(name) if not isinstance(name, str) else f"{len(name)} characters"
+        raise DesignFileError(f"{path}: metadata name must be text of 1 to {MAX_NAME_CHARS} characters, got {shown}")
+    if "camera" in metadata and not isinstance(metadata["camera"], dict):
+        raise DesignFileError(f"{path}: metadata camera must be an object, got {type(metadata['camera']).__name__}")
 

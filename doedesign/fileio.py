@@ -2,45 +2,197 @@
 strict JSON encoder (:func:`json_ready`, :func:`dumps_json`, :func:`write_json`).
 
 A failure part-way leaves no partial file behind, so a mask shop or a later
-pipeline step never sees a half-written result.
+pipeline step never sees a half-written result. Temporary names never end in the
+final extension (``.NAME.<pid>-<random>.part``), so a killed run cannot leave
+something that looks like a result; the next write into the same folder removes
+temporaries whose process is gone. :func:`output_run` marks a folder incomplete
+while a command fills it, so a kill between two outputs is visible.
 """
 
 from __future__ import annotations
 
 import contextlib
+import datetime as _dt
+import errno
 import json
 import math
 import os
+import re
+import stat
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz"]
+from .errors import DoeError
+
+__all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
+           "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run"]
+
+TEMP_SUFFIX = ".part"
+INCOMPLETE_MARKER = "INCOMPLETE"
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)-[^.]+" + re.escape(TEMP_SUFFIX) + "$")
+
+
+def _os_message(path, exc, doing="write"):
+    return f"{path}: cannot {doing} ({exc.strerror or exc})"
+
+
+def _pid_alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder):
+    """Delete the temporaries of killed writers in ``folder``; returns the names removed.
+
+    Only files named like :func:`atomic_path`'s temporaries whose writing process no longer
+    exists are removed, so a concurrent writer's temporary survives.
+    """
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _TEMP_NAME.match(entry.name)
+        if match and entry.is_file(follow_symlinks=False) and not _pid_alive(int(match["pid"])):
+            with contextlib.suppress(OSError):
+                os.unlink(entry.path)
+                removed.append(entry.name)
+    return removed
+
+
+def ensure_output_dir(path, what="--out", create=False):
+    """Check that the output folder ``path`` can be written (created when ``create``).
+
+    Called before long work, so a bad ``--out`` costs nothing. Without ``create`` a missing
+    folder is not made (a refused run leaves nothing); its nearest existing parent must be
+    a writable folder.
+
+    Raises
+    ------
+    DoeError
+        ``path`` is an existing file, cannot be created, or is not writable (one line).
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DoeError(f"{path}: {what} is an existing file; it must be a folder")
+    if create:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DoeError(_os_message(path, exc, "create the output folder")) from None
+    existing = path.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise DoeError(f"{path}: cannot create the output folder ({existing} is a file)")
+    if not os.access(existing, os.W_OK | os.X_OK) or _read_only_mount(existing):
+        raise DoeError(f"{path}: cannot create the output folder ({existing} is not writable)"
+                       if existing != path.absolute() else f"{path}: output folder is not writable")
+    return path
+
+
+def _read_only_mount(path):
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+def ensure_output_file(path, what="--out"):
+    """Check before long work that the file ``path`` can be written (its folder is created).
+
+    Raises
+    ------
+    DoeError
+        A folder sits at ``path`` or its folder cannot be created or written.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise DoeError(f"{path}: {what} is an existing folder; it must be a file name")
+    ensure_output_dir(path.parent if str(path.parent) else Path("."), f"the folder of {what}")
+    return path
 
 
 @contextlib.contextmanager
-def atomic_path(path, suffix=None):
+def output_run(folder, command):
+    """Mark ``folder`` incomplete while ``command`` writes its outputs there.
+
+    The marker file :data:`INCOMPLETE_MARKER` is written first and removed only when the
+    block finishes without an exception, so after a kill or a failure the folder says that
+    its files may come from different runs. A failure that wrote nothing leaves the folder
+    as it was (a refused run leaves nothing behind).
+    """
+    folder = Path(folder)
+    created = not folder.exists()
+    folder = ensure_output_dir(folder, create=True)
+    remove_stale_temporaries(folder)
+    marker = folder / INCOMPLETE_MARKER
+    before = _snapshot(folder)
+    started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    with atomic_path(marker) as tmp:
+        tmp.write_text(f"`{command}` started {started} UTC (pid {os.getpid()}) and has not finished: "
+                       "the files in this folder may be partial or from different runs.\n")
+    try:
+        yield folder
+    except BaseException:
+        if _snapshot(folder) == before:
+            marker.unlink(missing_ok=True)
+            if created:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+        raise
+    marker.unlink(missing_ok=True)
+
+
+def _snapshot(folder):
+    """Names, sizes and times of the results in ``folder`` (not the marker or temporaries)."""
+    out = {}
+    for entry in os.scandir(folder):
+        if entry.name != INCOMPLETE_MARKER and not _TEMP_NAME.match(entry.name):
+            st = entry.stat(follow_symlinks=False)
+            out[entry.name] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+@contextlib.contextmanager
+def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
+
+    The temporary is ``.NAME.<pid>-<random>.part`` (never the final extension; writers that
+    pick a format from the name must be told the format or given an open file).
 
     Parameters
     ----------
     path : str or Path
         Final destination.
-    suffix : str, optional
-        Suffix of the temporary file (some writers pick the format from it);
-        defaults to the destination's suffix plus ``.tmp``.
 
     Yields
     ------
     Path
         Where the caller must write. It is removed if the block raises.
+
+    Raises
+    ------
+    DoeError
+        The folder cannot be created or written, or a folder sits at ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if suffix is None:
-        suffix = path.suffix + ".tmp"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    if path.is_dir():
+        raise DoeError(f"{path}: the result path is taken by a folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=TEMP_SUFFIX, dir=path.parent)
+    except OSError as exc:
+        raise DoeError(_os_message(path, exc)) from None
     os.close(fd)
     tmp = Path(tmp)
     # mkstemp creates 0600; give the result the permissions a plain open() would.
@@ -49,30 +201,129 @@ def atomic_path(path, suffix=None):
     os.chmod(tmp, 0o666 & ~umask)
     try:
         yield tmp
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise DoeError(_os_message(path, exc)) from None
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EACCES, errno.EROFS, errno.EDQUOT, errno.EISDIR):
+            raise DoeError(_os_message(path, exc)) from None
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()
 
 
+# Largest array an input file may make the tool allocate (claimed sizes are checked first).
+MAX_INPUT_ARRAY_BYTES = 512 * 1024**2
+
+
+def check_input_file(path, error=None):
+    """``path`` as a Path after checking it is an existing regular file.
+
+    Named pipes, devices and folders are refused (reading a pipe would wait forever).
+    """
+    error = error or DoeError
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except OSError as exc:
+        raise error(_os_message(path, exc, "read")) from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a pipe, socket or device)"
+        raise error(f"{path}: is {kind}; give a file")
+    return path
+
+
+def check_npy_header(fh, available_bytes, where, error=None):
+    """Read an ``.npy`` header from ``fh`` and check its claimed size before anything is allocated.
+
+    Parameters
+    ----------
+    fh : file object positioned at the start of the ``.npy`` data
+    available_bytes : int
+        Bytes of the member or file, header included.
+    where : str
+        The file (and member) for messages.
+
+    Returns
+    -------
+    (shape, dtype)
+
+    Raises
+    ------
+    error
+        Object arrays (never unpickled), a claimed size beyond the data present or beyond
+        :data:`MAX_INPUT_ARRAY_BYTES`.
+    """
+    error = error or DoeError
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        shape, fortran, dtype = (fmt.read_array_header_1_0(fh) if version == (1, 0)
+                                 else fmt.read_array_header_2_0(fh))
+    except (ValueError, OSError, EOFError, SyntaxError) as exc:
+        raise error(f"{where}: not a numpy array: {exc}") from None
+    if dtype.hasobject:
+        raise error(f"{where}: holds Python objects (dtype {dtype}); only numeric and text arrays are read")
+    claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    present = available_bytes - fh.tell()
+    if claimed > MAX_INPUT_ARRAY_BYTES:
+        raise error(f"{where}: claims {shape} {dtype} = {claimed / 1e9:.3g} GB, over the "
+                    f"{MAX_INPUT_ARRAY_BYTES / 1e9:.3g} GB input limit")
+    if claimed > present:
+        raise error(f"{where}: header claims {shape} {dtype} ({claimed} bytes) but only {present} bytes "
+                    "follow (truncated or corrupted)")
+    return shape, dtype
+
+
+def _check_npz_members(path, error):
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            where = f"{path}: array '{info.filename[:-4]}'"
+            if info.file_size > MAX_INPUT_ARRAY_BYTES + 65536:
+                raise error(f"{where} inflates to {info.file_size / 1e9:.3g} GB, over the "
+                            f"{MAX_INPUT_ARRAY_BYTES / 1e9:.3g} GB input limit")
+            with zf.open(info) as fh:
+                check_npy_header(fh, info.file_size, where, error)
+
+
+def load_npy(path, error=None):
+    """A bare ``.npy`` array after checking the file and its claimed size (never unpickles)."""
+    error = error or DoeError
+    path = check_input_file(path, error)
+    try:
+        with open(path, "rb") as fh:
+            check_npy_header(fh, os.fstat(fh.fileno()).st_size, str(path), error)
+            fh.seek(0)
+            return np.load(fh, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise error(f"{path}: not a readable .npy array: {exc}") from None
+
+
 def read_npz(path, required, what, error=None):
     """All arrays of an ``.npz`` after checking the ``required`` fields.
 
-    Errors (of class ``error``, default :class:`~doedesign.errors.DoeError`) name the file,
-    say it is not a ``what`` and list what is missing.
+    Claimed array sizes are checked against the data present and
+    :data:`MAX_INPUT_ARRAY_BYTES` before anything is inflated. Errors (of class ``error``,
+    default :class:`~doedesign.errors.DoeError`) name the file, say it is not a ``what``
+    and list what is missing.
     """
     import zipfile
 
-    from .errors import DoeError
-
     error = error or DoeError
-    path = Path(path)
-    if not path.is_file():
-        raise error(f"{path}: no such file")
+    path = check_input_file(path, error)
     try:
+        _check_npz_members(path, error)
         with np.load(path, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError) as exc:
         raise error(f"{path}: not a {what} (.npz): {exc}") from None
     missing = [k for k in required if k not in data]
     if missing:
@@ -116,15 +367,15 @@ def dumps_json(obj, indent: int | None = 2) -> str:
 
 def write_json(path, obj) -> Path:
     """Write ``obj`` as indented strict JSON (:func:`dumps_json`), atomically."""
-    with atomic_path(path, suffix=".json.tmp") as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_text(dumps_json(obj) + "\n")
     return Path(path)
 
 
 def write_npz(path, **arrays):
     """Write an uncompressed ``.npz`` atomically."""
-    with atomic_path(path, suffix=".npz") as tmp:
-        np.savez(tmp, **arrays)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
     return Path(path)
 
 
@@ -132,7 +383,7 @@ def save_figure(fig, path, dpi=110):
     """Save a matplotlib figure atomically as PNG and close it."""
     import matplotlib.pyplot as plt
 
-    with atomic_path(path, suffix=".png") as tmp:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
     plt.close(fig)
     return Path(path)

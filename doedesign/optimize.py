@@ -29,6 +29,13 @@ and the heights re-optimized for ``reweight_iter`` evaluations. The weights keep
 before each annealing stage, so the quantized design stays balanced; the final weights are
 in the report. On targets with one pixel per plane (Bayer) the update does nothing.
 
+Robust design: ``perturbations`` (a list of functions ``h -> (h', vjp)``, e.g. process samples
+from the ``doe.perturbations`` entry points) makes every stage minimize the mean loss over the
+perturbed heights, or with ``robust_measure="cvar"`` the mean of the worst ``cvar_alpha`` share
+(CVaR), through the same adjoint gradient pulled back by each ``vjp``. The list is fixed for the
+whole run (common random numbers), so the objective stays deterministic for nlopt.
+
+
 Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.losses.LossSpec`
 terms; ``"softmin"`` the negative soft minimum of the per-plane energies on target over their
 ``colour_weights``; ``"maxmin"`` runs the continuous stage as nlopt's auxiliary-variable max-min
@@ -71,6 +78,7 @@ ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
 INITS = ("random", "zeros", "streak", "grating", "lens", "router")
 OBJECTIVES = ("loss", "softmin", "maxmin")
 HEIGHT_RANGES = ("process", "2pi", "wrap")
+ROBUST_MEASURES = ("mean", "cvar")
 # Bounds of the "wrap" range in 2 pi heights: wide enough never to bind, finite for nlopt.
 WRAP_SPAN = 8
 # Weights of the level penalty relative to the continuous loss, one re-optimization each.
@@ -224,6 +232,8 @@ class OptimizerSettings:
     reweight_rounds: int = 0
     reweight_alpha: float = 1.0
     reweight_iter: int | None = None  # None: max_iter
+    robust_measure: str = "mean"      # with perturbations: "mean" or "cvar" of the loss
+    cvar_alpha: float = 0.25          # CVaR: share of the worst perturbations averaged
     objective: str = "loss"
     colour_weights: list | None = None  # per wavelength (or per plane) for softmin / maxmin
     softmin_tau: float = 0.01
@@ -256,6 +266,30 @@ class OptimizerSettings:
                            f"and {self.reweight_alpha}")
         if self.reweight_iter is not None and int(self.reweight_iter) < 1:
             raise DoeError(f"reweight_iter must be at least 1, got {self.reweight_iter}")
+        if self.robust_measure not in ROBUST_MEASURES or not 0 < self.cvar_alpha <= 1:
+            raise DoeError(f"robust_measure must be one of {ROBUST_MEASURES} and cvar_alpha in (0, 1], got "
+                           f"{self.robust_measure!r} and {self.cvar_alpha}")
+
+
+def robust_value_and_grad(value_and_grad, h, perturbations, measure="mean", cvar_alpha=0.25):
+    """Mean (or CVaR) of ``value_and_grad`` over perturbed heights, and its gradient in ``h``.
+
+    Each perturbation maps ``h -> (h', vjp)``; the loss gradient at ``h'`` is pulled back by ``vjp``.
+    CVaR averages the worst ``ceil(cvar_alpha K)`` of the K losses (a subgradient at ties).
+    """
+    values, grads = [], []
+    for perturb in perturbations:
+        hp, vjp = perturb(h)
+        v, g = value_and_grad(hp)
+        values.append(v)
+        grads.append(vjp(g))
+    values = np.asarray(values, float)
+    weights = np.full(values.size, 1.0 / values.size)
+    if measure == "cvar":
+        k = int(np.ceil(cvar_alpha * values.size))
+        weights = np.zeros(values.size)
+        weights[np.argsort(values)[::-1][:k]] = 1.0 / k
+    return float(weights @ values), sum(w * g for w, g in zip(weights, grads) if w)
 
 
 def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel=1e-7, max_time_s=None,
@@ -343,7 +377,8 @@ def coded_support(camera, pitch_m, shape):
 
 
 def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
-               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1, full_window=False):
+               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1, perturbations=None,
+               full_window=False):
     """Optimize a DOE for ``target`` and quantize it to the process levels.
 
     Parameters
@@ -360,6 +395,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         A user starting height map (overrides ``settings.init``).
     callback : callable, optional
         ``callback(evaluation, loss, height_m)``; True stops the current stage.
+    perturbations : list of callable, optional
+        ``h -> (h', vjp)`` each; the loss becomes their mean or CVaR (robust design).
     full_window : bool
         Compute the whole sensor window at every evaluation even when the loss reads only a
         few pixels and the window energy (same result, slower; for checks and benchmarks).
@@ -408,7 +445,11 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     bound = spot_bound(camera, pitch_m, tuple(shape), target, material)
 
     def objective(h, extra=None):
-        value, grad = engine.value_and_grad(h, state["loss"], full_window=full_window)
+        if perturbations:
+            value, grad = robust_value_and_grad(lambda x: engine.value_and_grad(x, state["loss"], full_window=full_window), h, perturbations,
+                                                settings.robust_measure, settings.cvar_alpha)
+        else:
+            value, grad = engine.value_and_grad(h, state["loss"], full_window=full_window)
         if settings.fab_weight:
             v, g = isolation_penalty(h, step)
             value += settings.fab_weight * v
@@ -527,6 +568,7 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
         "shape": list(shape),
         "pitch_m": pitch_m,
         "sampling": engine.sampling,
+        "robust_samples": len(perturbations or ()),
     })
     design = Design(height_m=h_final, pitch_m=pitch_m, material=str(material),
                     design_wavelength_m=design_wavelength_m,

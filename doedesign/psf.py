@@ -500,21 +500,31 @@ class PSFEngine:
         return -2.0 * np.imag(alpha * t)
 
 
+# Most wavelengths one command computes (each is a full PSF per view and depth).
+MAX_WAVELENGTHS = 1000
+
+
 def parse_wavelengths_nm(text):
     """Wavelengths in metres from ``"486,589,656"`` or ``"400:700:10"`` (inclusive), in nm."""
     text = str(text).strip()
     try:
         if ":" in text:
             parts = [float(v) for v in text.split(":")]
-            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+            if len(parts) != 3 or not np.all(np.isfinite(parts)) or parts[2] <= 0 or parts[1] < parts[0]:
                 raise ValueError
+            count = (parts[1] - parts[0]) / parts[2] + 1
+            if count > MAX_WAVELENGTHS:
+                raise DoeError(f"wavelengths {text!r}: {count:.3g} wavelengths; at most {MAX_WAVELENGTHS} "
+                               "(use a larger step)")
             values = np.arange(parts[0], parts[1] + parts[2] / 2, parts[2])
         else:
             values = np.array([float(v) for v in text.split(",") if v.strip()])
     except ValueError:
         raise DoeError(f"wavelengths {text!r}: use a list like 486,589,656 or a range like 400:700:10 (nm)") from None
-    if values.size == 0 or np.any(values <= 0):
-        raise DoeError(f"wavelengths {text!r}: need at least one positive wavelength in nm")
+    if values.size == 0 or values.size > MAX_WAVELENGTHS:
+        raise DoeError(f"wavelengths {text!r}: need 1 to {MAX_WAVELENGTHS} wavelengths in nm")
+    if not np.all((values >= 100) & (values <= 20000)):
+        raise DoeError(f"wavelengths {text!r}: each must lie in 100..20000 nm")
     return values * 1e-9
 
 

@@ -6,7 +6,9 @@ import logging
 
 import numpy as np
 
+from doedesign.cli.common import Number
 from doedesign.errors import DoeError
+from doedesign.fileio import ensure_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +26,7 @@ def register(subparsers):
                    help="etch depth per mask, comma separated (default 2**j times the level step)")
     p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask")
     p.add_argument("--etch-order", default=None, help="mask index etched in each step, e.g. 3,2,1,0")
-    p.add_argument("--clear-aperture-mm", type=float, default=None,
+    p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
     p.add_argument("--oasis", action="store_true", help="also write <name>.oas")
     p.set_defaults(func=run_masks)
@@ -53,6 +55,7 @@ def run_masks(args):
 
     from .element import write_element
 
+    ensure_output_dir(args.out)  # before loading and exporting: a bad --out costs nothing
     depths = None if args.depths_nm is None else [d * 1e-9 for d in _float_list(args.depths_nm, "depths-nm")]
     report = write_element(
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,

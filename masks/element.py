@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from doedesign.design import Design
-from doedesign.fileio import save_figure, write_json
+from doedesign.fileio import output_run, save_figure, write_json
 from doedesign.levels import N_LEVELS, quantize_design
 
 from .decompose import binary_depths_m, levels_to_masks
@@ -94,12 +94,14 @@ def write_element(design: Design, out, *, source: str | None = None, tone: str =
         aperture = None
     out = Path(out)
     name = design.name
-    report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
-                          tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
-                          clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, oasis=oasis)
-    report["design"] = source
-    report["level_step_nm"] = step * 1e9
-    report["quantization"] = None if quantization is None else quantization.summary()
-    preview(levels, masks, out / "masks.png", name)
-    write_json(out / "report.json", report)
+    # The folder says INCOMPLETE until the GDS, the preview and the report are all written.
+    with output_run(out, f"doe masks {source}"):
+        report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
+                              tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
+                              clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, oasis=oasis)
+        report["design"] = source
+        report["level_step_nm"] = step * 1e9
+        report["quantization"] = None if quantization is None else quantization.summary()
+        preview(levels, masks, out / "masks.png", name)
+        write_json(out / "report.json", report)
     return report

@@ -180,11 +180,23 @@ def element_cell(masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
     return cell, stats
 
 
+OASIS_MAGIC = b"%SEMI-OASIS\r\n"
+
+
+def is_oasis(path):
+    """True when the file starts with the OASIS magic (by content: temporaries have no extension)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(OASIS_MAGIC)) == OASIS_MAGIC
+    except OSError as exc:
+        raise DoeError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def read_library(path):
     """Read a GDSII (``.gds``) or OASIS (``.oas``) file with gdstk; DoeError if unreadable."""
     path = Path(path)
     try:
-        if path.suffix.lower().startswith(".oas"):
+        if is_oasis(path):
             return gdstk.read_oas(str(path))
         return gdstk.read_gds(str(path))
     except (OSError, RuntimeError) as exc:
@@ -337,7 +349,7 @@ def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark
 def _read_boundaries(path):
     """:class:`GdsBoundaries` of a .gds (numpy reader) or .oas (gdstk) file."""
     path = Path(path)
-    if not path.suffix.lower().startswith(".oas"):
+    if not is_oasis(path):
         read = read_gds_boundaries(path)
         if abs(read.dbu_m - PRECISION_M) > 1e-6 * PRECISION_M:
             raise DoeError(f"{path}: database unit {read.dbu_m:g} m, expected {PRECISION_M:g} m")
@@ -378,7 +390,7 @@ def write_verified(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, to
     path = Path(path)
     oasis = path.suffix.lower() == ".oas"
     stats = None
-    with atomic_path(path, suffix=".oas" if oasis else ".gds") as tmp:
+    with atomic_path(path) as tmp:
         if oasis:
             lib.write_oas(str(tmp))
         elif element_inline:

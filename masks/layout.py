@@ -297,7 +297,7 @@ def write_plate(path, lib, dies, layers=gds.DEFAULT_LAYERS, datatype=0, tone="da
     """Write a plate library and verify every die's element; DoeError and no file on mismatch."""
     from doedesign.fileio import atomic_path
 
-    with atomic_path(path, suffix=".gds") as tmp:
+    with atomic_path(path) as tmp:
         lib.write_gds(str(tmp), max_points=gds.MAX_VERTICES)
         results = {}
         for d in dies:

@@ -39,7 +39,10 @@ def main(argv=None):
     # Files only, no windows: the CLI never needs an interactive backend.
     matplotlib.use("Agg")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse refused an option (one line, status 2) or printed --help
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):

@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .common import Number
 from .. import bayer, targets
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
-from ..fileio import write_json
+from ..fileio import ensure_output_dir, ensure_output_file, write_json
 from ..losses import LossSpec
 from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 
@@ -66,36 +67,41 @@ def register(subparsers):
     p.add_argument("target", help="built-in target name or a target TOML file")
     p.add_argument("--config", help="run configuration TOML ([camera], [optimize], [target])")
     p.add_argument("--out", required=True, help="design file to write (.npz); report.json goes beside it")
-    p.add_argument("--size", type=int, help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
+    p.add_argument("--size", type=Number(int, 8, 16384, unit="px"), help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
     p.add_argument("--full-aperture", action="store_true",
                    help=f"the camera's full 8.64 mm aperture: {FULL_APERTURE_PX} px at 5.4 um")
     p.add_argument("--paper-setting", action="store_true",
                    help=f"the paper's simulation: {PAPER_PX} px of {PAPER_PITCH_M * 1e6:g} um (8.1 mm), 5.4 um sensor "
                         "pixels (3 x 3 pooling); about 8x the memory and time of --full-aperture")
-    p.add_argument("--iterations", type=int, help="continuous-stage evaluations (default 100)")
+    p.add_argument("--iterations", type=Number(int, 1, 10**6), help="continuous-stage evaluations (default 100)")
     p.add_argument("--wavelengths", help="nm, e.g. 656,589,486 or 400:700:10 (built-in targets)")
     p.add_argument("--side", choices=("left", "right", "full"), help="aperture half carrying the DOE (default left)")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--seed", type=Number(int, 0, 2**32 - 1), help="random seed (default 0)")
     p.add_argument("--algorithm", choices=ALGORITHMS, help="nlopt algorithm (default LD_LBFGS)")
     p.add_argument("--init", choices=INITS, help="initial height map (default per target)")
     p.add_argument("--init-design", help="start from this design file's heights")
     p.add_argument("--loss", help='loss terms, e.g. "l1" or "l1=1,energy=0.5,peak=0.1,uniformity=1" '
                                   '(terms l1, energy, l2, peak, uniformity; default l1; l1,energy for bayer and spots)')
     p.add_argument("--height-range", choices=HEIGHT_RANGES, help="height bounds (default process)")
-    p.add_argument("--time-limit", type=float, help="seconds for the continuous stage (default 45)")
-    p.add_argument("--anneal-iterations", type=int, help="evaluations per annealing stage (default 10)")
-    p.add_argument("--fab-weight", type=float, help="weight of the one-pixel pillar/hole penalty (default 0)")
-    p.add_argument("--reweight-rounds", type=int,
+    p.add_argument("--time-limit", type=Number(float, 0, lo_open=True, unit="s"), help="seconds for the continuous stage (default 45)")
+    p.add_argument("--anneal-iterations", type=Number(int, 0, 10**6), help="evaluations per annealing stage (default 10)")
+    p.add_argument("--fab-weight", type=Number(float, 0), help="weight of the one-pixel pillar/hole penalty (default 0)")
+    p.add_argument("--reweight-rounds", type=Number(int, 0, 1000),
                    help="WGS-like rounds reweighting target pixels toward equal delivered/wanted ratios "
                         "(spot arrays; default 0)")
-    p.add_argument("--reweight-alpha", type=float, help="exponent of the reweighting (default 1)")
-    p.add_argument("--reweight-iterations", type=int, help="evaluations per reweighting round (default --iterations)")
+    p.add_argument("--reweight-alpha", type=Number(float, 0, 100, lo_open=True), help="exponent of the reweighting (default 1)")
+    p.add_argument("--reweight-iterations", type=Number(int, 1, 10**6), help="evaluations per reweighting round (default --iterations)")
     p.add_argument("--objective", choices=OBJECTIVES,
                    help="loss: the --loss terms; softmin / maxmin: the weakest colour's energy on target "
                         "(maxmin: nlopt auxiliary variable with LD_MMA/LD_CCSAQ; default maxmin for bayer, else loss)")
     p.add_argument("--colour-weights", help="per-wavelength weights of the balanced objective, e.g. 1,1.2,1")
     p.add_argument("--starts", help="further initial designs for a multi-start, e.g. zeros,random,lens")
     p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
+    p.add_argument("--robust", metavar="SPEC",
+                   help='robust design over process samples of this spec (TOML, a doe compare report.json, or '
+                        '"default"), from the doe.perturbations entry points')
+    p.add_argument("--robust-samples", type=int, default=4, help="process samples per iteration (default 4)")
+    p.add_argument("--robust-measure", choices=("mean", "cvar"), help="expected loss (default) or CVaR")
     p.set_defaults(func=cmd_design)
 
     q = subparsers.add_parser("evaluate-bayer", help="the Bayer colour-sorting study (seed Table 1)",
@@ -103,13 +109,13 @@ def register(subparsers):
     q.add_argument("--design", help="a Bayer design file (default: a quick built-in optimization)")
     q.add_argument("--out", required=True, help="output directory (table.json, fig2.png)")
     q.add_argument("--images", default=",".join(bayer.IMAGES), help="skimage.data images (default %(default)s)")
-    q.add_argument("--crop", type=int, help="centred square crop of each image in pixels (speed)")
-    q.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    q.add_argument("--quick-size", type=int, default=128, help="DOE size of the built-in optimization")
-    q.add_argument("--quick-iterations", type=int, default=60, help="evaluations of the built-in optimization")
+    q.add_argument("--crop", type=Number(int, 16, 100000, unit="px"), help="centred square crop of each image in pixels (speed)")
+    q.add_argument("--seed", type=Number(int, 0, 2**32 - 1), default=0, help="noise seed (default 0)")
+    q.add_argument("--quick-size", type=Number(int, 8, 4096, unit="px"), default=128, help="DOE size of the built-in optimization")
+    q.add_argument("--quick-iterations", type=Number(int, 1, 10**6), default=60, help="evaluations of the built-in optimization")
     q.add_argument("--no-doe", action="store_true", help="skip the optimized-DOE row")
     q.add_argument("--baseline-design", help="a second design for comparison (row baseline_doe), e.g. a plain L1 design")
-    q.add_argument("--front", type=int, default=1, choices=(0, 1),
+    q.add_argument("--front", type=Number(int, 0, 1), default=1, choices=(0, 1),
                    help="1: sweep the colour weights, plot the Pareto front with the bounds (front.png); 0: skip")
     q.set_defaults(func=cmd_evaluate_bayer)
 
@@ -151,10 +157,13 @@ def _floats(text, what):
 def cmd_design(args):
     from ..psf import parse_wavelengths_nm
 
+    # Refuse an unwritable result now, not after minutes of optimization.
+    out = ensure_output_file(args.out)
+    ensure_output_file(out.parent / "report.json", "the report beside --out")
     config = _read_toml(args.config) if args.config else {}
     source = args.config or "configuration"
     opt = dict(config.get("optimize", {}))
-    size = args.size or int(opt.pop("size_px", DEFAULT_SIZE_PX))
+    size = args.size if args.size is not None else int(opt.pop("size_px", DEFAULT_SIZE_PX))
     opt.pop("size_px", None)
     if args.full_aperture:
         size = FULL_APERTURE_PX
@@ -203,7 +212,7 @@ def cmd_design(args):
                        ("reweight_iter", args.reweight_iterations), ("objective", args.objective),
                        ("colour_weights", _floats(args.colour_weights, "--colour-weights")),
                        ("starts", tuple(v.strip() for v in args.starts.split(",") if v.strip()) if args.starts
-                        else None)):
+                        else None), ("robust_measure", args.robust_measure)):
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
@@ -219,7 +228,12 @@ def cmd_design(args):
     init = None
     if args.init_design:
         init = Design.load(args.init_design).height_m
-    run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init)
+    perturbations = None
+    if args.robust:
+        perturbations = robust_perturbations(args.robust, args.robust_samples, settings.seed, pitch, material,
+                                             design_wl, settings.n_levels)
+    run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init,
+                     perturbations=perturbations)
     out = Path(args.out)
     run.design.save(out)
     report_path = out.parent / "report.json"
@@ -238,6 +252,19 @@ def cmd_design(args):
     return 0
 
 
+def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavelength_m, n_levels):
+    """Height perturbations from the first provider in the ``doe.perturbations`` entry points."""
+    from importlib.metadata import entry_points
+
+    if n_samples < 1:
+        raise DoeError(f"--robust-samples {n_samples}: need at least one sample")
+    providers = sorted(entry_points(group="doe.perturbations"), key=lambda e: e.name)
+    if not providers:
+        raise DoeError("--robust: no doe.perturbations provider is installed (the masks package registers one)")
+    return providers[0].load()(None if spec == "default" else spec, n_samples, seed, pitch_m, material,
+                               design_wavelength_m, n_levels)
+
+
 def quick_bayer_design(size_px=128, iterations=60, seed=0):
     """A small Bayer design for the study when no design file is given (reduced aperture)."""
     camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
@@ -249,6 +276,7 @@ def quick_bayer_design(size_px=128, iterations=60, seed=0):
 
 def cmd_evaluate_bayer(args):
     t0 = time.perf_counter()
+    out = ensure_output_dir(args.out)
     names = [n.strip() for n in args.images.split(",") if n.strip()]
     if not names:
         raise DoeError("--images: no image names given")
@@ -273,7 +301,6 @@ def cmd_evaluate_bayer(args):
         doe_info = {**(doe_info or {}), "baseline": base_info}
     methods = bayer.standard_methods(doe_psf, axis) + extra
     table, per_image, recs = bayer.evaluate(images, methods, seed=args.seed)
-    out = Path(args.out)
     gain_u = table["proposed_target"]["u_db"] - table["ideal_nearest"]["u_db"]
     gain_v = table["proposed_target"]["v_db"] - table["ideal_nearest"]["v_db"]
     notes = (f"Images: skimage.data {', '.join(names)} (the paper used BSDS500, not shipped). "
@@ -329,7 +356,8 @@ def _front(design, camera, doe_info, path):
 
 def bayer_wavelengths(design):
     """R, G, B wavelengths of a Bayer design (from its metadata, else 656/589/486 nm)."""
-    wls = design.metadata.get("target", {}).get("wavelengths_nm")
+    target = design.metadata.get("target")
+    wls = target.get("wavelengths_nm") if isinstance(target, dict) else None
     if wls and len(wls) == 3:
         return np.asarray(wls, dtype=float) * 1e-9
     return np.asarray(targets.RGB_WAVELENGTHS_M)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..design import Design
 from ..progress import Progress
-from .common import add_camera_options, camera_from_args
+from .common import Number, NumberList, add_camera_options, camera_from_args
 from ..psf import PSFEngine, parse_wavelengths_nm
 
 log = logging.getLogger(__name__)
@@ -17,10 +17,15 @@ log = logging.getLogger(__name__)
 def cmd_psf(args):
     from ..plots import psf_figure, save
 
+    from ..fileio import ensure_output_file
+
+    ensure_output_file(args.out)
+    if args.png:
+        ensure_output_file(args.png, "--png")
     design = Design.load(args.design)
     camera = camera_from_args(args)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm)
-    depths = [float(v) for v in str(args.depth_m).split(",")] if args.depth_m else None
+    depths = args.depth_m
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths, depths,
                        doe_oversample=args.doe_oversample)
     steps = 2 * engine.depths_m.size * wavelengths.size
@@ -41,8 +46,8 @@ def register(sub):
                                    "sensor pixel, row 0 at the top, axis at the window centre.")
     p.add_argument("design")
     p.add_argument("--wavelengths-nm", default="486,589,656", help="list (486,589,656) or range start:stop:step (400:700:10)")
-    p.add_argument("--depth-m", default=None, help="point-source distance(s), comma separated (default: in focus)")
-    p.add_argument("--doe-oversample", type=int, default=1, help="pupil samples per DOE pixel for strong defocus")
+    p.add_argument("--depth-m", default=None, type=NumberList(Number(float, 0, lo_open=True, allow_inf=True, unit="m")), help="point-source distance(s), comma separated (default: in focus)")
+    p.add_argument("--doe-oversample", type=Number(int, 1, 16), default=1, help="pupil samples per DOE pixel for strong defocus")
     p.add_argument("--out", required=True, help="output PSF .npz")
     p.add_argument("--png", help="optional PNG montage")
     add_camera_options(p)

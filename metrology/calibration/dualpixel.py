@@ -70,13 +70,13 @@ def load_frame(path):
     DoeError
         Missing file, unreadable content, not a single 2-D frame, or non-finite values.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise DoeError(f"{path}: no such frame file")
+    from doedesign.fileio import check_input_file, load_npy
+
+    path = check_input_file(path)
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
-            data = np.load(path, allow_pickle=False)
+            data = load_npy(path)
         elif suffix in (".tif", ".tiff"):
             import tifffile
 
@@ -90,6 +90,8 @@ def load_frame(path):
     except Exception as exc:  # readers raise many types for a broken file; report it as one line
         raise DoeError(f"{path}: cannot read frame: {exc}") from None
     data = np.squeeze(np.asarray(data))
+    if data.dtype.kind not in "biuf":
+        raise DoeError(f"{path}: frame values must be numbers, got dtype {data.dtype}")
     if data.ndim != 2:
         raise DoeError(f"{path}: expected one 2-D raw frame, got an array of shape {data.shape}")
     data = data.astype(float)

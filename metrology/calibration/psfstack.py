@@ -517,8 +517,8 @@ def network_array(stacks):
 
 def save_network_npy(stacks, path):
     """Write :func:`network_array` as ``.npy`` atomically (float32)."""
-    with atomic_path(path, suffix=".npy") as tmp:
-        np.save(tmp, network_array(stacks).astype(np.float32))
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, network_array(stacks).astype(np.float32))
     return Path(path)
 
 

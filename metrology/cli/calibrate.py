@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.cli.common import MAX_WINDOW_PX, Number
 from doedesign.errors import DoeError
-from doedesign.fileio import save_figure, write_json, write_npz
+from doedesign.fileio import check_input_file, ensure_output_dir, ensure_output_file, save_figure, write_json, write_npz
 from doedesign.psf import parse_wavelengths_nm
 
 import metrology.calibration.dualpixel as dp
@@ -47,7 +48,7 @@ def register(subparsers):
     p.add_argument("--out", required=True, help="calibration .npz to write")
     p.add_argument("--png", help="plot of the ratios across the columns")
     _frame_options(p)
-    p.add_argument("--smoothing", type=float, default=None,
+    p.add_argument("--smoothing", type=Number(float, 0), default=None,
                    help="spline smoothing penalty (default: generalized cross-validation)")
     p.set_defaults(func=run_crosstalk)
 
@@ -63,7 +64,7 @@ def register(subparsers):
                    help="aperture half carrying the DOE (the seed's measurements: right)")
     p.add_argument("--coded-view", choices=dp.VIEW_NAMES,
                    help="which frame view is coded (needed without --crosstalk, overrides it otherwise)")
-    p.add_argument("--pixel-pitch-um", type=float, default=5.4, help="sensor pixel pitch (5.4)")
+    p.add_argument("--pixel-pitch-um", type=Number(float, 0, 1000, lo_open=True, unit="um"), default=5.4, help="sensor pixel pitch (5.4)")
     p.add_argument("--window", default="512,512", help="window rows,cols (512,512)")
     p.add_argument("--axis-pixel", default=None, help="window pixel of the axis row,col (default: window centre)")
     p.add_argument("--axis", default=None, help="frame pixel row,col of the optical axis (default: uncoded peak)")
@@ -82,8 +83,8 @@ def register(subparsers):
 def _frame_options(p):
     p.add_argument("--cfa", default="RGGB", help="Bayer pattern of the sensor's top-left 2x2 cell (RGGB), "
                                                  "or 'none' for monochrome frames")
-    p.add_argument("--saturation", type=float, default=None, help="raw saturation level (default: from the data)")
-    p.add_argument("--black-level", type=float, default=0.0, help="raw black level of each frame (0)")
+    p.add_argument("--saturation", type=Number(float, 0, lo_open=True), default=None, help="raw saturation level (default: from the data)")
+    p.add_argument("--black-level", type=Number(float, 0), default=0.0, help="raw black level of each frame (0)")
 
 
 def _pair(values, name):
@@ -93,6 +94,8 @@ def _pair(values, name):
             raise ValueError
     except ValueError:
         raise DoeError(f"{name} must be two integers like 256,256, got {values!r}") from None
+    if not all(0 <= p <= MAX_WINDOW_PX for p in parts):
+        raise DoeError(f"{name} {values!r}: each must lie in 0..{MAX_WINDOW_PX} pixels")
     return tuple(parts)
 
 
@@ -102,6 +105,9 @@ def run_crosstalk(args):
 
     if args.cfa.lower() == "none":
         raise DoeError("crosstalk calibration works per Bayer channel; give the sensor's --cfa pattern")
+    ensure_output_file(args.out)
+    if args.png:
+        ensure_output_file(args.png, "--png")
     left = tuple(dp.load_frame(f) for f in args.left_blocked)
     right = tuple(dp.load_frame(f) for f in args.right_blocked)
     cal = dp.calibrate_crosstalk(left, right, args.cfa, args.smoothing, args.saturation, args.black_level,
@@ -161,8 +167,13 @@ def find_captures(spec, wavelengths_m=None):
             ((dark["sum"], dark["view"]) if dark else None)
     if not spec.is_file():
         raise DoeError(f"{spec}: no such capture directory or list file")
+    check_input_file(spec)
+    try:
+        listing = spec.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DoeError(f"{spec}: not a capture list (text file of 'wavelength_nm sum view' lines)") from None
     wl_nm, files, dark = [], [], None
-    for n, line in enumerate(spec.read_text().splitlines(), 1):
+    for n, line in enumerate(listing.splitlines(), 1):
         parts = line.split("#")[0].replace(",", " ").split()
         if not parts:
             continue
@@ -228,7 +239,9 @@ def _views_of(sum_path, view_path, args, cal, coded_name):
 def run_psf(args):
     from doedesign.cli.common import print_json
 
-    out = Path(args.out)
+    out = ensure_output_dir(args.out)
+    window = _pair(args.window, "--window")
+    axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None
     if wavelengths is not None:
         ps.check_wavelengths(wavelengths, "--wavelengths-nm")
@@ -243,8 +256,6 @@ def run_psf(args):
     cfa = None if args.cfa.lower() == "none" else args.cfa
     if cal is not None and cfa is not None and cfa.upper() != cal.cfa_pattern:
         raise DoeError(f"--cfa {cfa} differs from the calibration's pattern {cal.cfa_pattern}")
-    window = _pair(args.window, "--window")
-    axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
     centre = _pair(args.axis, "--axis") if args.axis else None
 
     captures, gains = [], []

@@ -8,9 +8,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from doedesign.errors import DoeError
+from doedesign.cli.common import Number
 
 log = logging.getLogger(__name__)
+
 
 def register(sub):
     p = sub.add_parser("compare", help="compare a profilometer measurement with its design",
@@ -19,35 +20,38 @@ def register(sub):
     p.add_argument("measurement", help="height map (.dat, .datx, .xyz, .asc, .npz, .npy, .tif)")
     p.add_argument("--design", required=True, help="design .npz")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--pixel-size-um", type=float, default=None,
+    p.add_argument("--pixel-size-um", type=Number(float, 0, 1e4, lo_open=True, unit="um"), default=None,
                    help="measurement pixel size (um) when the file has none or it is wrong (a starting value: "
                         "registration measures it against the DOE pitch)")
     p.add_argument("--wavelengths-nm", default="486,589,656", help="PSF wavelengths: list or start:stop:step")
-    p.add_argument("--psf-oversample", type=int, default=1,
+    p.add_argument("--psf-oversample", type=Number(int, 1, 8), default=1,
                    help="PSF samples per DOE pixel per axis: 1 is fast (about 20 s for a 1600-pixel aperture) "
                         "but averages mask slivers over whole DOE pixels; 2 resolves slivers of half a pixel "
                         "at 2-3x the time and memory")
     p.add_argument("--no-psf", action="store_true", help="skip the PSF comparison")
     p.add_argument("--no-render", action="store_true", help="skip the 3-D rendering")
+    p.add_argument("--force", action="store_true",
+                   help="compare even when the measurement matches the design poorly (wrong design or field)")
     p.set_defaults(func=run_compare)
 
 
 def run_compare(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
+    from doedesign.fileio import ensure_output_dir
     from doedesign.psf import parse_wavelengths_nm
 
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
+    ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
-    pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um else None
-    if pixel is not None and not pixel > 0:
-        raise DoeError(f"--pixel-size-um must be positive, got {args.pixel_size_um}")
+    pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel)
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design), wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm),
-                              psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render)
+                              psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render,
+                              force=args.force)
     print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
                                        "height_error_rms_nm", "render3d")}
                | {"report": str(Path(args.out) / "report.json")})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+from doedesign.cli.common import Number
 from doedesign.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -48,6 +49,6 @@ def register(sub):
     p.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
     p.add_argument("--all", action="store_true",
                    help="also design the seed's HDR streak, hyperspectral and depth elements (OUT/elements.json)")
-    p.add_argument("--iterations", type=int, default=None, help="optimizer iterations")
-    p.add_argument("--doe-px", type=int, default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
+    p.add_argument("--iterations", type=Number(int, 1, 10**6), default=None, help="optimizer iterations")
+    p.add_argument("--doe-px", type=Number(int, 16, 4096, unit="px"), default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
     p.set_defaults(func=cmd_demo)

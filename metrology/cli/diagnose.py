@@ -10,6 +10,8 @@ import dataclasses
 import logging
 from pathlib import Path
 
+from doedesign.cli.common import Number, NumberList
+
 log = logging.getLogger(__name__)
 
 
@@ -27,28 +29,33 @@ def register(subparsers):
                                                "views when two, optional depth_m and axis_pixel)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--effects", help="comma-separated candidate effects (default: all of the domain)")
-    p.add_argument("--region-px", type=int, default=40,
+    p.add_argument("--region-px", type=Number(int, 8, 4096, unit="px"), default=40,
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
-    p.add_argument("--upsample", type=int, default=5,
+    p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
                    help="model samples per design pixel per axis (height maps; default 5)")
     p.add_argument("--frame", choices=("design", "camera"), default="design",
                    help="height maps: fit on the design's model grid after resampling the data (design, "
                         "the default), or render the model into the profilometer's own pixels with blur, "
                         "pixel integration and placement fitted as nuisances (camera)")
-    p.add_argument("--window-px", type=int, default=160,
+    p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
                    help="camera pixels per side of the window diagnosed with --frame camera (default 160)")
-    p.add_argument("--depths-nm", type=lambda t: [float(v) for v in t.split(",")], default=[75, 150, 300, 600],
+    p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
+                   default=[75, 150, 300, 600],
                    help="etch depths the process was asked for, one per mask (the ideal model; "
                         "default 75,150,300,600 as in doe masks)")
-    p.add_argument("--threshold", type=float, default=10.0,
+    p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
+    p.add_argument("--force", action="store_true",
+                   help="diagnose even when the measurement matches the design poorly (wrong design or field)")
     p.set_defaults(func=run)
 
 
 def run(args):
     from doedesign.cli.common import print_json
     from doedesign.design import Design
+    from doedesign.fileio import ensure_output_dir, output_run
 
+    out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
     if args.measured and args.frame == "camera":
@@ -57,8 +64,8 @@ def run(args):
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
-    out = Path(args.out)
-    report = diag.save(out, dict(design=str(args.design), **inputs))
+    with output_run(out, "doe diagnose"):
+        report = diag.save(out, dict(design=str(args.design), **inputs))
     print_json({"report": str(out / "report.json"), "effects_found": diag.named,
                 "measurement_artefacts": report["measurement_artefacts"],
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
@@ -72,7 +79,8 @@ def _heights(design, path, args, candidates):
 
     diag, inputs = diagnose_measurement(design, read_measurement(path), region_px=args.region_px,
                                         upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
-                                        candidates=candidates, threshold=args.threshold, source=str(path))
+                                        candidates=candidates, threshold=args.threshold, source=str(path),
+                                        force=args.force)
     return diag, {"measured": str(path), **inputs}
 
 

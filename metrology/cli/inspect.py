@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from doedesign.cli.common import print_json
+from doedesign.cli.common import Number, print_json
 from doedesign.design import Design
 from metrology.formats import readers
 
@@ -49,6 +49,6 @@ def register(sub):
                                    ".asc, .csv, .npy, .npz, .tif).")
     p.add_argument("file")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--pixel-size-m", type=float, default=None,
+    p.add_argument("--pixel-size-m", type=Number(float, 0, 1e-2, lo_open=True, unit="m"), default=None,
                    help="lateral pixel size for files that do not carry one (.npy, TIFF without tags)")
     p.set_defaults(func=cmd_inspect)

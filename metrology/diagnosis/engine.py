@@ -157,14 +157,17 @@ class Diagnosis:
                 plot_breakdown(self, Path(out_dir) / "breakdown.png")]
 
     def save(self, out_dir, inputs=None):
-        """Write the figures (:meth:`plot`) and ``report.json`` (:meth:`to_dict` with ``inputs``
-        and ``plots``) into ``out_dir``; return the report."""
-        from doedesign.fileio import write_json
+        """Write the figures (:meth:`plot`), ``report.json`` (:meth:`to_dict` with ``inputs``
+        and ``plots``) and the page a person reads, ``report.md``, into ``out_dir``; return the report."""
+        from doedesign.fileio import json_ready, write_json
+
+        from metrology.report_pages import diagnose_page
 
         report = self.to_dict()
         report["inputs"] = dict(inputs or {})
         report["plots"] = [p.name for p in self.plot(out_dir)]
         write_json(Path(out_dir) / "report.json", report)
+        diagnose_page(json_ready(report), Path(out_dir))
         return report
 
 

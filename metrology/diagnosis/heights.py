@@ -233,7 +233,7 @@ def diagnose_heights(design_levels, pitch_m, measured_height_m, step_m, region=N
 
 
 def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m=None, candidates=None,
-                         threshold=DEFAULT_THRESHOLD, source="measurement"):
+                         threshold=DEFAULT_THRESHOLD, source="measurement", force=False):
     """Diagnose a profilometer measurement of a design: prepare, register, choose the window.
 
     The comparison's preparation (despiked, levelled jointly on the registered levels,
@@ -255,6 +255,8 @@ def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m
     threshold : float
     source : str
         Name of the measurement in error messages (its file).
+    force : bool
+        Diagnose even when the measurement matches the design poorly.
 
     Returns
     -------
@@ -271,7 +273,10 @@ def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m
         raise DoeError(f"--region-px must be at least 8, got {region_px}")
     if upsample < 1:
         raise DoeError(f"--upsample must be a positive integer, got {upsample}")
-    comp = compare_measurement(measurement, design)
+    try:
+        comp = compare_measurement(measurement, design, force=force)
+    except DoeError as exc:
+        raise DoeError(f"{source}: {exc}") from None
     levelled = comp.height_m
     reg = shift_registration(comp.registration, comp.edge_fit.shift_m[0], design.pitch_m)
     coverage = np.isfinite(resample_to_design(levelled, reg, upsample=1))
@@ -288,4 +293,5 @@ def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m
                             region=region, region_px=size, depths_m=depths, candidates=candidates,
                             threshold=threshold)
     return diag, {"region_design_px": list(region), "upsample": upsample,
-                  "registration_ncc": getattr(reg, "match_ncc", None), "nominal_depths_m": depths}
+                  "registration_ncc": getattr(reg, "match_ncc", None), "nominal_depths_m": depths,
+                  "match": comp.match}

@@ -28,6 +28,9 @@ class MeasurementFileError(DoeError):
 
 def read_head(path, n_bytes):
     """The first ``n_bytes`` of a measurement file; a clean error when it cannot be read."""
+    from doedesign.fileio import check_input_file
+
+    path = check_input_file(path, MeasurementFileError)  # a named pipe would block the open
     try:
         with open(path, "rb") as fh:
             return fh.read(n_bytes)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import logging
 import re
 import struct
@@ -21,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.fileio import check_input_file, load_npy, read_npz
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
+from metrology.formats.plausibility import check_claimed_pixels, check_measurement
 from metrology.formats.zygo_ascii import read_asc, read_xyz
 from metrology.formats.zygo_dat import MAGIC, read_dat
 from metrology.formats.zygo_datx import HDF5_SIGNATURE, read_datx
@@ -97,20 +100,22 @@ def read_measurement(path, format=None, pixel_size_m=None, **options):
     MeasurementFileError
         Any problem with the file; the message names it.
     """
-    path = Path(path)
+    path = check_input_file(path, MeasurementFileError)
     fmt = format or detect_format(path)
     readers = {"dat": read_dat, "datx": read_datx, "xyz": read_xyz, "asc": read_asc,
                "csv": read_profile_csv, "npy": read_array, "npz": read_array, "tiff": read_tiff}
     if fmt not in readers:
         raise MeasurementFileError(f"{path}: unknown format '{fmt}' (known: {', '.join(FORMATS)})")
     try:
-        return readers[fmt](path, pixel_size_m=pixel_size_m, **options)
+        meas = readers[fmt](path, pixel_size_m=pixel_size_m, **options)
     except MeasurementFileError:
         raise
-    except (OSError, EOFError, ValueError, TypeError, LookupError, zipfile.BadZipFile, UnicodeError,
-            struct.error) as exc:
+    except (OSError, EOFError, ValueError, TypeError, LookupError, ArithmeticError, zipfile.BadZipFile,
+            UnicodeError, struct.error, csv.Error) as exc:
         # A damaged file can fail deep inside numpy / tifffile; report it, never a traceback.
         raise MeasurementFileError(f"{path}: cannot read as {fmt}: {exc}") from None
+    # One set of physical-range rules for every format (wavelength, pixel, factors, heights).
+    return check_measurement(path, meas, pixel_overridden=pixel_size_m is not None)
 
 
 def _need_pixel(path, pixel_size_m, where):
@@ -127,32 +132,46 @@ def read_array(path, pixel_size_m=None):
     """
     path = Path(path)
     metadata = {"source_file": str(path)}
-    with open(path, "rb") as fh:
-        is_zip = fh.read(2) == b"PK"
+    is_zip = read_head(path, 2) == b"PK"
     if not is_zip:
-        height = np.load(path, allow_pickle=False)
+        height = load_npy(path, MeasurementFileError)
         metadata["format"] = "npy"
         pixel = _need_pixel(path, pixel_size_m, "a .npy file")
     else:
         metadata["format"] = "npz"
-        with np.load(path, allow_pickle=False) as npz:
-            names = npz.files
-            if "height_m" in names:
-                height = npz["height_m"]
-            elif len(names) == 1:
-                height = npz[names[0]]
+        npz = read_npz(path, (), "height map", MeasurementFileError)
+        names = list(npz)
+        if "height_m" in names:
+            height = npz["height_m"]
+        elif len(names) == 1:
+            height = npz[names[0]]
+        else:
+            raise MeasurementFileError(f"{path}: no 'height_m' array (found {', '.join(names) or 'nothing'})")
+        stored = next((_scalar(path, k, npz[k]) for k in ("pixel_size_m", "pitch_m") if k in names), None)
+        if "metadata" in names:
+            try:
+                extra = json.loads(str(npz["metadata"]))
+            except json.JSONDecodeError:
+                extra = None
+            if isinstance(extra, dict):
+                metadata = {**extra, **metadata}
             else:
-                raise MeasurementFileError(f"{path}: no 'height_m' array (found {', '.join(names)})")
-            stored = next((float(npz[k]) for k in ("pixel_size_m", "pitch_m") if k in names), None)
-            if "metadata" in names:
-                try:
-                    metadata = {**json.loads(str(npz["metadata"])), **metadata}
-                except json.JSONDecodeError:
-                    log.warning("%s: 'metadata' is not JSON; ignored", path)
+                log.warning("%s: 'metadata' is not a JSON object; ignored", path)
         pixel = pixel_size_m if pixel_size_m is not None else _need_pixel(path, stored, "this .npz")
     if height.ndim != 2 or height.dtype.kind not in "fiu":
         raise MeasurementFileError(f"{path}: expected a 2-D numeric height map, got {height.dtype} {height.shape}")
     return Measurement(height, pixel, metadata)
+
+
+def _scalar(path, name, value):
+    """A stored number (a 0-d or 1-element real array) as float; refuses text, complex, arrays."""
+    value = np.asarray(value)
+    if value.size != 1 or value.dtype.kind not in "fiu":
+        raise MeasurementFileError(f"{path}: '{name}' must be one real number, got {value.dtype} {value.shape}")
+    number = float(value.reshape(-1)[0])
+    if not math.isfinite(number):
+        raise MeasurementFileError(f"{path}: '{name}' is {number}")
+    return number
 
 
 def read_tiff(path, pixel_size_m=None, z_unit_m=1.0):
@@ -168,6 +187,7 @@ def read_tiff(path, pixel_size_m=None, z_unit_m=1.0):
         if len(tif.pages) == 0:
             raise MeasurementFileError(f"{path}: the TIFF holds no image")
         page = tif.pages[0]
+        check_claimed_pixels(path, page.shape, what="the TIFF page")
         data = page.asarray()
         tags = page.tags
         stored = None

@@ -183,7 +183,7 @@ def write_datx(path, height_m, pixel_size_m, unit="MicroMeters", layout="metadat
     values[~np.isfinite(values)] = no_data
     measurement_id = "{" + str(uuid.uuid4()).upper() + "}"
     surface_id = "{" + str(uuid.uuid4()).upper() + "}"
-    with atomic_path(path, suffix=".datx") as tmp:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             if layout == "measurement_surface":
                 dset = f.create_dataset("Measurement/Surface", data=values.astype(dtype))
@@ -285,8 +285,8 @@ def write_profile_csv(path, height_m, pixel_size_m, x0_m=0.0, column="Y", header
 
 def write_npy(path, height_m):
     """Write a bare ``.npy`` height map (metres); the reader needs ``pixel_size_m`` given."""
-    with atomic_path(path, suffix=".npy") as tmp:
-        np.save(tmp, _height(height_m))
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, _height(height_m))
     return Path(path)
 
 
@@ -305,7 +305,7 @@ def write_tiff(path, height_m, pixel_size_m, z_unit_m=1.0):
 
     height = _height(height_m)
     per_cm = 0.01 / pixel_size_m
-    with atomic_path(path, suffix=".tif") as tmp:
+    with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, (height / z_unit_m).astype(np.float32), resolution=(per_cm, per_cm),
                          resolutionunit="CENTIMETER")
     return Path(path)

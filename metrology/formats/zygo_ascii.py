@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError
+from metrology.formats.plausibility import check_claimed_pixels
 from metrology.formats.zygo_dat import PHASE_RES_COUNTS, counts_to_height, height_step_m, unix_to_iso
 
 __all__ = ["NO_DATA", "TITLE_ASC", "TITLE_XYZ", "header_lines", "parse_header", "read_asc", "read_xyz"]
@@ -111,7 +112,7 @@ def _number(path, header, line, index, cast=float):
     fields = header[line - 1]
     try:
         return cast(float(fields[index]))
-    except (IndexError, ValueError):
+    except (IndexError, ValueError, OverflowError):  # OverflowError: int(inf)
         raise MeasurementFileError(f"{path}: header line {line} field {index + 1} is not a number: "
                                    f"{' '.join(fields)!r}") from None
 
@@ -165,7 +166,9 @@ def _pixel(path, h, pixel_size_m):
 
 
 def _read_text(path):
-    path = Path(path)
+    from doedesign.fileio import check_input_file
+
+    path = check_input_file(path, MeasurementFileError)
     try:
         return path, path.read_text(encoding="latin-1")
     except OSError as exc:
@@ -224,11 +227,28 @@ def read_xyz(path, pixel_size_m=None, z_unit_m=1e-6):
     if rows.min() < 0 or cols.min() < 0 or rows.max() >= ph or cols.max() >= pw:
         raise MeasurementFileError(f"{path}: pixel indices fall outside the phase window "
                                    f"(origin {h['phase_origin']}, {pw} x {ph})")
+    check_claimed_pixels(path, (ph, pw), listed=len(rows), what="the phase window (header line 4)")
+    flat = rows * pw + cols
+    unique, first = np.unique(flat, return_index=True)
+    if unique.size != flat.size:
+        repeated = np.setdiff1d(np.arange(flat.size), first)[0]
+        raise MeasurementFileError(f"{path}: pixel (col {cols[repeated] + h['phase_origin'][0]}, row "
+                                   f"{rows[repeated] + h['phase_origin'][1]}) is listed more than once "
+                                   f"({flat.size - unique.size} repeated lines; data line {repeated + 1})")
     height = np.full((ph, pw), np.nan)
     height[rows, cols] = xyz[:, 2] * z_unit_m
     meta = _metadata(path, "zygo_xyz", h)
     meta["z_unit_m"] = z_unit_m
     return Measurement(height, _pixel(path, h, pixel_size_m), meta)
+
+
+def _check_counts(path, counts, width):
+    """Phase counts must be integers of the int32 range (the invalid marker included)."""
+    bad = ~np.isfinite(counts) | (counts != np.round(counts)) | (np.abs(counts) > 2**31 - 1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise MeasurementFileError(f"{path}: phase count at row {i // width}, col {i % width} is {counts[i]!r}; "
+                                   f"counts are integers within the int32 range ({int(bad.sum())} bad values)")
 
 
 def read_asc(path, pixel_size_m=None, phase_res=None):
@@ -270,6 +290,7 @@ def read_asc(path, pixel_size_m=None, phase_res=None):
         phase_res = h["phase_res"]
     h["phase_res"] = phase_res
     step = height_step_m(h["intf_scale_factor"], h["obliquity_factor"], h["wavelength_m"], phase_res, path)
+    _check_counts(path, counts, pw)
     height = counts_to_height(counts.astype(np.int64).reshape(ph, pw), step, h.get("sign_flip", False))
     meta = _metadata(path, "zygo_asc", h)
     meta["height_step_m"] = step

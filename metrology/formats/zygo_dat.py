@@ -119,7 +119,11 @@ def unix_to_iso(seconds):
     """Unix seconds to an ISO 8601 UTC string (None for 0, i.e. not recorded)."""
     if not seconds:
         return None
-    return _dt.datetime.fromtimestamp(int(seconds), _dt.timezone.utc).isoformat()
+    try:
+        return _dt.datetime.fromtimestamp(int(seconds), _dt.timezone.utc).isoformat()
+    except (OverflowError, OSError, ValueError):
+        log.warning("time stamp %s is out of range; not recorded", seconds)
+        return None
 
 
 def _text(raw):

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
+from metrology.formats.plausibility import check_claimed_pixels, check_value
 
 __all__ = ["FRINGES", "HDF5_SIGNATURE", "LENGTH_UNITS_M", "NOT_HEIGHT_UNITS", "converter_parameters",
            "find_surface", "read_datx"]
@@ -41,6 +42,9 @@ LENGTH_UNITS_M = {
 FRINGES = "Fringes"
 NOT_HEIGHT_UNITS = ("NoUnits",)
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+# A No Data value at least this large marks every value at or above it (Zygo writes the type's
+# maximum); a smaller one marks only itself, so a marker below the data cannot hide valid pixels.
+NO_DATA_SENTINEL_MIN = 1e30
 
 
 def _decode(value):
@@ -142,13 +146,6 @@ def find_surface(f, path):
                                "/Measurement/Surface)")
 
 
-def _positive(path, name, value):
-    if value is None or not np.isfinite(value) or value <= 0:
-        raise MeasurementFileError(f"{path}: surface attribute '{name}' is {value}; "
-                                   "cannot convert fringes to height")
-    return float(value)
-
-
 def read_datx(path, pixel_size_m=None):
     """Read a Zygo Mx ``.datx`` height map.
 
@@ -183,8 +180,8 @@ def read_datx(path, pixel_size_m=None):
         try:
             dset, found = find_surface(f, path)
             return _read_surface(path, dset, found, pixel_size_m)
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            # h5py reports damaged chunks and undecodable filters this way.
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+            # h5py reports damaged chunks, undecodable filters and broken attribute types this way.
             raise MeasurementFileError(f"{path}: cannot read the surface data: {exc}") from None
 
 
@@ -203,15 +200,28 @@ def _read_surface(path, dset, found, pixel_size_m):
     wavelength = _attr(attrs, "Wavelength")
     scale = _attr(attrs, "Interferometric Scale Factor")
     obliquity = _attr(attrs, "Obliquity Factor", 1.0)
+    check_claimed_pixels(path, dset.shape, what=f"surface {dset.name}")
+    if dset.dtype.kind not in "fiu":
+        raise MeasurementFileError(f"{path}: surface {dset.name} holds {dset.dtype}, not numbers")
     data = dset[()].astype(np.float64, copy=False)
     no_data = _attr(attrs, "No Data")
+    if no_data is not None and not isinstance(no_data, (int, float)):
+        raise MeasurementFileError(f"{path}: surface attribute 'No Data' is {no_data!r}, not a number")
     invalid = ~np.isfinite(data)
     if no_data is not None and np.isfinite(no_data):
-        invalid |= data >= no_data
+        # The marker itself (to the stored precision), never a threshold: a marker below the data
+        # must not mark valid pixels invalid.
+        marked = np.isclose(data, no_data, rtol=1e-6, atol=0)
+        if no_data >= NO_DATA_SENTINEL_MIN:  # a sentinel at the top of the range: anything above is no data
+            marked |= data >= no_data
+        invalid |= marked
+        if marked.any():
+            log.info("%s: %d pixels hold the No Data value %g", path, int(marked.sum()), no_data)
     if unit == FRINGES:
-        factor = (_positive(path, "Interferometric Scale Factor", scale)
-                  * _positive(path, "Obliquity Factor", obliquity)
-                  * _positive(path, "Wavelength", wavelength))
+        # The physical ranges before the product: a nm value in the wavelength field must not overflow.
+        factor = (check_value(path, "Interferometric Scale Factor", scale, "intf_scale_factor")
+                  * check_value(path, "Obliquity Factor", obliquity, "obliquity_factor")
+                  * check_value(path, "Wavelength", wavelength, "wavelength_m"))
     else:
         factor = LENGTH_UNITS_M[unit]
     data *= factor

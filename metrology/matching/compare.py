@@ -16,7 +16,7 @@ design column, y up (toward decreasing design row), as in :mod:`masks.process`.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage, optimize, special, stats
@@ -492,6 +492,7 @@ class Comparison:
     model_window: tuple
     spikes_removed: int
     roughness_m: float
+    match: dict = field(default_factory=dict)
 
     def fitted_params(self):
         """:class:`ProcessParams` with the level-fit depths and the edge-fit overlay and bias."""
@@ -525,6 +526,7 @@ class Comparison:
             "edge_fit_points": e.n_points,
             "roughness_rms_nm": self.roughness_m * nm,
             "registration": self.registration.to_dict(),
+            "match": dict(self.match),
             "height_error_rms_nm": rms_design * nm,
             "height_error_interior_rms_nm": rms_inner * nm,
             "height_error_model_rms_nm": rms_model * nm,
@@ -539,7 +541,33 @@ class Comparison:
         }
 
 
-def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progress=None):
+# A correct match puts nearly every feature interior on its design level (noise and roughness are
+# a few nm, a quarter step is 19 nm); against the wrong design or field the interiors spread over
+# many levels although the registration still finds a lattice (its correlation alone does not
+# separate the cases: 0.6 for a small correct field, 0.62 for a wrong design).
+MATCH_TOLERANCE_STEPS = 0.25
+MIN_LEVEL_AGREEMENT = 0.8
+
+
+def level_agreement(height_m, labels, interior, stats, step_m):
+    """Fraction of valid feature-interior pixels within MATCH_TOLERANCE_STEPS of their level's mean."""
+    use = interior & np.isfinite(height_m) & (labels >= 0)
+    lab = labels[use]
+    means = stats.mean_m[lab]
+    ok = np.isfinite(means) & (np.abs(height_m[use] - means) <= MATCH_TOLERANCE_STEPS * step_m)
+    return float(ok.mean()) if ok.size else 0.0
+
+
+def match_quality(agreement, registration, forced=False):
+    """Match quality and confidence of a comparison (the ``match`` entry of its report)."""
+    return {"level_agreement": agreement, "tolerance_steps": MATCH_TOLERANCE_STEPS,
+            "threshold": MIN_LEVEL_AGREEMENT, "registration_ncc": float(registration.match_ncc),
+            "confidence": "high" if agreement >= MIN_LEVEL_AGREEMENT else "low", "forced": bool(forced),
+            "meaning": "fraction of feature-interior pixels within tolerance_steps level steps of their "
+                       "design level's mean height"}
+
+
+def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progress=None, force=False):
     """Level, register and compare a measurement with its design.
 
     Parameters
@@ -552,10 +580,18 @@ def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progre
         simulated for the model error map; the fits use strided samples of the whole field.
     progress : doedesign.progress.Progress, optional
         Advanced once per stage (6 stages).
+    force : bool
+        Go on when the measurement matches the design poorly (see :func:`match_quality`).
 
     Returns
     -------
     Comparison
+
+    Raises
+    ------
+    DoeError
+        The measurement matches the design poorly (wrong design, field or orientation) and
+        ``force`` is False.
     """
     from masks.decompose import binary_depths_m
 
@@ -580,6 +616,16 @@ def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progre
     joint = level_joint(h, np.where(interior, labels, -1))
     height = joint.height_m
     st = level_heights(height, labels, interior, 2 ** n_masks)
+    agreement = level_agreement(height, labels, interior, st, nominal[0])
+    match = match_quality(agreement, reg, force)
+    if match["confidence"] == "low":
+        message = (f"the measurement matches the design poorly: only {agreement:.0%} of feature interiors lie "
+                   f"within {MATCH_TOLERANCE_STEPS} level step of their design level (need "
+                   f"{MIN_LEVEL_AGREEMENT:.0%}; registration correlation {reg.match_ncc:.2f}); check the design "
+                   "file, that the field lies on the element, its orientation and the pixel size")
+        if not force:
+            raise DoeError(message + "; --force compares anyway")
+        log.warning("%s (forced)", message)
     depth_fit = fit_etch_depths(st)
     step("level heights")
     edge = fit_edges(height, levels, reg, pitch, depth_fit.depths_m, n_masks)
@@ -600,4 +646,4 @@ def compare_measurement(measurement, design, n_masks=4, model_max_px=400, progre
     return Comparison(height_m=height, labels=labels, interior=interior, registration=reg, levelling=joint,
                       stats=st, depth_fit=depth_fit, edge_fit=edge, nominal_depths_m=nominal,
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r0 + wr, c0, c0 + wc),
-                      spikes_removed=n_spikes, roughness_m=roughness)
+                      spikes_removed=n_spikes, roughness_m=roughness, match=match)

@@ -26,7 +26,7 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
-from masks.process import simulate_surface
+from masks.fabricated import fabricated_height, target_from_psf
 
 __all__ = ["DEFAULT_TARGET_FRACTION", "MIN_APERTURE_PX_COARSE_DESIGN", "PSFComparison", "compare_psf",
            "target_from_psf"]
@@ -34,9 +34,6 @@ __all__ = ["DEFAULT_TARGET_FRACTION", "MIN_APERTURE_PX_COARSE_DESIGN", "PSFCompa
 
 log = logging.getLogger(__name__)
 
-# The "target" when the design carries none: the design PSF's brightest pixels that hold this
-# share of its in-window light.
-DEFAULT_TARGET_FRACTION = 0.9
 # Apertures at least this many DOE pixels wide get the design PSF on the DOE grid (see compare_psf).
 MIN_APERTURE_PX_COARSE_DESIGN = 800
 
@@ -98,18 +95,6 @@ class PSFComparison:
         }
 
 
-def target_from_psf(psf, fraction=DEFAULT_TARGET_FRACTION):
-    """Brightest pixels of each PSF (n_wl, rows, cols) that hold ``fraction`` of its window light."""
-    out = np.zeros(psf.shape, bool)
-    for i, p in enumerate(psf):
-        flat = p.ravel()
-        order = np.argsort(flat)[::-1]
-        cum = np.cumsum(flat[order])
-        n = int(np.searchsorted(cum, fraction * cum[-1])) + 1
-        out[i].ravel()[order[:n]] = True
-    return out
-
-
 def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e-9), oversample=2,
                 target=None, progress=None):
     """Coded PSF of the design and of the design made with ``params``.
@@ -136,10 +121,8 @@ def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e
         raise DoeError(f"oversample must be a positive integer, got {oversample}")
     camera = camera or design.camera()
     levels = design_levels(design)
-    fine_measured = simulate_surface(levels, design.pitch_m, params, step_m=design.pitch_m / q).height_m
-    fine_shape = (design.shape[0] * q, design.shape[1] * q)
-    if fine_measured.shape != fine_shape:
-        raise DoeError(f"process surface shape {fine_measured.shape} differs from {fine_shape}")
+    fine_measured = fabricated_height(levels, design.pitch_m, params, q)
+    fine_shape = fine_measured.shape
     engine = PSFEngine(camera, design.pitch_m / q, fine_shape, design.material, wavelengths_m)
     # The design is piecewise constant on its own pixels, so its PSF on the DOE grid equals the one
     # on the finer grid at a quarter of the cost (q = 2), except at the circular aperture's edge,

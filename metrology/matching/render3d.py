@@ -67,8 +67,11 @@ def render_surface(height_m, pixel_size_m, path, z_exaggeration=None, max_side=2
                          scalar_bar_args={"title": "height (nm)"})
         plotter.add_text(title or f"measured surface (z x{z_exaggeration:.0f})", font_size=10)
         plotter.view_isometric()
-        with atomic_path(path, suffix=".png") as tmp:
-            plotter.screenshot(str(tmp))
+        import matplotlib.pyplot as plt
+
+        image = plotter.screenshot(return_img=True)
+        with atomic_path(path) as tmp:
+            plt.imsave(tmp, image, format="png")
         plotter.close()
     except Exception as exc:  # noqa: BLE001 - any VTK/OpenGL failure must become a report line
         log.warning("3-D rendering failed: %s", exc)

@@ -17,10 +17,11 @@ import numpy as np
 
 from doedesign.design import Design
 from doedesign.errors import DoeError
-from doedesign.fileio import write_json, write_npz
+from doedesign.fileio import ensure_output_dir, json_ready, output_run, write_json, write_npz
 from doedesign.progress import Progress
 from metrology.formats.measurement import Measurement
 from metrology.matching.compare import compare_measurement
+from metrology.report_pages import compare_page
 
 __all__ = ["write_comparison"]
 
@@ -29,7 +30,7 @@ log = logging.getLogger(__name__)
 
 def write_comparison(measurement: Measurement, design: Design, out, *, measurement_source: str = "measurement",
                      design_source: str = "design", wavelengths_m=(486e-9, 589e-9, 656e-9), psf_oversample: int = 1,
-                     psf: bool = True, render: bool = True) -> dict:
+                     psf: bool = True, render: bool = True, force: bool = False) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
@@ -46,22 +47,22 @@ def write_comparison(measurement: Measurement, design: Design, out, *, measureme
         PSF samples per DOE pixel per axis (see :func:`metrology.matching.measured_psf.compare_psf`).
     psf, render : bool
         Compare the PSFs; render the 3-D surface.
+    force : bool
+        Go on when the measurement matches the design poorly
+        (see :func:`metrology.matching.compare.match_quality`).
 
     Returns
     -------
     dict
         The report written to ``report.json``.
     """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise DoeError(f"{out}: the output must be a directory")
+    out = ensure_output_dir(out)
     with Progress(6 + (2 if psf else 0), desc="compare") as prog:
         try:
-            comp = compare_measurement(measurement, design, progress=prog)
+            comp = compare_measurement(measurement, design, progress=prog, force=force)
         except DoeError as exc:
             raise DoeError(f"{measurement_source}: {exc}") from None
         report = {"measurement": measurement_source, "design": design_source, **comp.report()}
-        out.mkdir(parents=True, exist_ok=True)
         psf_cmp = None
         if psf:
             from metrology.matching.measured_psf import compare_psf
@@ -69,20 +70,24 @@ def write_comparison(measurement: Measurement, design: Design, out, *, measureme
             psf_cmp = compare_psf(design, comp.fitted_params(), wavelengths_m=wavelengths_m,
                                   oversample=psf_oversample, progress=prog)
             report["psf"] = psf_cmp.report()
+    # The folder says INCOMPLETE until every output below is written.
+    with output_run(out, f"doe compare {measurement_source}"):
+        if psf_cmp is not None:
             write_npz(out / "psf.npz", wavelengths_m=psf_cmp.wavelengths_m, design_psf=psf_cmp.design_psf,
                       measured_psf=psf_cmp.measured_psf, target=psf_cmp.target)
-    figures = _figures(comp, measurement.pixel_size_m, psf_cmp, out)
-    if not render:
-        report["render3d"] = "skipped (--no-render)"
-    else:
-        from metrology.matching.render3d import render_surface
+        figures = _figures(comp, measurement.pixel_size_m, psf_cmp, out)
+        if not render:
+            report["render3d"] = "skipped (--no-render)"
+        else:
+            from metrology.matching.render3d import render_surface
 
-        failure = render_surface(comp.height_m, comp.registration.pixel_size_m, out / "surface3d.png")
-        report["render3d"] = failure or "surface3d.png"
-        if not failure:
-            figures.append("surface3d.png")
-    report["figures"] = figures
-    write_json(out / "report.json", report)
+            failure = render_surface(comp.height_m, comp.registration.pixel_size_m, out / "surface3d.png")
+            report["render3d"] = failure or "surface3d.png"
+            if not failure:
+                figures.append("surface3d.png")
+        report["figures"] = figures
+        write_json(out / "report.json", report)
+        compare_page(json_ready(report), out)
     return report
 
 

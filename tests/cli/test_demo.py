@@ -10,7 +10,7 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert main(["demo", "--quick", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     steps = [s["step"] for s in report["timings"]]
-    assert len(steps) == 6 and all(s["seconds"] > 0 for s in report["timings"])
+    assert len(steps) == 7 and all(s["seconds"] > 0 for s in report["timings"])
     assert report["masks"]["verification"]["passed"]
     assert (out / "masks" / "bayer_demo.gds").stat().st_size > 0
     assert (out / "measurement.datx").exists()
@@ -27,6 +27,22 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert steps[0]["residual_rms_after"] < 0.75 * report["diagnosis"]["initial_residual_rms"]
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
+    # A page a person reads: summary first, tables with units, verdicts in words, no raw JSON.
+    lines = [line for line in text.splitlines() if line]
+    assert lines[1] == "## Summary" and lines[2].startswith("- **Designed**")
+    assert "**What went wrong**" in text and "**How sure**" in text and "mask 3 overlay dx" in text
+    assert "| mask | nominal depth (nm) | measured depth (nm) |" in text
+    assert "| colour | wavelength (nm) |" in text and "| step | effect |" in text
+    assert "```" not in text and "{" not in text and "[report.json](report.json)" in text
+    for sub in ("compare", "diagnose"):
+        page = (out / sub / "report.md").read_text()
+        assert "## Summary" in page and "[report.json](report.json)" in page and "```" not in page
+    assert not list(out.rglob("INCOMPLETE")) and not list(out.rglob(".*.part"))
+    # The closing tolerance run: its samples, the built-in spec, a yield with its interval.
+    tol = report["tolerance"]
+    assert tol["yield"]["samples"] == 4 and "built-in default" in tol["spec"]
+    assert 0 <= tol["yield"]["ci95"][0] <= tol["yield"]["fraction"] <= tol["yield"]["ci95"][1] <= 1
+    assert "## Tolerance" in text and (out / "tolerance" / "report.json").is_file()
     # Every JSON the demo writes is strict JSON (no NaN / Infinity).
     written = sorted(out.rglob("*.json"))
     assert {p.relative_to(out).as_posix() for p in written} >= {

@@ -93,13 +93,14 @@ def test_broken_and_foreign_files(tmp_path):
 
 
 def test_cli_inspect_design(tmp_path, capsys):
-    d = Design(-np.arange(12.0).reshape(3, 4) * 1e-8, 5.4e-6, levels=np.arange(12).reshape(3, 4),
+    step = Design(np.zeros((1, 1)), 5.4e-6).height_2pi_m() / 16
+    d = Design(-np.arange(12.0).reshape(3, 4) * step, 5.4e-6, levels=np.arange(12).reshape(3, 4),
                metadata={"name": "ramp"})
     d.save(tmp_path / "ramp.npz")
     assert main(["inspect", str(tmp_path / "ramp.npz"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["shape"] == [3, 4] and out["pitch_m"] == 5.4e-6
-    assert out["height_min_m"] == pytest.approx(-1.1e-7) and out["height_max_m"] == 0.0
+    assert out["height_min_m"] == pytest.approx(-11 * step) and out["height_max_m"] == 0.0
     assert out["levels"]["used"] == list(range(12))
 
 

@@ -177,7 +177,8 @@ def test_cli_design_writes_design_and_report(tmp_path, capsys):
 @pytest.mark.parametrize("argv,match", [
     (["design", "rainbow"], "built-in name"),
     (["design", "nosuch.toml"], "no such file"),
-    (["design", "bayer", "--size", "2"], "at least 8"),
+    (["design", "bayer", "--size", "2"], ">= 8"),
+    (["design", "bayer", "--size", "0"], ">= 8"),
     (["design", "bayer", "--loss", "l7"], "unknown loss term"),
 ])
 def test_cli_design_bad_input(tmp_path, capsys, argv, match):

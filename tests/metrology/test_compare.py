@@ -8,6 +8,7 @@ import pytest
 from doedesign.camera import Camera
 from doedesign.cli import main
 from doedesign.design import Design
+from doedesign.errors import DoeError
 from masks.process import ProcessParams
 from metrology.matching import compare, level, measured_psf, register
 from metrology.formats.measurement import Measurement
@@ -186,3 +187,21 @@ def test_ideal_process_gives_the_design_psf_on_the_finer_grid():
     assert np.all(res.design_on_target > 0.7)
     np.testing.assert_allclose(res.measured_on_target, res.design_on_target, rtol=2e-3)
     np.testing.assert_allclose(res.measured_psf, res.design_psf, atol=5e-3 * res.design_psf.max())
+
+
+def test_wrong_design_is_refused_unless_forced(case, tmp_path, capsys):
+    """A design that shares the lattice but not the levels still registers; the level agreement
+    of the feature interiors (not the correlation alone) says the comparison is meaningless."""
+    right = compare.compare_measurement(Measurement(case["height"], PIXEL), case["design"])
+    assert right.match["confidence"] == "high" and right.match["level_agreement"] > 0.95
+    levels = case["design"].levels.copy()
+    rng = np.random.default_rng(11)
+    swap = rng.random(levels.shape) < 0.3
+    levels[swap] = rng.integers(0, 16, swap.sum())
+    wrong = _design(levels)
+    with pytest.raises(DoeError, match="matches the design poorly") as exc:
+        compare.compare_measurement(Measurement(case["height"], PIXEL), wrong)
+    assert "--force" in str(exc.value)
+    forced = compare.compare_measurement(Measurement(case["height"], PIXEL), wrong, force=True)
+    assert forced.match["confidence"] == "low" and forced.match["forced"]
+    assert forced.match["level_agreement"] < 0.8

@@ -128,7 +128,7 @@ def test_load_frame_formats(tmp_path):
     np.save(tmp_path / "f.npy", a)
     np.testing.assert_array_equal(dp.load_frame(tmp_path / "f.tif"), a)
     np.testing.assert_array_equal(dp.load_frame(tmp_path / "f.npy"), a)
-    with pytest.raises(DoeError, match="no such frame"):
+    with pytest.raises(DoeError, match="no such file"):
         dp.load_frame(tmp_path / "missing.tif")
     np.save(tmp_path / "cube.npy", np.zeros((2, 3, 4)))
     with pytest.raises(DoeError, match="2-D"):

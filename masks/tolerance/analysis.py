@@ -1,0 +1,154 @@
+"""A whole tolerance study: nominal element, Monte Carlo samples, sensitivity, report.
+
+:func:`tolerance_analysis` is what ``doe tolerance`` and ``doe demo`` call.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from doedesign.errors import DoeError
+from doedesign.fileio import atomic_path, write_json
+from doedesign.levels import design_levels, level_step_m
+
+from ..decompose import binary_depths_m
+from .evaluate import Evaluator
+from .metrics import DIRECTIONS, metric_set
+from .report import default_thresholds, markdown, metric_summary, plot_distributions, plot_tornado, yield_summary
+from .runner import make_client, n_workers, open_store, run_jobs, run_key
+from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
+from .spec import nominal_process
+
+log = logging.getLogger(__name__)
+
+
+def design_wavelengths_depths(design, camera):
+    """Wavelengths and depths of the design's target (metadata), else 550 nm at the focus."""
+    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    wls = np.asarray(meta.get("wavelengths_nm") or [550.0], float) * 1e-9
+    depths = [math.inf if str(d).lower() == "inf" else float(d) for d in meta.get("depths_m") or []]
+    return wls, np.asarray(depths or [camera.focus_distance_m], float)
+
+
+def nominal_depths(design):
+    """Mask etch depths (m) of the design's process: binary multiples of its level step."""
+    n_levels = int(design.metadata.get("n_levels", 16))
+    n_masks = int(round(math.log2(n_levels)))
+    return binary_depths_m(level_step_m(design.material, design.design_wavelength_m, n_levels), n_masks)
+
+
+def build_evaluator(design, spec, source="design", oversample=2, process_upsample=None, wavelengths_m=None,
+                    metric_script=None):
+    """The evaluator of ``design`` under ``spec`` and the nominal (ideal element) metrics."""
+    camera = design.camera()
+    wls, depths = design_wavelengths_depths(design, camera)
+    if wavelengths_m is not None:
+        wls = np.asarray(wavelengths_m, float)
+    levels = design_levels(design, int(design.metadata.get("n_levels", 16)), source)
+    base = nominal_process(nominal_depths(design))
+    ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
+                   wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),
+                   process_upsample=process_upsample)
+    t0 = time.perf_counter()
+    ideal = {p.name: 0.0 for p in spec.params}
+    psf = ev.coded_psf(ev.height(ideal))
+    ev.metrics = metric_set(design, camera, psf, wls, depths, metric_script)
+    nominal = ev.metrics(psf)
+    return ev, nominal, time.perf_counter() - t0
+
+
+def sampling_description(ev):
+    u = ev.process_upsample or ev.oversample
+    return {"oversample": ev.oversample, "process_upsample": u,
+            "psf_grid_m": ev.pitch_m / ev.oversample, "process_grid_m": ev.pitch_m / u,
+            "wavelengths_nm": (ev.wavelengths_m * 1e9).tolist(),
+            "depths_m": [float(d) if np.isfinite(d) else "inf" for d in ev.depths_m], "views": ["coded"],
+            "description": (f"process model on the whole element at {u} samples per design pixel "
+                            f"({ev.pitch_m / u * 1e6:.3g} um), area-averaged to {ev.oversample} per pixel for the "
+                            f"PSF engine; coded view, {ev.wavelengths_m.size} wavelengths, {ev.depths_m.size} "
+                            "depth(s); sub-sample mask slivers are height-averaged (see masks/fabricated.py)")}
+
+
+def tolerance_analysis(design, spec, n_samples, out_dir, design_name="design", seed=0, scheduler="processes",
+                       workers=None, oversample=2, process_upsample=None, wavelengths_m=None, sobol_base=8,
+                       one_at_a_time=True, thresholds=None, metric_script=None):
+    """Run the study and write ``report.json``, ``report.md``, ``distributions.png``, ``tornado.png``.
+
+    Returns
+    -------
+    dict
+        The report (see ``doe tolerance --help``).
+    """
+    if n_samples < 1:
+        raise DoeError(f"--samples {n_samples}: need at least one sample")
+    if sobol_base < 0:
+        raise DoeError(f"--sobol-base {sobol_base}: must be >= 0")
+    t_start = time.perf_counter()
+    ev, nominal, t_nominal = build_evaluator(design, spec, design_name, oversample, process_upsample,
+                                             wavelengths_m, metric_script)
+    directions = {**DIRECTIONS, **ev.metrics.directions()}
+    primary = ev.metrics.primary
+    thresholds = dict(spec.thresholds, **(thresholds or {}))
+    for m in thresholds:
+        if m not in nominal:
+            raise DoeError(f"threshold on unknown metric {m!r}; this design's metrics: {', '.join(nominal)}")
+    if not thresholds:
+        thresholds = default_thresholds(primary, nominal, directions.get(primary, "higher"))
+    jobs = []
+    for k in range(n_samples):
+        values, s = spec.draw(seed, k)
+        jobs.append({"id": f"mc-{k:05d}", "kind": "mc", "index": k, "seed": s, "values": values})
+    if one_at_a_time and spec.random_params:
+        jobs += oat_jobs(spec)
+    jobs += sobol_jobs(spec, sobol_base, seed)
+    sampling = sampling_description(ev)
+    key = run_key({"design": hashlib.sha256(np.ascontiguousarray(ev.levels).tobytes()).hexdigest(),
+                   "shape": ev.levels.shape, "pitch": ev.pitch_m, "spec": spec.describe()["parameters"],
+                   "seed": seed, "sampling": sampling, "script": ev.metrics.script_source})
+    samples_dir = open_store(out_dir, key, {"design": design_name, "seed": seed})
+    t_run = time.perf_counter()
+    with make_client(scheduler, workers) as client:
+        n_threads = n_workers(client)
+        results = run_jobs(ev, jobs, samples_dir, client, seconds_per_job=t_nominal)
+    t_run = time.perf_counter() - t_run
+    mc = [results[j["id"]] for j in jobs if j["kind"] == "mc"]
+    by_name = {p.name: p for p in spec.params}
+    samples = [{"index": r["index"], "seed": r["seed"],
+                "effects": {n: by_name[n].to_report(v) for n, v in r["values"].items()},
+                "metrics": r["metrics"]} for r in mc]
+    sensitivity = {"metric": primary}
+    if one_at_a_time and spec.random_params:
+        sensitivity["one_at_a_time"] = oat_table(spec, results, primary)
+    sensitivity["sobol"] = sobol_indices(spec, results, primary, seed)
+    out = Path(out_dir)
+    report = {
+        "design": design_name,
+        "spec": spec.describe(),
+        "run": {"samples": n_samples, "seed": seed, "scheduler": scheduler, "workers": n_threads,
+                "jobs": len(jobs),
+                "seed_rule": "sample k uses numpy SeedSequence([seed, k])"},
+        "sampling": sampling,
+        "primary_metric": primary,
+        "nominal": nominal,
+        "metrics": metric_summary(samples, nominal, directions),
+        "yield": yield_summary(samples, thresholds),
+        "sensitivity": sensitivity,
+        "samples": samples,
+        "timing": {"seconds_per_sample": float(np.median([r["seconds"] for r in results.values()])),
+                   "nominal_s": t_nominal, "run_s": t_run, "total_s": time.perf_counter() - t_start},
+        "units": "effects in the unit named in each key (nm, um, urad); metrics are fractions of the light "
+                 "through the coded half-aperture unless named _px",
+    }
+    write_json(out / "report.json", report)
+    plot_distributions(samples, nominal, out / "distributions.png")
+    if sensitivity.get("one_at_a_time") and sensitivity["one_at_a_time"]["rows"]:
+        plot_tornado(sensitivity["one_at_a_time"], out / "tornado.png")
+    with atomic_path(out / "report.md") as tmp:
+        Path(tmp).write_text(markdown(report))
+    return report

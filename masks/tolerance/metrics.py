@@ -1,0 +1,200 @@
+"""Figures of merit of one sample's coded PSF, chosen by the design's target kind.
+
+Every metric is a plain float; ``DIRECTIONS`` says whether higher or lower is better. The
+PSF is the coded view's, shaped (depths, wavelengths, rows, cols), each plane the fraction
+of the light through the coded half-aperture per sensor pixel (row 0 at the top).
+
+- bayer: light on the red, green and blue target pixels (``on_target_R/G/B``), their mean
+  and minimum;
+- hyperspectral: ``first_order_efficiency`` (light on the order spots) and
+  ``zero_order_leak`` (light in the 3 x 3 pixels on the axis);
+- spots: ``efficiency``, ``spot_uniformity`` = 1 - (max - min) / (max + min) of the spot
+  energies, and ``zero_order_leak`` when no spot sits on the axis;
+- hdr-streak: ``streak_energy`` (light on the streak) and ``peak_fraction`` (brightest
+  pixel over the window light);
+- depth: ``ring_radius_px`` per depth (light-weighted mean radius) and
+  ``ring_radius_error_px`` (largest distance from the target's);
+- anything else: ``efficiency`` on the pixels holding 90 % of the nominal PSF's light.
+
+User metrics come from a Python script: every top-level function named ``metric_<name>``
+is called as ``f(psf, info)`` (``info``: ``wavelengths_m``, ``depths_m``, ``axis_pixel``)
+and must return a number; set ``f.direction = "lower"`` when lower is better.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from doedesign import targets
+from doedesign.errors import DoeError
+
+from ..fabricated import target_from_psf
+
+log = logging.getLogger(__name__)
+
+DIRECTIONS = {"peak_fraction": "lower", "zero_order_leak": "lower", "ring_radius_error_px": "lower"}
+PRIMARY = {"bayer": "on_target_mean", "hyperspectral": "first_order_efficiency", "spots": "efficiency",
+           "hdr-streak": "streak_energy", "depth": "ring_radius_error_px"}
+BAYER_CHANNELS = ("R", "G", "B")
+
+
+@dataclass
+class MetricSet:
+    """What to measure on a coded PSF; built once from the nominal PSF, shipped to workers."""
+
+    kind: str
+    wavelengths_m: np.ndarray
+    depths_m: np.ndarray
+    axis_pixel: tuple
+    target_mask: np.ndarray
+    bayer_cells: list = field(default_factory=list)
+    spot_labels: np.ndarray | None = None
+    target_radii_px: np.ndarray | None = None
+    script_source: str | None = None
+    script_name: str = "metrics script"
+
+    @property
+    def primary(self):
+        return PRIMARY.get(self.kind, "efficiency")
+
+    def __call__(self, psf):
+        psf = np.asarray(psf, float)
+        out = {}
+        plane_on = np.sum(psf * self.target_mask, axis=(-2, -1))
+        if self.kind == "bayer":
+            r0, c0 = self.axis_pixel
+            vals = [sum(psf[0, w, r0 + dr, c0 + dc] for dr, dc in cells) for w, cells in enumerate(self.bayer_cells)]
+            for name, v in zip(BAYER_CHANNELS, vals):
+                out[f"on_target_{name}"] = float(v)
+            out["on_target_mean"] = float(np.mean(vals))
+            out["on_target_min"] = float(np.min(vals))
+        elif self.kind == "hyperspectral":
+            out["first_order_efficiency"] = float(plane_on.mean())
+        elif self.kind == "hdr-streak":
+            out["streak_energy"] = float(plane_on.mean())
+            window = psf.sum(axis=(-2, -1))
+            out["peak_fraction"] = float(np.mean(psf.max(axis=(-2, -1)) / np.maximum(window, 1e-300)))
+        else:
+            out["efficiency"] = float(plane_on.mean())
+        if self.kind in ("hyperspectral", "spots") and not self._axis_in_target():
+            r0, c0 = self.axis_pixel
+            out["zero_order_leak"] = float(psf[..., r0 - 1:r0 + 2, c0 - 1:c0 + 2].sum(axis=(-2, -1)).mean())
+        if self.kind == "spots" and self.spot_labels is not None:
+            n = int(self.spot_labels.max())
+            energies = ndi.sum_labels(psf.sum(axis=(0, 1)), self.spot_labels, index=np.arange(1, n + 1))
+            hi, lo = float(np.max(energies)), float(np.min(energies))
+            out["spot_uniformity"] = 1.0 - (hi - lo) / (hi + lo) if hi + lo > 0 else 0.0
+        if self.kind == "depth":
+            radii = ring_radii_px(psf, self.axis_pixel)
+            for d, r in zip(self.depths_m, radii):
+                out[f"ring_radius_px[{d:g} m]"] = float(r)
+            out["ring_radius_error_px"] = float(np.max(np.abs(radii - self.target_radii_px)))
+        out.update(self._user_metrics(psf))
+        return out
+
+    def _axis_in_target(self):
+        r0, c0 = self.axis_pixel
+        return bool(self.target_mask[..., r0 - 1:r0 + 2, c0 - 1:c0 + 2].any())
+
+    def _user_metrics(self, psf):
+        if not self.script_source:
+            return {}
+        info = {"wavelengths_m": self.wavelengths_m, "depths_m": self.depths_m, "axis_pixel": self.axis_pixel}
+        out = {}
+        for name, fn in user_metric_functions(self.script_source, self.script_name).items():
+            try:
+                value = float(fn(psf, info))
+            except Exception as exc:  # a user function may fail in any way; name it
+                raise DoeError(f"{self.script_name}: metric_{name} failed: {type(exc).__name__}: {exc}") from None
+            if not math.isfinite(value):
+                raise DoeError(f"{self.script_name}: metric_{name} returned {value}, not a finite number")
+            out[name] = value
+        return out
+
+    def directions(self):
+        """metric -> "higher" or "lower" (is better), user metrics included."""
+        out = dict(DIRECTIONS)
+        if self.script_source:
+            for name, fn in user_metric_functions(self.script_source, self.script_name).items():
+                out[name] = getattr(fn, "direction", "higher")
+        return out
+
+
+_SCRIPTS = {}
+
+
+def user_metric_functions(source, name="metrics script"):
+    """``{name: function}`` of the ``metric_*`` functions of a script (compiled once per process)."""
+    key = (name, source)
+    if key not in _SCRIPTS:
+        namespace = {"__name__": "doe_user_metrics"}
+        try:
+            exec(compile(source, name, "exec"), namespace)
+        except Exception as exc:  # user code: report any error as a one-line DoeError
+            raise DoeError(f"{name}: cannot run the metrics script: {type(exc).__name__}: {exc}") from None
+        funcs = {k[len("metric_"):]: v for k, v in namespace.items() if k.startswith("metric_") and callable(v)}
+        if not funcs:
+            raise DoeError(f"{name}: defines no function named metric_<name>(psf, info)")
+        _SCRIPTS[key] = funcs
+    return _SCRIPTS[key]
+
+
+def ring_radii_px(psf, axis_pixel):
+    """Light-weighted mean distance (px) from the axis per depth, averaged over wavelengths."""
+    rows, cols = psf.shape[-2:]
+    rr, cc = np.mgrid[:rows, :cols]
+    radius = np.hypot(rr - axis_pixel[0], cc - axis_pixel[1])
+    total = psf.sum(axis=(-2, -1))
+    mean_r = (psf * radius).sum(axis=(-2, -1)) / np.maximum(total, 1e-300)
+    return mean_r.mean(axis=1)
+
+
+def metric_set(design, camera, nominal_psf, wavelengths_m, depths_m, script=None):
+    """The metrics for this design's target kind (from its metadata), set up on its nominal PSF."""
+    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    kind = str(meta.get("kind", "image"))
+    source = None
+    if script is not None:
+        from pathlib import Path
+
+        path = Path(script)
+        if not path.is_file():
+            raise DoeError(f"{script}: no such metrics script")
+        source = path.read_text()
+        user_metric_functions(source, str(script))
+    target_mask = _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf)
+    ms = MetricSet(kind=kind, wavelengths_m=np.asarray(wavelengths_m, float), depths_m=np.asarray(depths_m, float),
+                   axis_pixel=tuple(camera.axis_pixel), target_mask=target_mask, script_source=source,
+                   script_name=str(script) if script else "metrics script")
+    if kind == "bayer":
+        ms.bayer_cells = [[(0, 0)], [(1, 0), (0, 1)] if meta.get("rggb") else [(1, 0)], [(1, 1)]]
+    if kind == "spots":
+        ms.spot_labels = ndi.label(target_mask.any(axis=(0, 1)))[0]
+    if kind == "depth":
+        ms.target_radii_px = ring_radii_px(target_mask.astype(float), camera.axis_pixel)
+    return ms
+
+
+def _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf):
+    """The built-in target's pixels, rebuilt from the metadata; else the nominal PSF's brightest."""
+    options = {"wavelengths_m": wavelengths_m}
+    if kind != "bayer":
+        options["depths_m"] = depths_m
+    for key in ("rggb", "arms", "arm_width_px", "arm_length_px", "period_m", "orders", "spot_px",
+                "positions_px", "radii_px", "ring_width_px"):
+        if key in meta:
+            options[key] = meta[key]
+    if kind in PRIMARY:
+        try:
+            t = targets.build(kind, camera=camera, **options)
+            if t.intensity.shape == np.shape(nominal_psf):
+                return t.mask
+        except DoeError as exc:
+            log.info("target %r not rebuilt from the metadata (%s); using the nominal PSF's brightest pixels",
+                     kind, exc)
+    return target_from_psf(nominal_psf)

@@ -1,0 +1,198 @@
+"""The Markdown pages a person reads beside ``doe compare``'s and ``doe diagnose``'s report.json.
+
+Each page starts with a summary in words (what was found and how sure it is), then tables
+with units, the figures inline and a link to the JSON. The demo page
+(:func:`metrology.pipeline.markdown_report`) reuses the same sections. Built from the
+shared blocks of :mod:`doedesign.report_md`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from doedesign import report_md as md
+
+# Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
+# 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
+# efficiency, so 2 % is a process-control figure, not an optical one) and 0.1 um of overlay
+# (0.5 um on the 600 nm mask costs ~18 % efficiency, 0.1 um a few per cent).
+DEPTH_TOLERANCE_PERCENT = 2.0
+OVERLAY_TOLERANCE_UM = 0.1
+BIAS_TOLERANCE_UM = 0.1
+SIGNIFICANCE = 3.0
+
+COMPARE_FIGURES = (("surface3d.png", "measured surface (3-D)"),
+                   ("masks.png", "per-mask etch depth error, overlay and linewidth bias with 1-sigma bars"),
+                   ("error_map.png", "height error against the design and against the fitted process model"),
+                   ("levels.png", "level histogram with the fitted level means"),
+                   ("psf.png", "PSF predicted from the measured heights beside the design's"))
+DIAGNOSE_FIGURES = (("residual_steps.png", "residual map after each named effect"),
+                    ("breakdown.png", "where the residual lives (by edge distance, level, density)"))
+
+
+def _off(value, err, tolerance):
+    """True when ``value`` is beyond ``tolerance`` and beyond SIGNIFICANCE standard errors."""
+    if value is None or not math.isfinite(value):
+        return None
+    err = err if err is not None and math.isfinite(err) else 0.0
+    return abs(value) > tolerance and abs(value) > SIGNIFICANCE * err
+
+
+def _get(seq, i, j=None):
+    try:
+        v = seq[i] if j is None else seq[i][j]
+    except (IndexError, TypeError, KeyError):
+        return None
+    return v
+
+
+def compare_findings(rep):
+    """Per-mask findings of a comparison report: list of (mask, what, text) for what is off nominal."""
+    found = []
+    for j, nominal in enumerate(rep.get("etch_depths_nominal_nm") or []):
+        pct = _get(rep.get("etch_depths_error_percent"), j)
+        err_pct = (_get(rep.get("etch_depths_err_nm"), j) or 0.0) / nominal * 100 if nominal else None
+        if _off(pct, err_pct, DEPTH_TOLERANCE_PERCENT):
+            found.append((j, "etch_depth", f"mask {j} etched {md.fmt(_get(rep['etch_depths_nm'], j), 4)} nm "
+                                            f"against {md.fmt(nominal, 4)} nm ({pct:+.1f} %)"))
+        for axis, name in ((0, "dx"), (1, "dy")):
+            ov, ov_err = _get(rep.get("overlay_um"), j, axis), _get(rep.get("overlay_err_um"), j, axis)
+            if j > 0 and _off(ov, ov_err, OVERLAY_TOLERANCE_UM):
+                found.append((j, "mask_overlay", f"mask {j} overlay {name} = {md.fmt_pm(ov, ov_err, 3, 'um')}"))
+        bias, bias_err = _get(rep.get("linewidth_bias_um"), j), _get(rep.get("linewidth_bias_err_um"), j)
+        if _off(bias, bias_err, BIAS_TOLERANCE_UM):
+            found.append((j, "linewidth_bias", f"mask {j} linewidth bias {md.fmt_pm(bias, bias_err, 3, 'um')}"))
+    return found
+
+
+def match_sentence(rep):
+    """How sure the comparison is that it measured the right design, in words."""
+    match = rep.get("match") or {}
+    ncc = (rep.get("registration") or {}).get("match_ncc")
+    agreement = match.get("level_agreement")
+    text = (f"{md.fmt(100 * agreement, 3) if agreement is not None else md.MISSING} % of feature interiors sit "
+            f"within {md.fmt(match.get('tolerance_steps'))} level step of their design level "
+            f"(registration correlation {md.fmt(ncc, 3)})")
+    confident = match.get("confidence") == "high" if match else None
+    if match.get("forced") and not confident:
+        return md.verdict(False, "", f"the match is poor and the comparison was forced: {text}; the numbers "
+                                     "below may belong to another design or field")
+    return md.verdict(confident, f"the measurement matches the design: {text}", f"weak match: {text}")
+
+
+def compare_sections(rep, folder, prefix="", level=2):
+    """Markdown parts of a comparison: summary, per-mask table, PSF table, figures."""
+    h = "#" * level
+    findings = compare_findings(rep)
+    depth_ok = not any(f[1] == "etch_depth" for f in findings)
+    overlay_ok = not any(f[1] == "mask_overlay" for f in findings)
+    reg = rep.get("registration") or {}
+    parts = [f"{h} Summary",
+             f"- Match: {match_sentence(rep)}.",
+             "- Etch depths: " + md.verdict(depth_ok, f"every mask within {DEPTH_TOLERANCE_PERCENT:g} % of nominal",
+                                           "; ".join(f[2] for f in findings if f[1] == "etch_depth")) + ".",
+             "- Overlay: " + md.verdict(overlay_ok, f"every mask within {OVERLAY_TOLERANCE_UM:g} um of mask 0",
+                                       "; ".join(f[2] for f in findings if f[1] == "mask_overlay")) + ".",
+             f"- Height error against the design: {md.fmt(rep.get('height_error_rms_nm'), 3, 'nm')} rms "
+             f"(feature interiors {md.fmt(rep.get('height_error_interior_rms_nm'), 3, 'nm')}, against the fitted "
+             f"process model {md.fmt(rep.get('height_error_model_rms_nm'), 3, 'nm')}); roughness "
+             f"{md.fmt(rep.get('roughness_rms_nm'), 3, 'nm')} rms.",
+             f"- Registration: pixel {md.fmt(reg.get('pixel_size_um'), 5, 'um')}, rotation "
+             f"{md.fmt(reg.get('rotation_deg'), 3, 'deg')}, "
+             f"{'mirrored' if reg.get('flip') else 'not mirrored'}{', transposed' if reg.get('transpose') else ''}.",
+             "",
+             f"{h} Per mask (measured against nominal, ± 1 standard error)",
+             "Overlay is relative to mask 0 (x toward increasing design column, y up); bias is the growth of "
+             "every opening edge (+ = wider).", ""]
+    rows = []
+    for j, nominal in enumerate(rep.get("etch_depths_nominal_nm") or []):
+        rows.append((f"mask {j}", md.fmt(nominal, 4),
+                     md.fmt_pm(_get(rep.get("etch_depths_nm"), j), _get(rep.get("etch_depths_err_nm"), j), 4),
+                     md.fmt(_get(rep.get("etch_depths_error_percent"), j), 2),
+                     md.fmt_pm(_get(rep.get("overlay_um"), j, 0), _get(rep.get("overlay_err_um"), j, 0), 2),
+                     md.fmt_pm(_get(rep.get("overlay_um"), j, 1), _get(rep.get("overlay_err_um"), j, 1), 2),
+                     md.fmt_pm(_get(rep.get("linewidth_bias_um"), j), _get(rep.get("linewidth_bias_err_um"), j), 2),
+                     "off nominal" if any(f[0] == j for f in findings) else "nominal"))
+    parts.append(md.table(rows, ("mask", "nominal depth (nm)", "measured depth (nm)", "depth error (%)",
+                                 "overlay dx (um)", "overlay dy (um)", "linewidth bias (um)", "verdict")))
+    psf = rep.get("psf")
+    if isinstance(psf, dict) and psf.get("wavelengths_nm"):
+        parts += [f"{h} Light on target, design against the fabricated element",
+                  "Fraction of the coded half-aperture's light on the target pixels, predicted from the fitted "
+                  "process.", ""]
+        prow = [(md.fmt(wl, 4), md.fmt(d, 4), md.fmt(m, 4),
+                 md.fmt(100 * (m - d) / d if d else None, 2))
+                for wl, d, m in zip(psf["wavelengths_nm"], psf.get("design_on_target") or [],
+                                    psf.get("measured_on_target") or [])]
+        parts.append(md.table(prow, ("wavelength (nm)", "design", "fabricated", "change (%)")))
+    parts.append(f"{h} Figures")
+    parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
+    return parts
+
+
+def _param_text(name, value, err, unit):
+    if unit == "m" and value is not None:
+        scale, shown = (1e9, "nm") if abs(value) < 1e-6 else (1e6, "um")
+        return f"{name.removesuffix('_m')} {md.fmt_pm(value * scale, None if err is None else err * scale, 3, shown)}"
+    return f"{name} {md.fmt_pm(value, err, 3, unit)}".rstrip()
+
+
+def diagnose_sections(rep, folder, prefix="", level=2):
+    """Markdown parts of a diagnosis: summary in words, the steps with the shrinking residual, figures."""
+    h = "#" * level
+    unit_scale, unit = (1e9, "nm") if rep.get("units") == "m" else (1.0, rep.get("units") or "")
+    named = [e for e in rep.get("effects_found") or [] if e not in (rep.get("measurement_artefacts") or [])]
+    initial, final, floor = (rep.get(k) for k in ("initial_residual_rms", "final_residual_rms", "noise_floor"))
+
+    def r(v, with_unit=True):
+        return md.fmt(v * unit_scale if isinstance(v, (int, float)) else None, 3, unit if with_unit else "")
+
+    explained = not rep.get("unexplained")
+    parts = [f"{h} Summary",
+             f"- Fabrication effects named: {', '.join(named) if named else 'none'}; measurement artefacts: "
+             f"{', '.join(rep.get('measurement_artefacts') or []) or 'none'}.",
+             f"- Residual: {r(initial)} rms before, {r(final)} after, against a noise floor of {r(floor)}.",
+             "- " + md.verdict(explained, "the named effects explain the measurement down to the noise floor",
+                               "a structured residual remains that no candidate effect explains; treat the "
+                               "named effects as the strongest found, not the whole story") + ".",
+             "", f"{h} Steps (each added effect and how far the residual shrank)", ""]
+    rows = []
+    for i, step in enumerate(rep.get("steps") or [], 1):
+        params = step.get("params") or {}
+        errs = step.get("uncertainties") or {}
+        units = step.get("units") or {}
+        text = "; ".join(_param_text(k, v, errs.get(k), units.get(k)) for k, v in params.items())
+        rows.append((i, step.get("effect"), "artefact" if step.get("measurement_artefact") else step.get("kind"),
+                     text or md.MISSING, r(step.get("residual_rms_before"), False),
+                     r(step.get("residual_rms_after"), False),
+                     md.fmt(step.get("criterion_change"), 4)))
+    if rows:
+        parts.append(md.table(rows, ("step", "effect", "kind", "fitted parameters (± 1 s.e.)",
+                                     f"residual before ({unit})", f"residual after ({unit})",
+                                     "criterion change")))
+    else:
+        parts.append("No effect lowered the criterion: the measurement agrees with the ideal model.\n")
+    parts.append(f"{h} Figures")
+    parts += [md.figure(folder, prefix + name, caption) for name, caption in DIAGNOSE_FIGURES]
+    return parts
+
+
+def compare_page(rep, folder):
+    """The whole ``report.md`` of ``doe compare``."""
+    title = f"# Comparison of `{rep.get('measurement')}` with `{rep.get('design')}`"
+    return md.write_markdown(folder / "report.md", [title, *compare_sections(rep, folder), md.json_link()])
+
+
+def diagnose_page(rep, folder):
+    """The whole ``report.md`` of ``doe diagnose``."""
+    inputs = rep.get("inputs") or {}
+    source = inputs.get("measured") or inputs.get("measured_psf")
+    title = f"# Diagnosis of `{source}` against `{inputs.get('design')}`"
+    return md.write_markdown(folder / "report.md", [title, *diagnose_sections(rep, folder), md.json_link()])
+
+
+def mean_or_none(values):
+    vals = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
+    return float(np.mean(vals)) if vals else None

@@ -1,0 +1,369 @@
+"""Adversarial measurement and design files, built here: every case must end in a clean refusal
+(:class:`~doedesign.errors.DoeError` naming the file) or, where the data may be partly valid,
+in a measurement that says which pixels are invalid. Never a traceback, a hang, gigabytes of
+memory or a silently wrong height.
+
+The named cases assert the refusal (the message names the field or the problem); the sweep
+cases (truncations and byte corruptions of every format) assert only that the outcome is
+clean and, when accepted, physically plausible.
+"""
+
+import json
+import os
+import struct
+import zipfile
+
+import numpy as np
+import pytest
+
+from doedesign.design import Design
+from doedesign.errors import DesignFileError, DoeError
+from doedesign.fileio import MAX_INPUT_ARRAY_BYTES
+from metrology.formats import plausibility
+from metrology.formats.measurement import MeasurementFileError
+from metrology.formats.readers import read_measurement
+from metrology.formats.writers import write_datx, write_measurement
+from metrology.formats.zygo_dat import FIELDS
+
+PIXEL = 1.1e-6
+FORMATS = ("dat", "datx", "xyz", "asc", "csv", "npy", "npz", "tif")
+
+
+def _height(shape=(12, 10)):
+    rng = np.random.default_rng(1)
+    h = -rng.integers(0, 16, shape) * 74.7e-9 + rng.normal(0, 1e-9, shape)
+    h[min(2, shape[0] - 1), min(3, shape[1] - 1)] = np.nan
+    return h
+
+
+def _write(tmp_path, fmt, name="base"):
+    path = tmp_path / f"{name}.{fmt}"
+    h = _height((1, 40)) if fmt == "csv" else _height()
+    write_measurement(path, h, PIXEL)
+    return path
+
+
+def _refused(path, match, **kw):
+    with pytest.raises(MeasurementFileError) as exc:
+        read_measurement(path, **kw)
+    message = str(exc.value)
+    assert str(path) in message and "Traceback" not in message and "allow_pickle" not in message
+    assert match in message, message
+    return message
+
+
+def _edit_ascii(path, line, field, value):
+    """Replace whitespace field ``field`` (0-based) of header line ``line`` (1-based)."""
+    lines = path.read_text(encoding="latin-1").split("\n")
+    tokens = lines[line - 1].split(" ")
+    tokens[field] = value
+    lines[line - 1] = " ".join(tokens)
+    path.write_text("\n".join(lines), encoding="latin-1")
+    return path
+
+
+def _edit_dat(path, field, value):
+    raw = bytearray(path.read_bytes())
+    offset, code = FIELDS[field]
+    struct.pack_into(">" + code, raw, offset, value)
+    path.write_bytes(bytes(raw))
+    return path
+
+
+def _asc_counts(path, token):
+    """Replace the first phase count of an .asc with ``token``."""
+    lines = path.read_text(encoding="latin-1").split("\n")
+    marks = [i for i, line in enumerate(lines) if line.strip() == "#"]
+    first = marks[1] + 1  # the phase block follows the intensity block's '#'
+    lines[first] = " ".join([token] + lines[first].split(" ")[1:])
+    path.write_text("\n".join(lines), encoding="latin-1")
+    return path
+
+
+def _fake_npy_header(shape, dtype="<f8"):
+    header = {"descr": dtype, "fortran_order": False, "shape": shape}
+    buf = np.lib.format.header_data_from_array_1_0(np.zeros(1))
+    del buf
+    text = repr(header).encode("latin1")
+    pad = 64 - (10 + len(text) + 1) % 64
+    body = text + b" " * pad + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(body)) + body
+
+
+# -- named cases: (id, builder(tmp_path) -> path, expected text in the refusal) ----------------------
+def _xyz_claims(tmp_path, rows, cols):
+    path = tmp_path / "claim.xyz"
+    write_measurement(path, _height((2, 2)), PIXEL)
+    return _edit_ascii(_edit_ascii(path, 4, 2, str(cols)), 4, 3, str(rows))
+
+
+def _xyz_duplicate(tmp_path):
+    path = _write(tmp_path, "xyz")
+    lines = path.read_text(encoding="latin-1").split("\n")
+    end = lines.index("#")
+    lines[end + 2] = lines[end + 1].rsplit(" ", 1)[0] + " 0.5"  # pixel (0, 0) again
+    path.write_text("\n".join(lines), encoding="latin-1")
+    return path
+
+
+def _npz(tmp_path, **arrays):
+    path = tmp_path / "x.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+def _npz_claim(tmp_path, shape):
+    path = tmp_path / "claim.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("height_m.npy", _fake_npy_header(shape) + b"\0" * 64)
+        zf.writestr("pixel_size_m.npy", _npy_bytes(np.float64(PIXEL)))
+    return path
+
+
+def _npy_bytes(array):
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()
+
+
+def _zip_bomb(tmp_path):
+    """A small .npz whose member inflates far beyond the input limit (zeros compress ~1000:1)."""
+    path = tmp_path / "bomb.npz"
+    n = (MAX_INPUT_ARRAY_BYTES + 2**20) // 8
+    side = int(np.sqrt(n)) + 1
+    chunk = b"\0" * 2**24
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        with zf.open("height_m.npy", "w", force_zip64=True) as fh:
+            fh.write(_fake_npy_header((side, side)))
+            left = side * side * 8
+            while left > 0:
+                fh.write(chunk[:min(left, len(chunk))])
+                left -= len(chunk)
+    return path
+
+
+def _datx_chunked_claim(tmp_path):
+    import h5py
+
+    path = tmp_path / "claim.datx"
+    write_datx(path, _height(), PIXEL)
+    with h5py.File(path, "a") as f:
+        name = next(iter(f["Data/Surface"]))
+        attrs = dict(f["Data/Surface"][name].attrs)
+        del f["Data/Surface"][name]
+        big = f.create_dataset(f"Data/Surface/{name}", shape=(100000, 100000), dtype="f4", chunks=(256, 256))
+        for k, v in attrs.items():
+            big.attrs[k] = v
+    return path
+
+
+def _datx(tmp_path, **kw):
+    path = tmp_path / "x.datx"
+    write_datx(path, _height(), PIXEL, **kw)
+    return path
+
+
+def _csv_long_field(tmp_path):
+    path = tmp_path / "long.csv"
+    path.write_text("X (um),Y (um)\n0," + "1" * 200_000 + "\n1,2\n")
+    return path
+
+
+def _fifo(tmp_path, fmt):
+    path = tmp_path / f"pipe.{fmt}"
+    os.mkfifo(path)
+    return path
+
+
+NAMED = [
+    # physical plausibility of header quantities
+    ("asc wavelength in nm", lambda t: _edit_ascii(_write(t, "asc"), 8, 2, "632.8"), "wavelength_m"),
+    ("asc scale factor 3e38", lambda t: _edit_ascii(_write(t, "asc"), 8, 1, "3e38"), "intf_scale_factor"),
+    ("asc obliquity 1e9", lambda t: _edit_ascii(_write(t, "asc"), 8, 4, "1e9"), "obliquity_factor"),
+    ("asc lateral res 1e30", lambda t: _edit_ascii(_write(t, "asc"), 8, 6, "1e30"), "lateral_res_m"),
+    ("xyz lateral res 1e30", lambda t: _edit_ascii(_write(t, "xyz"), 8, 6, "1e30"), "lateral_res_m"),
+    ("xyz wavelength 632.8", lambda t: _edit_ascii(_write(t, "xyz"), 8, 2, "632.8"), "wavelength_m"),
+    ("dat wavelength 632.8", lambda t: _edit_dat(_write(t, "dat"), "wavelength_in", 632.8), "wavelength_m"),
+    ("dat scale factor 3e38", lambda t: _edit_dat(_write(t, "dat"), "intf_scale_factor", 3e38), "intf_scale_factor"),
+    ("dat lateral res 1e30", lambda t: _edit_dat(_write(t, "dat"), "lateral_res", 1e30), "lateral_res_m"),
+    ("datx wavelength 632.8 (fringes)", lambda t: _datx(t, unit="Fringes", wavelength_m=632.8), "Wavelength = 632.8"),
+    ("datx pixel 1e30", lambda t: _datx(t) if False else _datx_pixel(t, 1e30), "pixel size"),
+    ("npz heights 1e18 m", lambda t: _npz(t, height_m=np.full((4, 4), 1e18), pixel_size_m=PIXEL), "heights reach"),
+    ("npz heights in nm", lambda t: _npz(t, height_m=np.full((4, 4), -300.0), pixel_size_m=PIXEL), "heights reach"),
+    ("npz pixel 5 m", lambda t: _npz(t, height_m=np.zeros((4, 4)), pixel_size_m=5.0), "pixel size"),
+    # data that cannot be what they claim
+    ("asc count nan", lambda t: _asc_counts(_write(t, "asc"), "nan"), "phase count"),
+    ("asc count 1e30", lambda t: _asc_counts(_write(t, "asc"), "1e30"), "phase count"),
+    ("asc count fractional", lambda t: _asc_counts(_write(t, "asc"), "12.5"), "phase count"),
+    ("asc count inf", lambda t: _asc_counts(_write(t, "asc"), "inf"), "phase count"),
+    ("xyz duplicate pixel", _xyz_duplicate, "more than once"),
+    ("npz all nan", lambda t: _npz(t, height_m=np.full((4, 4), np.nan), pixel_size_m=PIXEL), "no valid pixel"),
+    # sizes claimed beyond the content
+    ("xyz 20000 x 20000 header", lambda t: _xyz_claims(t, 20000, 20000), "claims"),
+    ("xyz 100000 x 100000 header", lambda t: _xyz_claims(t, 100000, 100000), "claims"),
+    ("npy 100000 x 100000 header",
+     lambda t: (t / "c.npy").write_bytes(_fake_npy_header((100000, 100000)) + b"\0" * 64) and t / "c.npy", "claims"),
+    ("npy header longer than data",
+     lambda t: (t / "d.npy").write_bytes(_fake_npy_header((100, 100)) + b"\0" * 64) and t / "d.npy", "truncated"),
+    ("npz 100000 x 100000 member", lambda t: _npz_claim(t, (100000, 100000)), "claims"),
+    ("npz member longer than data", lambda t: _npz_claim(t, (100, 100)), "truncated"),
+    ("datx chunked 100000 x 100000", _datx_chunked_claim, "claims"),
+    # wrong types
+    ("npz object array", lambda t: _npz(t, height_m=np.array([[{"a": 1}]], dtype=object)), "objects"),
+    ("npz complex pixel", lambda t: _npz(t, height_m=np.zeros((4, 4)), pixel_size_m=np.complex128(1e-6 + 1j)),
+     "one real number"),
+    ("npz text pixel", lambda t: _npz(t, height_m=np.zeros((4, 4)), pixel_size_m="1e-6"), "one real number"),
+    ("npz text heights", lambda t: _npz(t, height_m=np.array([["a", "b"]]), pixel_size_m=PIXEL), "2-D numeric"),
+    ("asc inf in integer field", lambda t: _edit_ascii(_write(t, "asc"), 4, 2, "inf"), "not a number"),
+    ("asc nan in integer field", lambda t: _edit_ascii(_write(t, "asc"), 4, 3, "nan"), "not a number"),
+    ("csv field over the parser limit", _csv_long_field, "field"),
+    ("datx text surface", lambda t: _datx_text(t), "not numbers"),
+    # not a regular file
+    *[(f"{fmt} named pipe", lambda t, fmt=fmt: _fifo(t, fmt), "not a regular file") for fmt in FORMATS],
+    ("folder as input", lambda t: (t / "d.datx").mkdir() or t / "d.datx", "folder"),
+]
+
+
+def _datx_pixel(tmp_path, pixel):
+    path = tmp_path / "px.datx"
+    write_datx(path, _height(), pixel)
+    return path
+
+
+def _datx_text(tmp_path):
+    import h5py
+
+    path = _datx(tmp_path)
+    with h5py.File(path, "a") as f:
+        name = next(iter(f["Data/Surface"]))
+        attrs = dict(f["Data/Surface"][name].attrs)
+        del f["Data/Surface"][name]
+        d = f.create_dataset(f"Data/Surface/{name}", data=np.array([[b"a", b"b"], [b"c", b"d"]]))
+        for k, v in attrs.items():
+            d.attrs[k] = v
+    return path
+
+
+@pytest.mark.parametrize("name,build,match", NAMED, ids=[n[0] for n in NAMED])
+def test_named_case_is_refused_cleanly(tmp_path, name, build, match):
+    _refused(build(tmp_path), match)
+
+
+def test_zip_bomb_refused_before_inflating(tmp_path):
+    import tracemalloc
+
+    path = _zip_bomb(tmp_path)
+    assert path.stat().st_size < 8 * 2**20
+    tracemalloc.start()
+    _refused(path, "inflates")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50 * 2**20
+
+
+def test_datx_no_data_below_the_data_marks_only_itself(tmp_path):
+    path = _datx(tmp_path, no_data=-1.0)  # NaN written as -1 m: below every height
+    meas = read_measurement(path)
+    assert np.count_nonzero(~meas.valid) == 1 and not meas.valid[2, 3]
+
+
+def test_out_of_range_timestamp_is_dropped_not_a_traceback(tmp_path):
+    meas = read_measurement(_edit_ascii(_write(tmp_path, "asc"), 8, 7, "1e30"))
+    assert meas.metadata["timestamp"] is None
+
+
+def test_plausible_ranges_keep_every_writer_default(tmp_path):
+    """The rules refuse nothing a real file holds: every format's own export reads back."""
+    for fmt in FORMATS:
+        meas = read_measurement(_write(tmp_path, fmt), pixel_size_m=PIXEL if fmt == "npy" else None)
+        assert meas.pixel_size_m == pytest.approx(PIXEL, rel=1e-6)
+
+
+# -- sweep: truncations and byte corruptions of every format ------------------------------------------
+def _sweep_cases():
+    cases = []
+    for fmt in FORMATS:
+        for frac in (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 0.99):
+            cases.append((fmt, "truncate", frac))
+        for seed in range(6):
+            cases.append((fmt, "corrupt", seed))
+    return cases
+
+
+SWEEP = _sweep_cases()
+
+
+@pytest.mark.parametrize("fmt,kind,arg", SWEEP, ids=[f"{f}-{k}-{a}" for f, k, a in SWEEP])
+def test_damaged_file_is_refused_or_plausible(tmp_path, fmt, kind, arg):
+    path = _write(tmp_path, fmt)
+    raw = bytearray(path.read_bytes())
+    if kind == "truncate":
+        raw = raw[:int(len(raw) * arg)]
+    else:
+        rng = np.random.default_rng(arg)
+        for i in rng.integers(0, len(raw), 8):
+            raw[i] = int(rng.integers(0, 256))
+    path.write_bytes(bytes(raw))
+    try:
+        meas = read_measurement(path)
+    except DoeError as exc:
+        assert str(path) in str(exc) and "allow_pickle" not in str(exc)
+        return
+    # Accepted: it must satisfy the physical rules (they ran inside read_measurement).
+    plausibility.check_measurement(path, meas)
+
+
+# -- design files ---------------------------------------------------------------------------------------
+def _design_npz(tmp_path, **override):
+    step = Design(np.zeros((2, 2)), 5.4e-6).height_2pi_m() / 16
+    levels = np.arange(16, dtype=np.int16).reshape(4, 4)
+    fields = dict(height_m=-levels * step, pitch_m=np.float64(5.4e-6), material=np.str_("fused_silica"),
+                  design_wavelength_m=np.float64(550e-9), levels=levels,
+                  metadata=np.str_(json.dumps({"name": "d", "format_version": 1})))
+    for k, v in override.items():
+        if k.startswith("meta_"):
+            meta = json.loads(str(fields["metadata"]))
+            meta[k[5:]] = v
+            fields["metadata"] = np.str_(json.dumps(meta))
+        else:
+            fields[k] = v
+    path = tmp_path / "design.npz"
+    np.savez(path, **fields)
+    return path
+
+
+def _levels_off(tmp_path):
+    levels = np.arange(16, dtype=np.int16).reshape(4, 4)
+    bad = levels.copy()
+    bad[1, 2] = 0
+    return _design_npz(tmp_path, levels=bad)
+
+
+DESIGNS = [
+    ("name is a number", dict(meta_name=42), "name"),
+    ("name is null", dict(meta_name=None), "name"),
+    ("name too long", dict(meta_name="x" * 5000), "name"),
+    ("format_version text", dict(meta_format_version="1"), "format_version"),
+    ("format_version 1.5", dict(meta_format_version=1.5), "format_version"),
+    ("camera not an object", dict(meta_camera=[1, 2]), "camera"),
+    ("complex pitch", dict(pitch_m=np.complex128(5.4e-6 + 1j)), "pitch_m"),
+    ("text pitch", dict(pitch_m=np.str_("5.4e-6")), "pitch_m"),
+    ("material a number", dict(material=np.float64(1.0)), "material"),
+    ("levels all zero", dict(levels=np.zeros((4, 4), np.int16)), "levels contradict"),
+    ("object levels", dict(levels=np.array([[None]], dtype=object)), "objects"),
+]
+
+
+@pytest.mark.parametrize("name,override,match", DESIGNS, ids=[d[0] for d in DESIGNS])
+def test_bad_design_file_refused(tmp_path, name, override, match):
+    with pytest.raises(DesignFileError) as exc:
+        Design.load(_design_npz(tmp_path, **override))
+    assert match in str(exc.value) and "allow_pickle" not in str(exc.value)
+
+
+def test_levels_disagreeing_with_heights_name_count_and_first_pixel(tmp_path):
+    with pytest.raises(DesignFileError, match=r"at 1 pixel\(s\); first at row 1, col 2"):
+        Design.load(_levels_off(tmp_path))
+    assert Design.load(_design_npz(tmp_path)).levels[3, 3] == 15
