@@ -35,7 +35,7 @@ import gdstk
 import numpy as np
 
 from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path
+from doedesign.fileio import TEMP_SUFFIX, atomic_path
 from doedesign.progress import Progress
 
 from .decompose import masks_to_levels
@@ -574,7 +574,7 @@ def write_element_gds(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0,
     if drawn.shape[1:] != tuple(grid.shape):
         raise DoeError(f"masks shaped {drawn.shape} do not match the pixel grid {grid.shape}")
     path = Path(path)
-    skeleton_path = path.with_name(path.name + ".skeleton")
+    skeleton_path = path.with_name(path.name + ".skeleton" + TEMP_SUFFIX)
     try:
         lib.write_gds(str(skeleton_path), max_points=MAX_VERTICES)
         skeleton = skeleton_path.read_bytes()

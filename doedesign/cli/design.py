@@ -100,7 +100,7 @@ def register(subparsers):
     p.add_argument("--robust", metavar="SPEC",
                    help='robust design over process samples of this spec (TOML, a doe compare report.json, or '
                         '"default"), from the doe.perturbations entry points')
-    p.add_argument("--robust-samples", type=int, default=4, help="process samples per iteration (default 4)")
+    p.add_argument("--robust-samples", type=Number(int, 1, 1000), default=4, help="process samples per iteration (default 4)")
     p.add_argument("--robust-measure", choices=("mean", "cvar"), help="expected loss (default) or CVaR")
     p.set_defaults(func=cmd_design)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 
 TOLERANCE_HELP = """\
@@ -25,20 +26,20 @@ def register(subparsers):
                               description=TOLERANCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("design", help="design file (.npz)")
     p.add_argument("--spec", help="process spec (.toml) or a doe compare report (.json); default built in")
-    p.add_argument("--samples", type=int, default=200, help="Monte Carlo samples (default 200)")
+    p.add_argument("--samples", type=Number(int, 1, 1_000_000), default=200, help="Monte Carlo samples (default 200)")
     p.add_argument("--out", required=True, help="output folder (resumed when it holds this run)")
-    p.add_argument("--seed", type=int, default=0, help="run seed S; sample k uses SeedSequence([S, k])")
+    p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="run seed S; sample k uses SeedSequence([S, k])")
     p.add_argument("--scheduler", default="processes",
                    help="processes (default, a LocalCluster), threads, inline (no dask) or tcp://HOST:PORT")
-    p.add_argument("--workers", type=int, help="local workers (default: the machine's cores)")
-    p.add_argument("--oversample", type=int, default=2, help="PSF samples per design pixel (default 2)")
-    p.add_argument("--process-upsample", type=int,
+    p.add_argument("--workers", type=Number(int, 1, 4096), help="local workers (default: the machine's cores)")
+    p.add_argument("--oversample", type=Number(int, 1, 16), default=2, help="PSF samples per design pixel (default 2)")
+    p.add_argument("--process-upsample", type=Number(int, 1, 64),
                    help="process-model samples per design pixel, a multiple of --oversample (default equal)")
     p.add_argument("--wavelengths", help="nm, e.g. 486,589,656 or 400:700:10 (default: the design's target)")
     p.add_argument("--threshold", action="append", default=[],
                    help="yield threshold 'metric>=value' (repeatable; default: primary metric >= 90 %% of nominal)")
     p.add_argument("--metric-script", help="Python file defining metric_<name>(psf, info) functions")
-    p.add_argument("--sobol-base", type=int, default=8,
+    p.add_argument("--sobol-base", type=Number(int, 0, 100_000), default=8,
                    help="Saltelli base N for Sobol indices (N (groups + 2) extra runs; 0 = off; default 8)")
     p.add_argument("--no-oat", action="store_true", help="skip the one-at-a-time sensitivity runs")
     p.set_defaults(func=cmd_tolerance)
