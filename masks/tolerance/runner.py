@@ -33,6 +33,14 @@ TARGET_TASK_S = 2.0
 SCHEDULERS = ("processes", "threads", "inline")
 
 
+def _lost_work_errors():
+    """The exceptions dask.distributed raises when a task's worker or inputs were lost."""
+    from distributed.client import FutureCancelledError
+    from distributed.scheduler import KilledWorker
+
+    return (FutureCancelledError, KilledWorker)
+
+
 def run_key(parts):
     """Short hash of the run's inputs (design, spec, seed, sampling)."""
     text = json.dumps(parts, sort_keys=True, default=str)
@@ -149,12 +157,28 @@ def run_jobs(evaluator, jobs, samples_dir, client=None, seconds_per_job=1.0, des
         elif todo:
             from distributed import as_completed
 
+            _LOST_WORK = _lost_work_errors()
+
             size = batch_size(seconds_per_job, len(todo), n_workers(client))
             remote = client.scatter(evaluator, broadcast=True, hash=False)
-            futures = [client.submit(evaluate_batch, remote, todo[i:i + size], pure=False)
-                       for i in range(0, len(todo), size)]
-            log.info("%d jobs in %d tasks of %d", len(todo), len(futures), size)
-            for future in as_completed(futures):
-                for result in future.result():
+            batches = {}
+            for i in range(0, len(todo), size):
+                batches[client.submit(evaluate_batch, remote, todo[i:i + size], pure=False)] = todo[i:i + size]
+            log.info("%d jobs in %d tasks of %d", len(todo), len(batches), size)
+            pending = as_completed(list(batches))
+            for future in pending:
+                batch = batches.pop(future)
+                try:
+                    results_of_batch = future.result()
+                except Exception as exc:  # a lost worker can take the scattered evaluator with it
+                    if not isinstance(exc, _LOST_WORK):
+                        raise
+                    log.warning("task lost (%s); resubmitting %d jobs", type(exc).__name__, len(batch))
+                    remote = client.scatter(evaluator, broadcast=True, hash=False)
+                    again = client.submit(evaluate_batch, remote, batch, pure=False)
+                    batches[again] = batch
+                    pending.add(again)
+                    continue
+                for result in results_of_batch:
                     keep(result)
     return results
