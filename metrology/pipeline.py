@@ -57,6 +57,7 @@ class DemoConfig:
     # chain no etch depths to measure, so it keeps the L1 loss.
     objective: str = "maxmin"
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
+    diagnose_window_px: int = 96  # camera pixels per side diagnosed in the camera's frame
 
     @classmethod
     def quick(cls):
@@ -138,8 +139,9 @@ def fabricate_and_measure(design, cfg, out):
     shape_px = int(cfg.field_px / scale)
     truth = register.Registration.from_parameters(scale, cfg.rotation_deg, (False, False, False), centre,
                                                   design.pitch_m, design.shape, (shape_px, shape_px))
+    # The camera integrates the blurred surface over each pixel's footprint.
     height = compare.process_on_measurement(design.levels, design.pitch_m, params, truth,
-                                            blur_m=cfg.instrument_blur_m, step_m=0.25e-6)
+                                            blur_m=cfg.instrument_blur_m, step_m=0.25e-6, pixel_subsamples=8)
     rows, cols = np.mgrid[:shape_px, :shape_px]
     tilt = 2e-6 * (rows - shape_px / 2) / shape_px - 1e-6 * (cols - shape_px / 2) / shape_px
     height = height + tilt + rng.normal(0, cfg.noise_m, height.shape)
@@ -160,11 +162,13 @@ def compare_step(measurement_path, design, design_path, out):
                             measurement_source=str(measurement_path), design_source=str(design_path))
 
 
-def diagnose_step(measurement_path, design, design_path, out):
-    from metrology.diagnosis import diagnose_measurement
+def diagnose_step(measurement_path, design, design_path, out, cfg):
+    """The diagnosis in the camera's frame: the model is rendered into the measured pixels."""
+    from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
-    diag, inputs = diagnose_measurement(design, read_measurement(measurement_path), source=str(measurement_path))
+    diag, inputs = diagnose_camera_measurement(design, read_measurement(measurement_path),
+                                               window_px=cfg.diagnose_window_px, source=str(measurement_path))
     return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
@@ -196,7 +200,7 @@ def run_demo(out_dir, cfg=None):
     meas_path, hidden = timings.run("fabrication and Zygo measurement (simulated)", fabricate_and_measure,
                                     design, cfg, out)
     comparison = timings.run("compare measurement with design", compare_step, meas_path, design, design_path, out)
-    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design, design_path, out)
+    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design, design_path, out, cfg)
     tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design, design_path, out, cfg)
     report = {
         "config": cfg.__dict__,
