@@ -155,20 +155,27 @@ def fabricate_and_measure(design, cfg, out):
 
 
 def compare_step(measurement_path, design, design_path, out):
+    """``doe compare`` on the measurement file; returns its report and the comparison."""
     from metrology.formats.readers import read_measurement
+    from metrology.matching.compare import compare_measurement
     from metrology.matching.report import write_comparison
 
-    return write_comparison(read_measurement(measurement_path), design, out / "compare",
-                            measurement_source=str(measurement_path), design_source=str(design_path))
+    measurement = read_measurement(measurement_path)
+    comp = compare_measurement(measurement, design)
+    report = write_comparison(measurement, design, out / "compare", measurement_source=str(measurement_path),
+                              design_source=str(design_path), comparison=comp)
+    return report, comp
 
 
-def diagnose_step(measurement_path, design, design_path, out, cfg):
-    """The diagnosis in the camera's frame: the model is rendered into the measured pixels."""
+def diagnose_step(measurement_path, design, design_path, out, cfg, comparison):
+    """The diagnosis in the camera's frame: the model is rendered into the measured pixels,
+    started from the comparison's camera-frame placement."""
     from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
     diag, inputs = diagnose_camera_measurement(design, read_measurement(measurement_path),
-                                               window_px=cfg.diagnose_window_px, source=str(measurement_path))
+                                               window_px=cfg.diagnose_window_px, source=str(measurement_path),
+                                               comparison=comparison)
     return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
@@ -199,8 +206,9 @@ def run_demo(out_dir, cfg=None):
     masks_report = timings.run("masks and GDSII (export + verification)", masks_step, design, design_path, out)
     meas_path, hidden = timings.run("fabrication and Zygo measurement (simulated)", fabricate_and_measure,
                                     design, cfg, out)
-    comparison = timings.run("compare measurement with design", compare_step, meas_path, design, design_path, out)
-    diagnosis = timings.run("diagnose", diagnose_step, meas_path, design, design_path, out, cfg)
+    comparison, comp = timings.run("compare measurement with design", compare_step, meas_path, design, design_path,
+                                   out)
+    diagnosis = timings.run("diagnose (camera frame)", diagnose_step, meas_path, design, design_path, out, cfg, comp)
     tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design, design_path, out, cfg)
     report = {
         "config": cfg.__dict__,

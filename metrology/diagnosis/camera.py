@@ -264,7 +264,7 @@ def _plane(problem, crop, model):
 
 
 def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=None, threshold=dg.DEFAULT_THRESHOLD,
-                                window_px=160, source="measurement", force=False):
+                                window_px=160, source="measurement", force=False, comparison=None):
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -283,6 +283,9 @@ def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=N
         Name of the measurement in error messages (its file).
     force : bool
         Diagnose even when the measurement matches the design poorly.
+    comparison : Comparison, optional
+        :func:`~metrology.matching.compare.compare_measurement` of the same measurement and
+        design, if already made (its camera-frame placement starts the fit).
 
     Returns
     -------
@@ -296,13 +299,16 @@ def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=N
 
     if window_px < 16:
         raise DoeError(f"--window-px must be at least 16, got {window_px}")
-    try:
-        comp = compare_measurement(measurement, design, force=force)
-    except DoeError as exc:
-        raise DoeError(f"{source}: {exc}") from None
+    comp = comparison
+    if comp is None:
+        try:
+            comp = compare_measurement(measurement, design, force=force)
+        except DoeError as exc:
+            raise DoeError(f"{source}: {exc}") from None
     depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
+    # The comparison's placement was refined in the camera's frame (same measurement model).
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m,
-                           Placement.from_registration(comp.registration), depths_m=depths, candidates=candidates,
+                           comp.instrument_fit.placement, depths_m=depths, candidates=candidates,
                            threshold=threshold, window_px=window_px)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,

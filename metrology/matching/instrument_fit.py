@@ -111,7 +111,7 @@ class _MaskMaps:
 
 
 def fit_in_camera_frame(height_m, levels, placement, pitch_m, depths0_m, overlay0_m=None, bias0_m=None,
-                        blur0_m=0.4e-6, window_px=128, passes=3):
+                        blur0_m=0.4e-6, window_px=128, passes=2):
     """Fit depths, overlay, bias, blur and placement to a camera height map in its own frame.
 
     Parameters
