@@ -202,7 +202,7 @@ class CameraHeightProblem(dg.Problem):
 
 
 def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths_m=None, candidates=None,
-                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None):
+                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None, screen=None):
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -216,6 +216,10 @@ def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths
     window_px : int
         The fit uses the camera window of this many pixels per side with the most design edges
         (cropped, not resampled).
+    screen : (ProcessParams, float), optional
+        Process and objective blur whose residual the robust rule first screens for spikes
+        (e.g. the comparison's camera-frame fit). Default: the ideal process, whose residual
+        also flags real edge signal, so the fit reruns once those pixels are re-admitted.
 
     Returns
     -------
@@ -232,8 +236,11 @@ def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths
     base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
     effects = effects_for("height", candidates)
     finite = np.isfinite(crop)
-    first = CameraHeightProblem(design_levels, pitch_m, crop, start, base, [], step_m=step_m)
-    keep = robust_valid(first.residual_map({CAMERA.name: CAMERA.start_values()}), finite)
+    screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
+    first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m)
+    camera0 = np.array(CAMERA.start_values(), float)
+    camera0[5] = screen_blur
+    keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
     diag = problem = None
     for _ in range(3):
         problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep)
@@ -307,9 +314,10 @@ def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=N
             raise DoeError(f"{source}: {exc}") from None
     depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
     # The comparison's placement was refined in the camera's frame (same measurement model).
-    diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m,
-                           comp.instrument_fit.placement, depths_m=depths, candidates=candidates,
-                           threshold=threshold, window_px=window_px)
+    fit = comp.instrument_fit
+    diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
+                           depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
+                           screen=(comp.fitted_params(), fit.blur_sigma_m))
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,
