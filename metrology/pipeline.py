@@ -57,7 +57,7 @@ class DemoConfig:
     # chain no etch depths to measure, so it keeps the L1 loss.
     objective: str = "maxmin"
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
-    diagnose_window_px: int = 96  # camera pixels per side diagnosed in the camera's frame
+    diagnose_window_px: int = 128  # camera pixels per side diagnosed in the camera's frame
 
     @classmethod
     def quick(cls):
