@@ -88,9 +88,10 @@ def _camera(design, path, args, candidates):
     from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
-    diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=[v * 1e-9 for v in args.depths_nm],
-                                               candidates=candidates, threshold=args.threshold,
-                                               window_px=args.window_px, source=str(path), force=args.force)
+    depths = [v * 1e-9 for v in args.depths_nm]
+    diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=depths, candidates=candidates,
+                                               threshold=args.threshold, window_px=args.window_px, source=str(path),
+                                               force=args.force)
     return diag, {"measured": str(path), **inputs}
 
 

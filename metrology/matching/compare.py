@@ -127,8 +127,8 @@ class Comparison:
             "spikes_removed": self.spikes_removed,
             "conventions": ("overlay (dx, dy) of each mask relative to mask 0, x toward increasing design column, "
                             "y up; linewidth bias = growth of every opening edge (+ = wider); heights z up, "
-                            "0 = unetched top; etch depths, overlay and bias from the camera-frame fit, etch_depths_levels_nm "
-                            "from the level means; level heights on the central third of features (ISO 5436-1); "
+                            "0 = unetched top; etch depths, overlay and bias from the camera-frame fit, "
+                            "etch_depths_levels_nm from the level means; level heights on the central third of features (ISO 5436-1); "
                             "roughness = pooled rms about the level means on interiors, 5-sigma outliers out (includes instrument noise)"),
         }
 
