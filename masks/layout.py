@@ -1,5 +1,5 @@
 """Everything on a die besides the element: Cr aperture, die outline, labels, alignment
-marks with verniers and etch test structures (plates of dies: :mod:`masks.plate`).
+marks with verniers, etch test structures and printed labels (plates of dies: :mod:`masks.plate`).
 
 Geometry is built in die coordinates (um, y up, die centre at 0, 0) and mirrored as a whole
 (x -> -x) when the masks are printed face down. Marks and test structures live in their
@@ -18,13 +18,16 @@ from doedesign.errors import DoeError
 from .grid import APERTURE_LAYER, DEFAULT_LAYERS, DIE_LAYER, TEXT_LAYER, UNIT_M
 from .gds_records import gds_name
 
-__all__ = ["APERTURE_SEGMENTS", "DieSettings", "VERNIER_BARS", "VERNIER_PITCH_UM", "VERNIER_STEP_UM",
-           "aperture_polygons", "die_cells", "mark_site", "marks_cell", "test_structures_cell"]
+__all__ = ["APERTURE_SEGMENTS", "DieSettings", "LABEL_GAP_UM", "LABEL_LINE_UM", "LABEL_SIZE_UM", "VERNIER_BARS",
+           "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "aperture_polygons", "die_cells", "die_labels", "mark_site", "marks_cell", "test_structures_cell"]
 
 APERTURE_SEGMENTS = 720  # chord sag 0.04 um on a 4.32 mm radius
 VERNIER_PITCH_UM = 10.0
 VERNIER_STEP_UM = 0.25  # reading resolution: main pitch minus vernier pitch
 VERNIER_BARS = 21
+LABEL_SIZE_UM = 80.0  # text height: readable by eye on the wafer
+LABEL_LINE_UM = 1.6 * LABEL_SIZE_UM  # baseline to baseline; the font's descenders stay inside
+LABEL_GAP_UM = 150.0  # from the die's top edge to the first line's baseline
 
 
 @dataclass
@@ -162,6 +165,29 @@ def marks_cell(settings, name="MARKS"):
     return cell
 
 
+def die_labels(settings: DieSettings, grid) -> list:
+    """The die's labels as polygon text that a mask writer prints, above the die square.
+
+    One line per mask, on that mask's layer (the first mask also carries the summary line),
+    each line on its own row, so no two labels overlap on the wafer and none reaches the
+    element or the die square (the element may overhang the die by up to a pixel).
+    """
+    lines = [(f"{settings.name}: {len(settings.layers)} masks, tone {settings.tone}, mirrored "
+              f"{'yes' if settings.mirrored else 'no'}, pixel {grid.pitch_um:g} um", settings.layers[0])]
+    for j, layer in enumerate(settings.layers):
+        lines.append((f"mask {j + 1}: layer {layer}/{settings.datatype} etch {settings.depths_m[j] * 1e9:.1f} nm, "
+                      f"step {settings.etch_order.index(j) + 1}", layer))
+    h = settings.die_size_m / 2 / UNIT_M
+    bottom = max(h, grid.bbox_um()[1][1]) + LABEL_GAP_UM
+    polygons = []
+    for i, (text, layer) in enumerate(lines):
+        # gdstk's font draws printable ASCII only; anything else would vanish silently
+        text = "".join(ch if " " <= ch <= "~" else "?" for ch in text)
+        polygons += gdstk.text(text, LABEL_SIZE_UM, (-h, bottom + i * LABEL_LINE_UM), layer=layer,
+                               datatype=settings.datatype)
+    return polygons
+
+
 def die_cells(lib, element, grid, settings):
     """Add aperture/outline/labels/marks cells for one die to ``lib``; return the top cell.
 
@@ -180,13 +206,7 @@ def die_cells(lib, element, grid, settings):
     top.add(gdstk.rectangle((-h, -h), (h, h), DIE_LAYER))
     if settings.clear_aperture_m:
         top.add(*aperture_polygons(settings.clear_aperture_m, settings.die_size_m))
-    texts = [f"{settings.name}: {len(settings.layers)} masks, tone {settings.tone}, "
-             f"mirrored {'yes' if settings.mirrored else 'no'}, pixel {grid.pitch_um:g} um"]
-    for j, layer in enumerate(settings.layers):
-        texts.append(f"mask {j + 1}: layer {layer}/{settings.datatype} etch "
-                     f"{settings.depths_m[j] * 1e9:.1f} nm, step {settings.etch_order.index(j) + 1}")
-    for i, t in enumerate(texts):
-        top.add(gdstk.Label(t, (-h + 50, h - 50 - 60 * i), layer=TEXT_LAYER))
+    top.add(*die_labels(settings, grid))
     extra = []
     if settings.marks:
         extra = [marks_cell(settings, gds_name(f"MARKS_{settings.name}")),
