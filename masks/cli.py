@@ -29,6 +29,9 @@ def register(subparsers):
     p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
     p.add_argument("--oasis", action="store_true", help="also write <name>.oas")
+    p.add_argument("--plate", action="store_true",
+                   help="also write <name>_plate.gds: a full 4-inch wafer of this die by array references, "
+                        "with global alignment marks")
     p.set_defaults(func=run_masks)
 
 
@@ -61,6 +64,10 @@ def run_masks(args):
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=_int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
-        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, oasis=args.oasis)
-    print_json({k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")})
+        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, oasis=args.oasis,
+        plate=args.plate)
+    summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")}
+    if args.plate:
+        summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "dies", "seconds")}
+    print_json(summary)
     return 0

@@ -18,6 +18,7 @@ from doedesign.levels import N_LEVELS, quantize_design
 
 from .decompose import binary_depths_m, levels_to_masks
 from .gds import export_masks
+from .plate import PlateDesign, export_plate
 
 __all__ = ["DIE_SIZE_M", "clear_aperture_m", "preview", "write_element"]
 
@@ -59,8 +60,11 @@ def preview(levels, masks, path, title: str) -> None:
 
 def write_element(design: Design, out, *, source: str | None = None, tone: str = "dark", mirrored: bool = False,
                   depths_m=None, layers=(1, 2, 3, 4), etch_order=None, clear_aperture=None,
-                  oasis: bool = False) -> dict:
+                  oasis: bool = False, plate: bool = False) -> dict:
     """Write ``OUT/<name>.gds`` (read back and verified), ``OUT/masks.png`` and ``OUT/report.json``.
+
+    With ``plate``, also ``OUT/<name>_plate.gds``: a full 4-inch wafer of this die placed by
+    array references, with global alignment marks (:func:`masks.plate.export_plate`).
 
     Parameters
     ----------
@@ -72,6 +76,8 @@ def write_element(design: Design, out, *, source: str | None = None, tone: str =
         The design's file name (reports and messages).
     tone, mirrored, layers, etch_order, oasis
         See :func:`masks.gds.export_masks`.
+    plate : bool
+        Also write the full-wafer plate (see above).
     depths_m : sequence of float, optional
         Etch depth per mask (default ``2**j`` level steps).
     clear_aperture : float, optional
@@ -99,6 +105,11 @@ def write_element(design: Design, out, *, source: str | None = None, tone: str =
         report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
                               tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
                               clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, oasis=oasis)
+        if plate:
+            report["plate"] = export_plate(
+                out / f"{Path(name).name or 'design'}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
+                layers=layers, tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order,
+                die_size_m=DIE_SIZE_M)
         report["design"] = source
         report["level_step_nm"] = step * 1e9
         report["quantization"] = None if quantization is None else quantization.summary()

@@ -19,7 +19,8 @@ from .grid import APERTURE_LAYER, DEFAULT_LAYERS, DIE_LAYER, TEXT_LAYER, UNIT_M
 from .gds_records import gds_name
 
 __all__ = ["APERTURE_SEGMENTS", "DieSettings", "LABEL_GAP_UM", "LABEL_LINE_UM", "LABEL_SIZE_UM", "VERNIER_BARS",
-           "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "aperture_polygons", "die_cells", "die_labels", "mark_site", "marks_cell", "test_structures_cell"]
+           "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "aperture_polygons", "die_cells", "die_labels", "mark_site",
+           "marks_cell", "test_structures_cell"]
 
 APERTURE_SEGMENTS = 720  # chord sag 0.04 um on a 4.32 mm radius
 VERNIER_PITCH_UM = 10.0
