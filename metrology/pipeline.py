@@ -86,15 +86,14 @@ def demo_camera(cfg):
 
 def design_step(cfg, camera, out):
     from doedesign import targets
-    from doedesign.cli.design import DEFAULT_INIT, DEFAULT_LOSS
     from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
 
     target = targets.bayer(camera)
     settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed,
-                                 init=DEFAULT_INIT["bayer"] if cfg.objective != "loss" else "zeros",
+                                 init=targets.DEFAULT_INIT["bayer"] if cfg.objective != "loss" else "zeros",
                                  objective=cfg.objective)
-    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(DEFAULT_LOSS["bayer"]),
+    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(targets.DEFAULT_LOSS["bayer"]),
                      settings=settings)
     run.design.metadata["name"] = "bayer_demo"
     run.design.save(out / "design.npz")

@@ -18,6 +18,7 @@ from ..errors import DoeError
 from ..fileio import ensure_output_dir, ensure_output_file, write_json
 from ..losses import LossSpec
 from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
+from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
 
 log = logging.getLogger(__name__)
 
@@ -27,13 +28,6 @@ FULL_APERTURE_PX = 1600
 # The paper's simulation: 1.8 um DOE pixels, 4500 across (8.1 mm); each 5.4 um sensor pixel is the
 # 3 x 3 pooling of 1.8 um samples, which the engine's exact pixel integral already is.
 PAPER_PITCH_M, PAPER_PX = 1.8e-6, 4500
-DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
-                "spots": "random", "image": "random"}
-# L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a
-# real sensor is still stray light; spot targets add the energy-on-target term.
-DEFAULT_LOSS = {"bayer": "l1,energy", "spots": "l1,energy"}
-# Colour sorting is judged by its weakest colour: the max-min of the per-colour energies.
-DEFAULT_OBJECTIVE = {"bayer": "maxmin"}
 
 DESIGN_HELP = """\
 TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a TOML file of
