@@ -15,7 +15,7 @@ from .. import bayer, targets
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
-from ..fileio import ensure_output_dir, ensure_output_file, write_json
+from ..fileio import ensure_output_dir, ensure_output_file, output_run, write_json
 from ..losses import LossSpec
 from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
@@ -229,9 +229,11 @@ def cmd_design(args):
     run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init,
                      perturbations=perturbations)
     out = Path(args.out)
-    run.design.save(out)
     report_path = out.parent / "report.json"
-    write_json(report_path, {"design": str(out), **run.report})
+    # The design and its report are one result: the folder says INCOMPLETE until both are written.
+    with output_run(out.parent, f"doe design {args.target}"):
+        run.design.save(out)
+        write_json(report_path, {"design": str(out), **run.report})
     from .common import print_json
 
     summary = {"design": str(out), "report": str(report_path), "target": target.name,
@@ -269,8 +271,14 @@ def quick_bayer_design(size_px=128, iterations=60, seed=0):
 
 
 def cmd_evaluate_bayer(args):
-    t0 = time.perf_counter()
     out = ensure_output_dir(args.out)
+    # table.json, fig2.png and front.png are one result: INCOMPLETE until all are written.
+    with output_run(out, "doe evaluate-bayer"):
+        return _evaluate_bayer(args, out)
+
+
+def _evaluate_bayer(args, out):
+    t0 = time.perf_counter()
     names = [n.strip() for n in args.images.split(",") if n.strip()]
     if not names:
         raise DoeError("--images: no image names given")
