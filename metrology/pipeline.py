@@ -225,6 +225,7 @@ def markdown_report(report, out):
     cont, quant = d.get("continuous") or {}, d.get("quantized") or {}
     comp, diag, masks = report.get("comparison") or {}, report.get("diagnosis") or {}, report.get("masks") or {}
     on_c, on_q = _per_colour(cont), _per_colour(quant)
+    bound = _per_colour(quant.get("bound") or cont.get("bound") or {}, "bound")
     findings = pages.compare_findings(comp)
     named = [e for e in diag.get("effects_found") or [] if e not in (diag.get("measurement_artefacts") or [])]
     depths = [layer.get("etch_depth_nm") for layer in masks.get("layers") or []]
@@ -235,7 +236,9 @@ def markdown_report(report, out):
         "## Summary",
         f"- **Designed**: a {cfg['doe_px']} x {cfg['doe_px']}-pixel (5.4 um pitch) 16-level Bayer colour-sorting "
         f"element for the left half of the 2-in-1 camera, focused at infinity; light on the R/G/B target pixels "
-        f"{colours} after quantization ({'/'.join(md.fmt(v, 2) for v in on_c)} continuous).",
+        f"{colours} after quantization ({'/'.join(md.fmt(v, 2) for v in on_c)} continuous), "
+        f"{'/'.join(md.fmt(_fraction(q, b), 2) for q, b in zip(on_q, bound))} of each colour's "
+        "single-colour bound.",
         f"- **Made**: four masks ({', '.join(md.fmt(v, 3) for v in depths)} nm) written as GDSII and "
         + ("verified pixel-exact" if verified else "**not** verified")
         + f"; the wafer was simulated with a hidden process error and measured at "
@@ -248,12 +251,17 @@ def markdown_report(report, out):
            if not diag.get("unexplained") else "a structured residual remains unexplained") + ".",
         "",
         "## Light on target per colour",
-        "Fraction of the coded half-aperture's light on each colour's target pixel (the design's figure of "
-        "merit; the design report states no bound for it). The fabricated element's PSF is compared with "
-        "the design's below, under the measurement.", "",
-        md.table([(name, md.fmt(nm, 3), md.fmt(c, 3), md.fmt(q, 3), md.fmt(100 * (q - c) / c if c else None, 2))
-                  for name, nm, c, q in zip("RGB", RGB_NM, on_c, on_q)],
-                 ("colour", "wavelength (nm)", "continuous", "16 levels", "quantization change (%)")),
+        "Energies are fractions of the coded half-aperture's light on each colour's target pixel (the "
+        "design's figure of merit). The bound is what a diffraction-limited spot of that half aperture puts "
+        "on one pixel (`doedesign.bounds`): no phase element beats it for one colour, and a router serving "
+        "three colours at once gets less. The fabricated element's PSF is compared with the design's below, "
+        "under the measurement.", "",
+        md.table([(name, md.fmt(nm, 3), md.fmt(b, 3), md.fmt(c, 3), md.fmt(_fraction(c, b), 3), md.fmt(q, 3),
+                   md.fmt(_fraction(q, b), 3), md.fmt(100 * (q - c) / c if c else None, 2))
+                  for name, nm, c, q, b in zip("RGB", RGB_NM, on_c, on_q, bound)],
+                 ("colour", "wavelength (nm)", "bound (fraction of light)", "continuous (fraction of light)",
+                  "continuous / bound", "16 levels (fraction of light)", "16 levels / bound",
+                  "quantization change (%)")),
         md.figure(out, "psf.png", "coded and uncoded PSFs of the quantized design (log scale)"),
         "## Masks",
         md.table([(f"mask {layer.get('mask')}", layer.get("layer"), md.fmt(layer.get("etch_depth_nm"), 4),
@@ -287,10 +295,17 @@ def markdown_report(report, out):
     return md.join(parts)
 
 
-def _per_colour(result):
-    """Light on the R/G/B target pixels of a design report stage (first source distance)."""
-    values = np.asarray(result.get("energy_on_target") or [[np.nan] * 3], dtype=float)
+def _per_colour(result, key="energy_on_target"):
+    """R/G/B values of ``key`` in a design report stage (first source distance): the light on the
+    target pixels, or with ``key="bound"`` in the stage's bound report, the single-colour bounds."""
+    values = np.asarray(result.get(key) or [[np.nan] * 3], dtype=float)
     return [float(v) for v in values.reshape(-1, values.shape[-1])[0]]
+
+
+def _fraction(value, bound):
+    """``value / bound``, or None when either is missing."""
+    ok = value is not None and bound is not None and np.isfinite(value) and np.isfinite(bound) and bound > 0
+    return value / bound if ok else None
 
 
 def _hidden_table(hidden, comp, diag):

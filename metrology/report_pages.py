@@ -126,7 +126,8 @@ def compare_sections(rep, folder, prefix="", level=2):
                  md.fmt(100 * (m - d) / d if d else None, 2))
                 for wl, d, m in zip(psf["wavelengths_nm"], psf.get("design_on_target") or [],
                                     psf.get("measured_on_target") or [])]
-        parts.append(md.table(prow, ("wavelength (nm)", "design", "fabricated", "change (%)")))
+        parts.append(md.table(prow, ("wavelength (nm)", "design (fraction of light)", "fabricated (fraction of light)",
+                                     "change (%)")))
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
     return parts
@@ -171,7 +172,7 @@ def diagnose_sections(rep, folder, prefix="", level=2):
     if rows:
         parts.append(md.table(rows, ("step", "effect", "kind", "fitted parameters (± 1 s.e.)",
                                      f"residual before ({unit})", f"residual after ({unit})",
-                                     "criterion change")))
+                                     "criterion change (BIC, lower is better)")))
     else:
         parts.append("No effect lowered the criterion: the measurement agrees with the ideal model.\n")
     parts.append(f"{h} Figures")
