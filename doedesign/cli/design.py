@@ -20,6 +20,9 @@ from ..losses import LossSpec
 from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
 
+__all__ = ["bayer_wavelengths", "cmd_design", "cmd_evaluate_bayer", "quick_bayer_design", "register",
+           "robust_perturbations"]
+
 log = logging.getLogger(__name__)
 
 DEFAULT_PITCH_M = 5.4e-6
@@ -53,7 +56,7 @@ Heights are written z up, 0 = unetched top, etched pixels negative; arrays row 0
 """
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("design", help="optimize a 16-level DOE for a target PSF",
                               description="Optimize a DOE height map for a target PSF with nlopt and analytic "
                                           "gradients, then quantize it to the 16 process levels.",
@@ -148,7 +151,7 @@ def _floats(text, what):
         raise DoeError(f"{what} {text!r}: give numbers separated by commas") from None
 
 
-def cmd_design(args):
+def cmd_design(args: argparse.Namespace) -> int:
     from ..psf import parse_wavelengths_nm
 
     # Refuse an unwritable result now, not after minutes of optimization.
@@ -248,7 +251,8 @@ def cmd_design(args):
     return 0
 
 
-def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavelength_m, n_levels):
+def robust_perturbations(spec: str, n_samples: int, seed: int, pitch_m: float, material: str,
+                         design_wavelength_m: float, n_levels: int) -> list:
     """Height perturbations from the first provider in the ``doe.perturbations`` entry points."""
     from importlib.metadata import entry_points
 
@@ -261,7 +265,7 @@ def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavele
                                design_wavelength_m, n_levels)
 
 
-def quick_bayer_design(size_px=128, iterations=60, seed=0):
+def quick_bayer_design(size_px: int = 128, iterations: int = 60, seed: int = 0) -> Design:
     """A small Bayer design for the study when no design file is given (reduced aperture)."""
     camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
     target = targets.bayer(camera)
@@ -270,7 +274,7 @@ def quick_bayer_design(size_px=128, iterations=60, seed=0):
     return design_doe(target, camera, DEFAULT_PITCH_M, (size_px, size_px), settings=settings).design
 
 
-def cmd_evaluate_bayer(args):
+def cmd_evaluate_bayer(args: argparse.Namespace) -> int:
     out = ensure_output_dir(args.out)
     # table.json, fig2.png and front.png are one result: INCOMPLETE until all are written.
     with output_run(out, "doe evaluate-bayer"):
@@ -356,7 +360,7 @@ def _front(design, camera, doe_info, path):
     return points
 
 
-def bayer_wavelengths(design):
+def bayer_wavelengths(design: Design) -> np.ndarray:
     """R, G, B wavelengths of a Bayer design (from its metadata, else 656/589/486 nm)."""
     target = design.metadata.get("target")
     wls = target.get("wavelengths_nm") if isinstance(target, dict) else None
