@@ -30,7 +30,8 @@ from .camera import Camera
 from .materials import get_material
 from .optimize import N_LEVELS, OptimizerSettings, design_doe
 
-__all__ = ["AXIS", "PITCH_M", "WINDOW", "depth_element", "design_seed_elements", "hyperspectral_element", "ring_radius_px", "staircase_first_order", "streak_element"]
+__all__ = ["AXIS", "PITCH_M", "WINDOW", "depth_element", "design_seed_elements", "hyperspectral_element",
+           "ring_radius_px", "staircase_first_order", "streak_element"]
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -24,10 +26,15 @@ from doedesign.design import Design
 from doedesign.fileio import atomic_path, json_ready, write_json
 from doedesign.psf import compute_psf
 
+if TYPE_CHECKING:
+    from doedesign.optimize import DesignRun
+    from doedesign.psf import PSFResult
+
 __all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
-           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo"]
+           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo", "tolerance_step"]
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 RGB_NM = (656.0, 589.0, 486.0)
 
@@ -59,7 +66,7 @@ class DemoConfig:
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
 
     @classmethod
-    def quick(cls):
+    def quick(cls) -> DemoConfig:
         return cls(doe_px=160, iterations=6, anneal_iterations=2, field_px=48, window=128, objective="loss",
                    tolerance_samples=4)
 
@@ -68,7 +75,7 @@ class DemoConfig:
 class Timings:
     steps: list = field(default_factory=list)
 
-    def run(self, name, fn, *args, **kwargs):
+    def run(self, name: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         log.info("demo: %s ...", name)
         start = time.perf_counter()
         out = fn(*args, **kwargs)
@@ -77,14 +84,14 @@ class Timings:
         return out
 
 
-def demo_camera(cfg):
+def demo_camera(cfg: DemoConfig) -> Camera:
     """Seed camera focused at infinity (the Bayer target is at optical infinity)."""
     w = cfg.window
     return Camera(aperture_diameter_m=cfg.doe_px * 5.4e-6, focus_distance_m=np.inf, window_shape=(w, w),
                   axis_pixel=(w // 2, w // 2), doe_side="left")
 
 
-def design_step(cfg, camera, out):
+def design_step(cfg: DemoConfig, camera: Camera, out: Path) -> DesignRun:
     from doedesign import targets
     from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
@@ -101,7 +108,7 @@ def design_step(cfg, camera, out):
     return run
 
 
-def psf_step(design, camera, out):
+def psf_step(design: Design, camera: Camera, out: Path) -> PSFResult:
     from doedesign.plots import psf_figure, save
 
     result = compute_psf(design, camera, wavelengths_m=np.array(RGB_NM) * 1e-9)
@@ -110,13 +117,13 @@ def psf_step(design, camera, out):
     return result
 
 
-def masks_step(design, design_path, out):
+def masks_step(design: Design, design_path: Path, out: Path) -> dict:
     from masks.element import write_element
 
     return write_element(design, out / "masks", source=str(design_path))
 
 
-def fabricate_and_measure(design, cfg, out):
+def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[Path, dict]:
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
     from metrology.diagnosis.window import busiest_window
@@ -151,7 +158,7 @@ def fabricate_and_measure(design, cfg, out):
     return path, hidden
 
 
-def compare_step(measurement_path, design, design_path, out):
+def compare_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> dict:
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
@@ -159,7 +166,7 @@ def compare_step(measurement_path, design, design_path, out):
                             measurement_source=str(measurement_path), design_source=str(design_path))
 
 
-def diagnose_step(measurement_path, design, design_path, out):
+def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> dict:
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
@@ -167,7 +174,7 @@ def diagnose_step(measurement_path, design, design_path, out):
     return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
-def tolerance_step(design, design_path, out, cfg):
+def tolerance_step(design: Design, design_path: Path, out: Path, cfg: DemoConfig) -> dict:
     """A short tolerance run of the element under the built-in spec: yield and spread of its figure."""
     from masks.tolerance.analysis import nominal_depths, tolerance_analysis
     from masks.tolerance.spec import default_spec
@@ -180,7 +187,7 @@ def tolerance_step(design, design_path, out, cfg):
             "seconds_per_sample": rep["timing"]["seconds_per_sample"]}
 
 
-def run_demo(out_dir, cfg=None):
+def run_demo(out_dir: str | Path, cfg: DemoConfig | None = None) -> dict:
     """Run the whole chain into ``out_dir`` and return the report dictionary."""
     cfg = cfg or DemoConfig()
     out = Path(out_dir)
@@ -214,7 +221,7 @@ def run_demo(out_dir, cfg=None):
     return report
 
 
-def markdown_report(report, out):
+def markdown_report(report: dict, out: Path) -> str:
     """The demo report as Markdown: a summary to read in two minutes, tables with units, the
     figures inline (paths relative to the report) and a link to report.json beside it."""
     from doedesign import report_md as md

@@ -20,6 +20,8 @@ import metrology.calibration.psfstack as ps
 
 log = logging.getLogger(__name__)
 
+__all__ = ["CAPTURE_HELP", "FRAME_SUFFIXES", "find_captures", "register", "run_crosstalk", "run_psf"]
+
 FRAME_SUFFIXES = (".tif", ".tiff", ".npy") + dp.RAW_SUFFIXES
 CAPTURE_HELP = """\
 Capture naming (a directory): for each wavelength NNN in nm, NNNnm_sum.EXT (the sum frame) and
@@ -35,7 +37,7 @@ views coded/uncoded, normalized to the uncoded view's whole-frame total), psf_ne
 ((2, H, W, C), uncoded view first), report.json, comparison.npz with --predicted, PNG plots."""
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
     cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk and measured PSF calibration")
     sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT")
 
@@ -101,7 +103,7 @@ def _pair(values, name):
 
 
 # -- crosstalk -------------------------------------------------------------------------------------------
-def run_crosstalk(args):
+def run_crosstalk(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
 
     if args.cfa.lower() == "none":
@@ -144,7 +146,7 @@ def _crosstalk_figure(cal):
 
 
 # -- PSF stacks ---------------------------------------------------------------------------------------------
-def find_captures(spec, wavelengths_m=None):
+def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None) -> tuple[np.ndarray, list, tuple | None]:
     """Capture files from a directory or list file (convention in ``CAPTURE_HELP``).
 
     Returns (wavelengths_m, [(sum_path, view_path, spectrum_path or None)], dark pair or None).
@@ -239,7 +241,7 @@ def _views_of(sum_path, view_path, args, cal, coded_name):
     return coded, uncoded
 
 
-def run_psf(args):
+def run_psf(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
 
     out = ensure_output_dir(args.out)
