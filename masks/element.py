@@ -8,6 +8,7 @@ GDS coordinates follow :mod:`masks.gds` (element centred on the die, rows toward
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +49,7 @@ LEVEL_COLOURS = np.array([[68, 1, 84], [72, 26, 108], [71, 47, 125], [65, 68, 13
 PREVIEW_PX = 360  # longest side of each panel
 
 
-def preview(levels, masks, path, title: str) -> None:
+def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str) -> None:
     """PNG of the level map and every mask (row 0 at the top, white = open/etched).
 
     Panels are scaled to at most :data:`PREVIEW_PX` pixels a side: the levels by nearest
@@ -85,9 +86,10 @@ def preview(levels, masks, path, title: str) -> None:
         sheet.save(tmp, format="PNG")
 
 
-def write_element(design: Design, out, *, source: str | None = None, tone: str = "dark", mirrored: bool = False,
-                  depths_m=None, layers=(1, 2, 3, 4), etch_order=None, clear_aperture=None,
-                  oasis: bool = False, plate: bool = False) -> dict:
+def write_element(design: Design, out: str | Path, *, source: str | None = None, tone: str = "dark",
+                  mirrored: bool = False, depths_m: Sequence[float] | None = None,
+                  layers: Sequence[int] = (1, 2, 3, 4), etch_order: Sequence[int] | None = None,
+                  clear_aperture: float | None = None, oasis: bool = False, plate: bool = False) -> dict:
     """Write ``OUT/<name>.gds`` (read back and verified), ``OUT/masks.png`` and ``OUT/report.json``.
 
     With ``plate``, also ``OUT/<name>_plate.gds``: a full 4-inch wafer of this die placed by

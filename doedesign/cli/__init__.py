@@ -12,6 +12,7 @@ command load them all, so the help lists every command. User mistakes
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from importlib.metadata import entry_points
 import logging
 import os
@@ -19,13 +20,15 @@ import sys
 
 from ..errors import DoeError
 
+__all__ = ["ENTRY_POINT_GROUP", "build_parser", "main"]
+
 ENTRY_POINT_GROUP = "doe.commands"
 
 
 log = logging.getLogger("doe")
 
 
-def build_parser(argv=None):
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     """The ``doe`` parser with every command, or only the one ``argv`` names.
 
     Parameters
@@ -48,7 +51,7 @@ def build_parser(argv=None):
     return parser
 
 
-def _files_only_backend():
+def _files_only_backend() -> None:
     """Files only, no windows: the CLI never needs an interactive matplotlib backend.
 
     Set through the environment so that a command which draws nothing never imports
@@ -60,7 +63,7 @@ def _files_only_backend():
         os.environ["MPLBACKEND"] = "Agg"
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     _files_only_backend()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
