@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 import numpy as np
@@ -10,10 +11,13 @@ from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 from doedesign.fileio import ensure_output_dir
 
+__all__ = ["register", "run_masks"]
+
 log = logging.getLogger(__name__)
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe masks`` to the root command's subparsers."""
     p = subparsers.add_parser("masks", help="quantize, decompose into binary masks, write verified GDSII",
                               description="Write DIR/<name>.gds (one layer per mask), DIR/masks.png and "
                                           "DIR/report.json; the GDS is read back and verified pixel by pixel.")
@@ -52,7 +56,8 @@ def _float_list(text, what):
     return vals
 
 
-def run_masks(args):
+def run_masks(args: argparse.Namespace) -> int:
+    """Run ``doe masks``: write the verified GDS (and plate), preview and report."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import gdstk
@@ -32,8 +33,9 @@ __all__ = ["element_cell", "export_masks"]
 log = logging.getLogger(__name__)
 
 
-def element_cell(masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                 name=ELEMENT_CELL, progress=None):
+def element_cell(masks: np.ndarray, grid: PixelGrid, layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0,
+                 tone: str = "dark", name: str = ELEMENT_CELL,
+                 progress: Progress | None = None) -> tuple[gdstk.Cell, list[dict]]:
     """Cell holding the merged pixel polygons of every mask, one layer per mask.
 
     Parameters
@@ -73,9 +75,11 @@ def element_cell(masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
     return cell, stats
 
 
-def export_masks(path, masks, pitch_m, *, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                 mirrored=False, depths_m=None, etch_order=None, name="design",
-                 clear_aperture_m=None, die_size_m=10e-3, oasis=False, marks=True):
+def export_masks(path: str | Path, masks: np.ndarray, pitch_m: float, *, layers: Sequence[int] = DEFAULT_LAYERS,
+                 datatype: int = 0, tone: str = "dark", mirrored: bool = False,
+                 depths_m: Sequence[float] | None = None, etch_order: Sequence[int] | None = None,
+                 name: str = "design", clear_aperture_m: float | None = None, die_size_m: float = 10e-3,
+                 oasis: bool = False, marks: bool = True) -> dict:
     """Write one die (element, Cr aperture, die outline, labels, marks) and verify it.
 
     Parameters

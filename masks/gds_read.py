@@ -21,7 +21,7 @@ __all__ = ["GdsBoundaries", "OASIS_MAGIC", "is_oasis", "read_boundaries", "read_
 OASIS_MAGIC = b"%SEMI-OASIS\r\n"
 
 
-def is_oasis(path):
+def is_oasis(path: str | Path) -> bool:
     """True when the file starts with the OASIS magic (by content: temporaries have no extension)."""
     try:
         with open(path, "rb") as fh:
@@ -30,7 +30,7 @@ def is_oasis(path):
         raise DoeError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def read_library(path):
+def read_library(path: str | Path) -> gdstk.Library:
     """Read a GDSII (``.gds``) or OASIS (``.oas``) file with gdstk; DoeError if unreadable."""
     path = Path(path)
     try:
@@ -60,7 +60,7 @@ class GdsBoundaries:
     cells: dict
     _words: tuple = ()  # big-endian int32 views of the file at byte offsets 0 and 2
 
-    def points(self, cell, select=None):
+    def points(self, cell: str, select: np.ndarray | None = None) -> np.ndarray:
         """Vertices (int64 (n, 2), database units) of the selected elements of ``cell``."""
         c = self.cells[cell]
         sel = np.arange(c["counts"].size) if select is None else np.asarray(select)
@@ -84,7 +84,7 @@ class GdsBoundaries:
         return out
 
 
-def read_gds_boundaries(path) -> GdsBoundaries:
+def read_gds_boundaries(path: str | Path) -> GdsBoundaries:
     """Every BOUNDARY of a GDSII file, grouped by structure, with a vectorized record reader.
 
     Candidate elements are found where a BOUNDARY header is followed by LAYER, DATATYPE, XY
@@ -178,7 +178,7 @@ def read_gds_boundaries(path) -> GdsBoundaries:
     return GdsBoundaries(dbu_m, cells, v32)
 
 
-def read_boundaries(path) -> GdsBoundaries:
+def read_boundaries(path: str | Path) -> GdsBoundaries:
     """:class:`GdsBoundaries` of a .gds (numpy reader) or .oas (gdstk) file, in 1 nm units."""
     path = Path(path)
     if not is_oasis(path):

@@ -10,16 +10,25 @@ arrays of :mod:`masks.polygons`, one mask layer at a time, and spliced into that
 
 from __future__ import annotations
 
+import os
+import tempfile
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from doedesign.errors import DoeError
 from doedesign.fileio import TEMP_SUFFIX
 
-from .grid import DEFAULT_LAYERS, ELEMENT_CELL, MAX_VERTICES, check_layers, drawn_masks
-from .polygons import mask_polygons
+from .grid import DEFAULT_LAYERS, ELEMENT_CELL, MAX_VERTICES, PixelGrid, check_layers, drawn_masks
+from .polygons import PolygonSet, mask_polygons
+
+if TYPE_CHECKING:
+    import gdstk
+
+    from doedesign.progress import Progress
 
 __all__ = ["BOUNDARY", "DATATYPE", "ENDEL", "ENDLIB", "ENDSTR", "LAYER", "STRNAME", "UNITS", "WORKERS", "XY",
            "boundary_records", "gds_name", "real8", "structure_end", "write_element_gds"]
@@ -33,7 +42,7 @@ BOUNDARY, LAYER, DATATYPE, XY, ENDEL = 0x0800, 0x0D02, 0x0E02, 0x1003, 0x1100
 STRNAME, ENDSTR, UNITS, ENDLIB = 0x0606, 0x0700, 0x0305, 0x0400
 
 
-def boundary_records(pset, grid, layer, datatype=0):
+def boundary_records(pset: PolygonSet, grid: PixelGrid, layer: int, datatype: int = 0) -> bytes:
     """GDSII BOUNDARY elements for a :class:`PolygonSet`, as one big-endian byte string.
 
     Each polygon is written as BOUNDARY, LAYER, DATATYPE, XY (its vertices in database
@@ -85,8 +94,9 @@ def structure_end(data: bytes, name: str) -> int:
     raise DoeError(f"structure {name!r} not found in the written library")
 
 
-def write_element_gds(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                      cell_name=ELEMENT_CELL, progress=None):
+def write_element_gds(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid: PixelGrid,
+                      layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0, tone: str = "dark",
+                      cell_name: str = ELEMENT_CELL, progress: Progress | None = None) -> list[dict]:
     """Write ``lib`` (holding an empty element cell) with the element's polygons streamed in.
 
     gdstk writes everything else (marks, aperture, labels, references); the element's
@@ -103,7 +113,12 @@ def write_element_gds(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0,
     if drawn.shape[1:] != tuple(grid.shape):
         raise DoeError(f"masks shaped {drawn.shape} do not match the pixel grid {grid.shape}")
     path = Path(path)
-    skeleton_path = path.with_name(path.name + ".skeleton" + TEMP_SUFFIX)
+    # Named like doedesign.fileio.atomic_path's temporaries (.NAME.<pid>-<random>.part), so a
+    # killed run's skeleton is found and removed by the next run like any other temporary.
+    fd, skeleton_name = tempfile.mkstemp(prefix=f".{path.name.lstrip('.')}.skeleton.{os.getpid()}-",
+                                         suffix=TEMP_SUFFIX, dir=path.parent)
+    os.close(fd)
+    skeleton_path = Path(skeleton_name)
     try:
         lib.write_gds(str(skeleton_path), max_points=MAX_VERTICES)
         skeleton = skeleton_path.read_bytes()
@@ -137,7 +152,7 @@ def real8(b: bytes) -> float:
     return sign * (v & ((1 << 56) - 1)) / float(1 << 56) * 16.0 ** (((v >> 56) & 0x7F) - 64)
 
 
-def gds_name(name) -> str:
+def gds_name(name: object) -> str:
     """A GDSII structure/library name: letters, digits, ``_`` and ``-``, at most 32 characters."""
     clean = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in str(name))
     return clean[:32] or "design"

@@ -18,6 +18,7 @@ the read-back check does not share code with the polygon builder.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +58,7 @@ class PixelGrid:
     mirrored: bool = False
 
     @classmethod
-    def centred(cls, shape, pitch_m, mirrored=False):
+    def centred(cls, shape: tuple[int, int], pitch_m: float, mirrored: bool = False) -> PixelGrid:
         """Grid of ``shape`` pixels of ``pitch_m`` centred on (0, 0)."""
         pitch_dbu = pitch_m / PRECISION_M
         if not (np.isfinite(pitch_dbu) and pitch_dbu >= 1):
@@ -68,16 +69,16 @@ class PixelGrid:
         return cls(tuple(int(s) for s in shape), int(round(pitch_dbu)), bool(mirrored))
 
     @property
-    def origin_dbu(self):
+    def origin_dbu(self) -> tuple[int, int]:
         """(x, y) of the top-left corner of pixel (0, 0) before mirroring, in nm."""
         rows, cols = self.shape
         return -(cols * self.pitch_dbu) // 2, (rows * self.pitch_dbu) // 2
 
     @property
-    def pitch_um(self):
+    def pitch_um(self) -> float:
         return self.pitch_dbu * PRECISION_M / UNIT_M
 
-    def to_um(self, colrow):
+    def to_um(self, colrow: np.ndarray) -> np.ndarray:
         """Pixel-corner indices ``(col, row)`` -> plate coordinates (um), float array."""
         colrow = np.asarray(colrow)
         x0, y0 = self.origin_dbu
@@ -87,19 +88,19 @@ class PixelGrid:
             x = -x
         return np.stack([x, y], axis=-1) * (PRECISION_M / UNIT_M)
 
-    def to_index(self, xy_um):
+    def to_index(self, xy_um: np.ndarray) -> np.ndarray:
         """Plate coordinates (um) -> fractional pixel-corner indices ``(col, row)``."""
         xy = np.asarray(xy_um, dtype=np.float64) * (UNIT_M / PRECISION_M)
         x0, y0 = self.origin_dbu
         x = -xy[..., 0] if self.mirrored else xy[..., 0]
         return np.stack([(x - x0) / self.pitch_dbu, (y0 - xy[..., 1]) / self.pitch_dbu], axis=-1)
 
-    def bbox_um(self):
+    def bbox_um(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((xmin, ymin), (xmax, ymax)) of the element in um."""
         corners = self.to_um(np.array([[0, 0], [self.shape[1], self.shape[0]]]))
         return tuple(corners.min(axis=0)), tuple(corners.max(axis=0))
 
-    def report(self):
+    def report(self) -> dict:
         """The ``pixel_grid`` entry of ``report.json``."""
         x0, y0 = self.origin_dbu
         x0 = -x0 if self.mirrored else x0
@@ -110,7 +111,7 @@ class PixelGrid:
                 "origin_is": "outer corner of pixel (0, 0) at the start of row 0 and column 0"}
 
 
-def drawn_masks(masks, tone="dark"):
+def drawn_masks(masks: np.ndarray, tone: str = "dark") -> np.ndarray:
     """What each layer draws: the open (etched) pixels for dark field, the rest for clear field."""
     if tone not in TONES:
         raise DoeError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
@@ -118,7 +119,7 @@ def drawn_masks(masks, tone="dark"):
     return masks if tone == "dark" else ~masks
 
 
-def check_layers(layers, n_masks) -> tuple:
+def check_layers(layers: Sequence[int], n_masks: int) -> tuple:
     """One distinct GDS layer 0..255 per mask, clear of the aperture/die/text layers."""
     layers = tuple(int(v) for v in layers)
     if len(layers) != n_masks:
@@ -132,7 +133,7 @@ def check_layers(layers, n_masks) -> tuple:
 
 
 
-def rasterize_layer(polygons, grid):
+def rasterize_layer(polygons: list[np.ndarray], grid: PixelGrid) -> tuple[np.ndarray, list[str]]:
     """Scanline fill of polygons on the pixel grid (pixel-exact Manhattan input only).
 
     Parameters
@@ -154,7 +155,7 @@ def rasterize_layer(polygons, grid):
     return rasterize_points(grid.to_index(np.concatenate(polygons)), counts, grid)
 
 
-def rasterize_points(idx, counts, grid):
+def rasterize_points(idx: np.ndarray, counts: np.ndarray, grid: PixelGrid) -> tuple[np.ndarray, list[str]]:
     """:func:`rasterize_layer` on flat arrays: ``idx`` (n, 2) (col, row) indices of the
     vertices of all polygons (float: checked to lie on the grid; integer: taken as exact),
     ``counts`` vertices per polygon."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-from .grid import APERTURE_LAYER, DEFAULT_LAYERS, DIE_LAYER, TEXT_LAYER, UNIT_M
+from .grid import APERTURE_LAYER, DEFAULT_LAYERS, DIE_LAYER, TEXT_LAYER, UNIT_M, PixelGrid
 from .gds_records import gds_name
 
 __all__ = ["APERTURE_SEGMENTS", "DieSettings", "LABEL_GAP_UM", "LABEL_LINE_UM", "LABEL_SIZE_UM", "VERNIER_BARS",
@@ -49,7 +49,8 @@ class DieSettings:
     extra: dict = field(default_factory=dict)
 
 
-def aperture_polygons(diameter_m, die_size_m, layer=APERTURE_LAYER, segments=APERTURE_SEGMENTS):
+def aperture_polygons(diameter_m: float, die_size_m: float, layer: int = APERTURE_LAYER,
+                      segments: int = APERTURE_SEGMENTS) -> list[gdstk.Polygon]:
     """Die square minus the clear circle, as 8 octant pieces of <= 199 vertices.
 
     The circle is the inscribed polygon of ``segments`` chords (vertices on the circle), so
@@ -79,7 +80,8 @@ def _stripes(x0, x1, y0, y1, open_intervals, layer, datatype, tone):
     return [gdstk.rectangle((a, y0), (b, y1), layer, datatype) for a, b in iv]
 
 
-def test_structures_cell(settings, origin_um=(0.0, 0.0), name="TEST"):
+def test_structures_cell(settings: DieSettings, origin_um: tuple[float, float] = (0.0, 0.0),
+                         name: str = "TEST") -> gdstk.Cell:
     """Per-mask binary gratings (4 periods x 2 duty cycles) and a 16-level linear grating.
 
     The binary gratings of mask j exist on mask j only: a profilometer reads d_j directly
@@ -124,7 +126,7 @@ def _runs(cols):
     return runs
 
 
-def mark_site(cell, centre, first_layer, layer, datatype=0):
+def mark_site(cell: gdstk.Cell, centre: tuple[float, float], first_layer: int, layer: int, datatype: int = 0) -> None:
     """Cross (first mask) in a box frame (mask ``layer``) plus X and Y verniers.
 
     The vernier main scale (first mask) has pitch 10 um, the one of the later mask
@@ -150,7 +152,7 @@ def mark_site(cell, centre, first_layer, layer, datatype=0):
                  gdstk.rectangle((cx - 120, yv - 2), (cx - 80 + long, yv + 2), layer, datatype))
 
 
-def marks_cell(settings, name="MARKS"):
+def marks_cell(settings: DieSettings, name: str = "MARKS") -> gdstk.Cell:
     """Alignment marks of every later mask to the first, on both sides of the die (for
     rotation), in the street outside the die square, with each mask's number as text."""
     cell = gdstk.Cell(name)
@@ -166,7 +168,7 @@ def marks_cell(settings, name="MARKS"):
     return cell
 
 
-def die_labels(settings: DieSettings, grid) -> list:
+def die_labels(settings: DieSettings, grid: PixelGrid) -> list[gdstk.Polygon]:
     """The die's labels as polygon text that a mask writer prints, above the die square.
 
     One line per mask, on that mask's layer (the first mask also carries the summary line),
@@ -189,7 +191,7 @@ def die_labels(settings: DieSettings, grid) -> list:
     return polygons
 
 
-def die_cells(lib, element, grid, settings):
+def die_cells(lib: gdstk.Library, element: gdstk.Cell, grid: PixelGrid, settings: DieSettings) -> gdstk.Cell:
     """Add aperture/outline/labels/marks cells for one die to ``lib``; return the top cell.
 
     The element cell is referenced at the die centre; all other cells are placed at the

@@ -7,6 +7,7 @@ written as one GDSII library and verified die by die: one die each of several de
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -108,9 +109,11 @@ def _plate_cell(layers, datatype, mirrored, wafer_diameter_m, plate_size_m):
     return plate
 
 
-def plate_layout(designs, *, layers=DEFAULT_LAYERS, datatype=0, tone="dark", mirrored=False,
-                 depths_m=(75e-9, 150e-9, 300e-9, 600e-9), die_size_m=10e-3, die_pitch_m=16e-3,
-                 wafer_diameter_m=WAFER_DIAMETER_M, plate_size_m=PLATE_SIZE_M):
+def plate_layout(designs: Sequence[PlateDesign], *, layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0,
+                 tone: str = "dark", mirrored: bool = False,
+                 depths_m: Sequence[float] = (75e-9, 150e-9, 300e-9, 600e-9), die_size_m: float = 10e-3,
+                 die_pitch_m: float = 16e-3, wafer_diameter_m: float = WAFER_DIAMETER_M,
+                 plate_size_m: float = PLATE_SIZE_M) -> tuple[gdstk.Library, list[dict]]:
     """Several dies on one 4-inch wafer inside a 5-inch plate frame, one layer per mask.
 
     Each mask plate is written from its own layer of the one library. Dies sit on a square
@@ -153,7 +156,8 @@ def plate_layout(designs, *, layers=DEFAULT_LAYERS, datatype=0, tone="dark", mir
     return lib, dies
 
 
-def die_sites(bbox_um, usable_radius_um, street_um=STREET_M / UNIT_M):
+def die_sites(bbox_um: Sequence[Sequence[float]], usable_radius_um: float,
+              street_um: float = STREET_M / UNIT_M) -> tuple[tuple[float, float], list[tuple]]:
     """Die origins (um) on a square lattice whose whole footprint lies inside the usable circle.
 
     Parameters
@@ -195,9 +199,12 @@ def die_sites(bbox_um, usable_radius_um, street_um=STREET_M / UNIT_M):
     return (float(px), float(py)), best
 
 
-def wafer_plate(design, *, layers=DEFAULT_LAYERS, datatype=0, tone="dark", mirrored=False,
-                depths_m=(75e-9, 150e-9, 300e-9, 600e-9), etch_order=None, die_size_m=10e-3,
-                wafer_diameter_m=WAFER_DIAMETER_M, plate_size_m=PLATE_SIZE_M):
+def wafer_plate(design: PlateDesign, *, layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0,
+                tone: str = "dark", mirrored: bool = False,
+                depths_m: Sequence[float] = (75e-9, 150e-9, 300e-9, 600e-9),
+                etch_order: Sequence[int] | None = None, die_size_m: float = 10e-3,
+                wafer_diameter_m: float = WAFER_DIAMETER_M,
+                plate_size_m: float = PLATE_SIZE_M) -> tuple[gdstk.Library, list[dict]]:
     """A full wafer of one design: its die repeated over the usable circle by array references.
 
     The element and die cells exist once; each lattice row of :func:`die_sites` is one
@@ -229,7 +236,8 @@ def wafer_plate(design, *, layers=DEFAULT_LAYERS, datatype=0, tone="dark", mirro
                   "rows": [list(r) for r in rows], "footprint_um": [list(c) for c in footprint]}]
 
 
-def write_plate(path, lib, dies, layers=DEFAULT_LAYERS, datatype=0, tone="dark"):
+def write_plate(path: str | Path, lib: gdstk.Library, dies: list[dict], layers: Sequence[int] = DEFAULT_LAYERS,
+                datatype: int = 0, tone: str = "dark") -> dict:
     """Write a plate library and verify every die's element; DoeError and no file on mismatch.
 
     A single die whose element cell is empty (``inline``, :func:`wafer_plate`) has its
@@ -254,7 +262,7 @@ def write_plate(path, lib, dies, layers=DEFAULT_LAYERS, datatype=0, tone="dark")
     return results
 
 
-def export_plate(path, design, **options) -> dict:
+def export_plate(path: str | Path, design: PlateDesign, **options: object) -> dict:
     """Write a verified full-wafer plate of one design (:func:`wafer_plate`) to ``path``.
 
     ``options`` go to :func:`wafer_plate`. Returns the ``plate`` entry of the report: the

@@ -6,8 +6,10 @@ the pixel grid (GDSII by :func:`masks.gds_read.read_gds_boundaries`, OASIS by gd
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,13 +19,19 @@ from doedesign.fileio import atomic_path
 from .decompose import masks_to_levels
 from .gds_read import read_boundaries
 from .gds_records import WORKERS, write_element_gds
-from .grid import DEFAULT_LAYERS, ELEMENT_CELL, MAX_VERTICES, PRECISION_M, UNIT_M, check_layers, rasterize_points
+from .grid import (DEFAULT_LAYERS, ELEMENT_CELL, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid, check_layers,
+                   rasterize_points)
+
+if TYPE_CHECKING:
+    import gdstk
+
+    from doedesign.progress import Progress
 
 __all__ = ["verify_file", "write_verified"]
 
 
-def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                cell_name=ELEMENT_CELL):
+def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Sequence[int] = DEFAULT_LAYERS,
+                datatype: int = 0, tone: str = "dark", cell_name: str = ELEMENT_CELL) -> dict:
     """Read an exported file back, rasterize every mask layer, recompose and compare levels.
 
     GDSII files are read by :func:`read_gds_boundaries` (numpy, written apart from the
@@ -90,8 +98,10 @@ def verify_file(path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark
             "layers": per_layer, "problems": problems}
 
 
-def write_verified(lib, path, masks, grid, layers=DEFAULT_LAYERS, datatype=0, tone="dark",
-                   cell_name=ELEMENT_CELL, element_inline=True, progress=None):
+def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid: PixelGrid,
+                   layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0, tone: str = "dark",
+                   cell_name: str = ELEMENT_CELL, element_inline: bool = True,
+                   progress: Progress | None = None) -> dict:
     """Write ``lib`` to ``path`` (.gds, or .oas for OASIS), verify, then rename into place.
 
     With ``element_inline`` (GDSII only) the element cell in ``lib`` is empty and its

@@ -344,3 +344,30 @@ def test_verify_catches_byte_level_corruption(tmp_path):
     assert verify_file(path, masks, grid)["passed"]
     res = verify_file(bad, masks, grid)
     assert not res["passed"] and any("off the pixel grid" in p for p in res["problems"])
+
+
+def test_skeleton_temporary_is_named_for_cleanup(tmp_path):
+    """A killed run's GDS skeleton must be found by the next run's temporary cleanup."""
+    import os
+    from pathlib import Path
+
+    from doedesign.fileio import remove_stale_temporaries
+    from masks.gds_records import write_element_gds
+
+    lib = gdstk.Library(unit=1e-6, precision=1e-9)
+    lib.add(gdstk.Cell("ELEMENT"))
+    seen = []
+
+    class Recorder:  # the library, recording where the skeleton is written
+        def write_gds(self, name, **kwargs):
+            seen.append(name)
+            lib.write_gds(name, **kwargs)
+
+    masks = levels_to_masks(_levels("rings", (20, 20)))
+    write_element_gds(Recorder(), tmp_path / "x.gds", masks, PixelGrid.centred((20, 20), PITCH))
+    (skeleton,) = [Path(n).name for n in seen]
+    assert not (tmp_path / skeleton).exists()  # removed after use
+    # left behind by a dead process (above Linux's largest pid), the next run removes it
+    dead = skeleton.replace(f".{os.getpid()}-", f".{2 ** 22 + 1}-")
+    (tmp_path / dead).write_bytes(b"")
+    assert remove_stale_temporaries(tmp_path) == [dead]
