@@ -18,8 +18,6 @@ TODO = {
     # Bayer study, PSF engine and optimizer (doedesign/psf.py, optimize.py, bayer.py, ...).
     "doedesign.bayer", "doedesign.objectives", "doedesign.optimize", "doedesign.psf", "doedesign.psf_reads",
     "doedesign.router",
-    # GDS split (masks/gds.py, layout.py, polygons.py, the masks command and package).
-    "masks", "masks.cli", "masks.gds", "masks.layout", "masks.polygons",
     # Tolerance and robust design.
     "masks.tolerance", "masks.tolerance.analysis", "masks.tolerance.cli", "masks.tolerance.evaluate",
     "masks.tolerance.metrics", "masks.tolerance.report", "masks.tolerance.robust", "masks.tolerance.runner",
