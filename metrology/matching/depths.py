@@ -12,11 +12,15 @@ Arrays are row-major, row 0 at the top (camera order).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage, stats
 
 from doedesign.errors import DoeError
+
+if TYPE_CHECKING:
+    from metrology.matching.register import Registration
 
 __all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MATCH_TOLERANCE_STEPS", "MAX_EDGE_BAND_PITCH",
            "MIN_LEVEL_AGREEMENT", "binary_code_matrix", "fit_etch_depths", "interior_mask", "level_agreement",
@@ -30,13 +34,13 @@ LEVEL_REPEATABILITY_M = 0.3e-9
 MAX_EDGE_BAND_PITCH = 1.0
 
 
-def binary_code_matrix(n_levels=16):
+def binary_code_matrix(n_levels: int = 16) -> np.ndarray:
     """``B[k, j]`` = bit j of level k (mask j open at level k)."""
     n_masks = int(np.log2(n_levels))
     return ((np.arange(n_levels)[:, None] >> np.arange(n_masks)[None, :]) & 1).astype(float)
 
 
-def interior_mask(labels, pitch_px):
+def interior_mask(labels: np.ndarray, pitch_px: float) -> np.ndarray:
     """Pixels in the central third of their feature (ISO 5436-1), edges excluded.
 
     Parameters
@@ -95,7 +99,7 @@ class LevelStats:
     count: np.ndarray
 
 
-def level_heights(height_m, labels, interior, n_levels=16):
+def level_heights(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, n_levels: int = 16) -> LevelStats:
     """Robust mean, spread and count of each level's interior heights.
 
     Outliers beyond 5 robust sigmas (bat-wings, particles) are left out of the mean.
@@ -144,7 +148,7 @@ class DepthFit:
     p_value: float
 
 
-def fit_etch_depths(stats_):
+def fit_etch_depths(stats_: LevelStats) -> DepthFit:
     """Weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the levels present."""
     n_levels = stats_.mean_m.size
     b = binary_code_matrix(n_levels)
@@ -175,7 +179,8 @@ MATCH_TOLERANCE_STEPS = 0.25
 MIN_LEVEL_AGREEMENT = 0.8
 
 
-def level_agreement(height_m, labels, interior, stats, step_m):
+def level_agreement(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, stats: LevelStats,
+                    step_m: float) -> float:
     """Fraction of valid feature-interior pixels within MATCH_TOLERANCE_STEPS of their level's mean."""
     use = interior & np.isfinite(height_m) & (labels >= 0)
     lab = labels[use]
@@ -184,7 +189,7 @@ def level_agreement(height_m, labels, interior, stats, step_m):
     return float(ok.mean()) if ok.size else 0.0
 
 
-def match_quality(agreement, registration, forced=False):
+def match_quality(agreement: float, registration: Registration, forced: bool = False) -> dict:
     """Match quality and confidence of a comparison (the ``match`` entry of its report)."""
     return {"level_agreement": agreement, "tolerance_steps": MATCH_TOLERANCE_STEPS,
             "threshold": MIN_LEVEL_AGREEMENT, "registration_ncc": float(registration.match_ncc),

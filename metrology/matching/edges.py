@@ -10,13 +10,18 @@ design column, y up (toward decreasing design row), as in :mod:`masks.process`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import optimize, special
 
 from doedesign.errors import DoeError
 from masks.decompose import levels_to_masks
+
+if TYPE_CHECKING:
+    from metrology.matching.register import Registration
 
 __all__ = ["EdgeFit", "MAX_FIT_POINTS", "WIDTH_10_90_PER_SIGMA", "fit_edges"]
 
@@ -97,8 +102,9 @@ class EdgeFit:
     n_points: int
 
 
-def fit_edges(height_m, levels, registration, pitch_m, depths0_m, n_masks=4, max_points=MAX_FIT_POINTS,
-              sigma0_m=0.6e-6):
+def fit_edges(height_m: np.ndarray, levels: np.ndarray, registration: Registration, pitch_m: float,
+              depths0_m: Sequence[float], n_masks: int = 4, max_points: int = MAX_FIT_POINTS,
+              sigma0_m: float = 0.6e-6) -> EdgeFit:
     """Fit per-mask shift, linewidth bias and depth, and one edge blur, to the measured surface.
 
     Model at a measurement pixel mapped to design coordinates x:

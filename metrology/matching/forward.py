@@ -7,18 +7,25 @@ design column, y up, as in :mod:`masks.process`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 from scipy import ndimage
 
 from masks.process import ProcessParams, simulate_surface
 from metrology.matching.register import design_on_measurement
 
+if TYPE_CHECKING:
+    from metrology.matching.register import Registration
+
 __all__ = ["crop_registration", "design_height_on_measurement", "error_map", "fitted_process",
            "process_on_measurement", "shift_registration"]
 
 
-def process_on_measurement(levels, pitch_m, params, registration, blur_m=0.0, step_m=0.25e-6,
-                           rows=None, block_px=48, pixel_subsamples=1):
+def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessParams, registration: Registration,
+                           blur_m: float = 0.0, step_m: float = 0.25e-6, rows: slice | None = None,
+                           block_px: int = 48, pixel_subsamples: int = 1) -> np.ndarray:
     """The process model's surface as the profilometer would report it.
 
     :func:`masks.process.simulate_surface` on the design region under the field (in blocks
@@ -88,7 +95,7 @@ def process_on_measurement(levels, pitch_m, params, registration, blur_m=0.0, st
     return out
 
 
-def fitted_process(edge_fit, depths_m=None, n_masks=4):
+def fitted_process(edge_fit: Any, depths_m: Sequence[float] | None = None, n_masks: int = 4) -> ProcessParams:
     """:class:`ProcessParams` holding the fitted depths, overlay and bias (no blur: the
     fitted edge blur is the instrument's and is applied on the measurement side)."""
     overlay = np.zeros((n_masks, 3))
@@ -98,7 +105,7 @@ def fitted_process(edge_fit, depths_m=None, n_masks=4):
                          linewidth_bias=np.array(edge_fit.bias_m, float))
 
 
-def shift_registration(registration, shift_m, pitch_m):
+def shift_registration(registration: Registration, shift_m: Sequence[float], pitch_m: float) -> Registration:
     """Registration moved so that the design frame follows mask 0 (``shift_m`` = its (dx, dy)).
 
     The edge fit reports overlay relative to mask 0; the process model puts mask 0 where
@@ -110,7 +117,7 @@ def shift_registration(registration, shift_m, pitch_m):
     return replace(registration, offset=registration.offset - d_rc)
 
 
-def error_map(height_m, reference_m):
+def error_map(height_m: np.ndarray, reference_m: np.ndarray | float) -> tuple[np.ndarray, float]:
     """``height - reference`` with NaN where either is invalid, and its rms (m)."""
     err = np.asarray(height_m, float) - np.asarray(reference_m, float)
     ok = np.isfinite(err)
@@ -118,12 +125,12 @@ def error_map(height_m, reference_m):
     return err, rms
 
 
-def design_height_on_measurement(design_height_m, registration):
+def design_height_on_measurement(design_height_m: np.ndarray, registration: Registration) -> np.ndarray:
     """Design heights at each measurement pixel (nearest design pixel; NaN off the design)."""
     return design_on_measurement(np.asarray(design_height_m, float), registration, fill=np.nan)
 
 
-def crop_registration(registration, row0, col0, shape):
+def crop_registration(registration: Registration, row0: int, col0: int, shape: tuple[int, int]) -> Registration:
     """The registration of the sub-array ``[row0:row0 + shape[0], col0:col0 + shape[1]]``."""
     from dataclasses import replace
 

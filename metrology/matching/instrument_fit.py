@@ -22,6 +22,7 @@ increasing design column and y up; bias positive = openings wider.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,8 +111,10 @@ class _MaskMaps:
         return out
 
 
-def fit_in_camera_frame(height_m, levels, placement, pitch_m, depths0_m, overlay0_m=None, bias0_m=None,
-                        blur0_m=0.4e-6, window_px=128, passes=2):
+def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Placement, pitch_m: float,
+                        depths0_m: Sequence[float], overlay0_m: np.ndarray | None = None,
+                        bias0_m: Sequence[float] | None = None, blur0_m: float = 0.4e-6, window_px: int = 128,
+                        passes: int = 2) -> InstrumentFit:
     """Fit depths, overlay, bias, blur and placement to a camera height map in its own frame.
 
     Parameters
