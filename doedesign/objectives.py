@@ -19,6 +19,7 @@ import logging
 import numpy as np
 
 from .errors import DoeError
+from .losses import MAX_READ_LINES, PixelReads
 from .progress import Progress
 from .psf import PSFEngine
 
@@ -46,7 +47,39 @@ def plane_energies(psf, target):
     return np.sum(np.asarray(psf) * target.mask, axis=(-2, -1))
 
 
-def softmin_loss(target, weights=None, tau=0.01):
+class PlaneLoss:
+    """Engine loss ``f(E)`` of the plane energies ``E`` (depths, wavelengths) on ``mask``.
+
+    Reads only the target pixels: :attr:`reads` and :meth:`sparse` let the engine evaluate it
+    from those pixels alone (:mod:`doedesign.psf_reads`) when they lie on few rows and columns.
+
+    Parameters
+    ----------
+    mask : ndarray (depths, wavelengths, rows, cols) of bool
+    fn : callable
+        ``fn(E) -> (value, dvalue_dE)``.
+    """
+
+    def __init__(self, mask: np.ndarray, fn):
+        self.mask = np.asarray(mask, dtype=bool)
+        self.fn = fn
+        rows, cols = np.nonzero(self.mask.any(axis=(0, 1)))
+        self.reads = None
+        if rows.size and max(np.unique(rows).size, np.unique(cols).size) <= MAX_READ_LINES:
+            self.reads = PixelReads(rows=rows, cols=cols, energy=False)
+            self._mask = self.mask[..., rows, cols]
+
+    def __call__(self, psf):
+        value, d_e = self.fn(np.sum(np.asarray(psf) * self.mask, axis=(-2, -1)))
+        return float(value), np.asarray(d_e, dtype=float)[..., None, None] * self.mask
+
+    def sparse(self, values, energy):
+        """The loss from the target pixels' values (depths, wavelengths, pixels); see :class:`doedesign.losses.Loss`."""
+        value, d_e = self.fn(np.sum(values * self._mask, axis=-1))
+        return float(value), np.asarray(d_e, dtype=float)[..., None] * self._mask, np.zeros_like(energy)
+
+
+def softmin_loss(target, weights=None, tau: float = 0.01) -> PlaneLoss:
     """Engine loss ``psf -> (value, dvalue/dpsf)``: the negative soft minimum of ``E_p / w_p``.
 
     ``value = tau log sum_p exp(-E_p / (w_p tau))`` lies within ``tau log(planes)`` of
@@ -56,17 +89,14 @@ def softmin_loss(target, weights=None, tau=0.01):
     w = plane_weights(target, weights)
     if not tau > 0:
         raise DoeError(f"soft-min temperature must be positive, got {tau}")
-    mask = target.mask
 
-    def loss(psf):
-        u = -plane_energies(psf, target) / w / tau
+    def fn(e):
+        u = -e / w / tau
         top = u.max()
         s = np.exp(u - top)
-        value = tau * (top + np.log(s.sum()))
-        share = s / s.sum()
-        return float(value), -(share / w)[..., None, None] * mask
+        return tau * (top + np.log(s.sum())), -(s / s.sum()) / w
 
-    return loss
+    return PlaneLoss(target.mask, fn)
 
 
 def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=100, max_time_s=None,
@@ -136,6 +166,15 @@ def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=10
     return best["x"], history
 
 
+def _single_plane_loss(mask, d, w):
+    """Loss of a one-wavelength engine: the energy on plane (d, w)'s target pixels."""
+    one = np.zeros((mask.shape[0], 1) + mask.shape[2:], dtype=bool)
+    one[d, 0] = mask[d, w]
+    pick = np.zeros((mask.shape[0], 1))
+    pick[d, 0] = 1.0
+    return PlaneLoss(one, lambda e: (float(e[d, 0]), pick))
+
+
 def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
     """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
 
@@ -145,6 +184,7 @@ def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
     engines = [PSFEngine(engine.camera, engine.pitch_m, engine.shape, engine.material, [wl], target.depths_m,
                          engine.q) for wl in target.wavelengths_m]
     nd, nw = target.intensity.shape[:2]
+    losses = [[_single_plane_loss(target.mask, d, w) for w in range(nw)] for d in range(nd)]
 
     def fun(x):
         h = np.zeros(support.shape)
@@ -152,14 +192,7 @@ def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
         e, g = np.empty(nd * nw), np.empty((nd * nw, x.size))
         for w, eng in enumerate(engines):
             for d in range(nd):
-                mask = target.mask[d, w]
-
-                def plane_energy(psf, d=d, mask=mask):
-                    grad = np.zeros_like(psf)
-                    grad[d, 0] = mask
-                    return float(np.sum(psf[d, 0] * mask)), grad
-
-                e[d * nw + w], gh = eng.value_and_grad(h, plane_energy)
+                e[d * nw + w], gh = eng.value_and_grad(h, losses[d][w])
                 g[d * nw + w] = gh[support]
         return e, g
 
