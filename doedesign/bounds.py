@@ -23,14 +23,16 @@ from scipy import signal
 
 from .psf import PSFEngine
 
+__all__ = ["bound_report", "diffraction_limited_psf", "spot_bound"]
 
-def diffraction_limited_psf(camera, pitch_m, shape, wavelengths_m, material="fused_silica"):
+
+def diffraction_limited_psf(camera, pitch_m: float, shape: tuple, wavelengths_m, material="fused_silica") -> np.ndarray:
     """Coded-view PSF (wavelengths, rows, cols) of a flat DOE in focus: the diffraction-limited spot."""
     engine = PSFEngine(camera, pitch_m, shape, material, wavelengths_m, [camera.focus_distance_m])
     return engine.psf(np.zeros(tuple(shape)), views=("coded",)).psf[0, 0]
 
 
-def spot_bound(camera, pitch_m, shape, target, material="fused_silica", spot=None):
+def spot_bound(camera, pitch_m: float, shape: tuple, target, material="fused_silica", spot=None) -> dict:
     """Single-colour bound per (depth, wavelength) plane of ``target`` (fractions of the coded view's light).
 
     Parameters
@@ -71,7 +73,7 @@ def spot_bound(camera, pitch_m, shape, target, material="fused_silica", spot=Non
     return out
 
 
-def bound_report(energy_on_target, bound):
+def bound_report(energy_on_target, bound) -> dict:
     """Per-plane energies beside their bound: ``{"energy", "bound", "fraction_of_bound", "weakest"}``."""
     e = np.asarray(energy_on_target, dtype=float)
     b = np.asarray(bound, dtype=float)

@@ -23,12 +23,15 @@ from .losses import MAX_READ_LINES, PixelReads
 from .progress import Progress
 from .psf import PSFEngine
 
+__all__ = ["MAXMIN_ALGORITHMS", "PlaneLoss", "maximize_min", "maxmin_stage", "plane_energies", "plane_weights",
+           "softmin_loss"]
+
 log = logging.getLogger(__name__)
 
 MAXMIN_ALGORITHMS = ("LD_MMA", "LD_CCSAQ")
 
 
-def plane_weights(target, weights=None):
+def plane_weights(target, weights=None) -> np.ndarray:
     """Weights (depths, wavelengths) of the planes; ``weights`` per wavelength or per plane, default 1."""
     shape = target.intensity.shape[:2]
     if weights is None:
@@ -42,7 +45,7 @@ def plane_weights(target, weights=None):
     return np.array(w, dtype=float)
 
 
-def plane_energies(psf, target):
+def plane_energies(psf: np.ndarray, target) -> np.ndarray:
     """Light (fraction of the coded view's) on each plane's target pixels, (depths, wavelengths)."""
     return np.sum(np.asarray(psf) * target.mask, axis=(-2, -1))
 
@@ -99,7 +102,8 @@ def softmin_loss(target, weights=None, tau: float = 0.01) -> PlaneLoss:
     return PlaneLoss(target.mask, fn)
 
 
-def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=100, max_time_s=None,
+def maximize_min(fun, x0: np.ndarray, lower, upper, weights, algorithm: str = "LD_MMA", max_iter: int = 100,
+                 max_time_s: float | None = None,
                  xtol_rel=1e-6, desc="max-min"):
     """Maximize ``min_p E_p(x) / w_p`` with nlopt's auxiliary-variable form.
 
@@ -175,7 +179,8 @@ def _single_plane_loss(mask, d, w):
     return PlaneLoss(one, lambda e: (float(e[d, 0]), pick))
 
 
-def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
+def maxmin_stage(engine: PSFEngine, target, weights: np.ndarray, h0: np.ndarray, support: np.ndarray, lower: float,
+                 upper: float, settings) -> tuple[np.ndarray, list]:
     """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
 
     Each plane's energy and gradient come from a one-wavelength engine sharing the camera and

@@ -19,10 +19,12 @@ from .progress import Progress
 from .psf import PSFEngine
 from .router import pupil_model, router_heights, to_design_grid
 
+__all__ = ["front_figure", "pareto_front", "sweep_weights"]
+
 log = logging.getLogger(__name__)
 
 
-def sweep_weights(n_colours=3, factors=(0.6, 1.6)):
+def sweep_weights(n_colours: int = 3, factors: tuple = (0.6, 1.6)) -> list:
     """Equal weights, then each colour in turn favoured and disfavoured by ``factors``."""
     out = [np.ones(n_colours)]
     for c in range(n_colours):
@@ -34,7 +36,7 @@ def sweep_weights(n_colours=3, factors=(0.6, 1.6)):
 
 
 def pareto_front(camera, target, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
-                 weights=None, grid_px=64, iterations=100):
+                 weights=None, grid_px: int = 64, iterations: int = 100) -> list:
     """Front points: per weight vector the model, continuous and quantized energies on target.
 
     Returns
@@ -61,7 +63,7 @@ def pareto_front(camera, target, pitch_m, shape, material="fused_silica", design
     return points
 
 
-def front_figure(points, bound, chosen, path, labels=("R", "G", "B"), chosen_label="chosen design"):
+def front_figure(points: list, bound, chosen, path, labels=("R", "G", "B"), chosen_label="chosen design"):
     """Pairwise projections of the front (quantized and continuous) with the bounds and the chosen design."""
     import matplotlib.pyplot as plt
 

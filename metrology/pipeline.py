@@ -55,7 +55,7 @@ class DemoConfig:
     # Bayer objective (doedesign.optimize.OBJECTIVES). The quick run's 160 px aperture has a spot ten
     # pixels wide, where the balanced design is nearly flat (levels 0-1) and leaves the metrology
     # chain no etch depths to measure, so it keeps the L1 loss.
-    objective: str = "maxmin"
+    objective: str = "softmin"
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
 
     @classmethod
