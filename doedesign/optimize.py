@@ -334,7 +334,9 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
             if grad.size:
                 grad[:] = np.asarray(g, dtype=float).ravel()
             bar.update(1, status=f"loss {value:.5g}")
-            if callback is not None and callback(len(history), float(value), x.reshape(shape)):
+            # nlopt's L-BFGS may evaluate once more than maxeval: the budget is enforced here.
+            if len(history) >= max_iter or (callback is not None
+                                            and callback(len(history), float(value), x.reshape(shape))):
                 opt.force_stop()
             return float(value)
 
@@ -344,7 +346,7 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
         except nlopt.RoundoffLimited:
             log.info("%s: stopped by round-off; keeping the best point", desc)
         except nlopt.ForcedStop:
-            log.info("%s: stopped by the callback", desc)
+            log.info("%s: stopped by the callback or the evaluation budget", desc)
         except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
             # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
             if not history:

@@ -160,8 +160,8 @@ def test_cli_design_writes_design_and_report(tmp_path, capsys):
     rep = json.loads((tmp_path / "report.json").read_text())
     assert len(rep["loss_history"]["continuous"]) <= 4
     assert len(rep["quantized"]["energy_on_target"][0]) == 3
-    # Bayer: the max-min of the colours from the router start; each colour beside its bound.
-    assert rep["settings"]["init"] == "router" and rep["objective"] == "maxmin"
+    # Bayer: the soft max-min of the colours from the router start; each colour beside its bound.
+    assert rep["settings"]["init"] == "router" and rep["objective"] == "softmin"
     assert len(rep["quantized"]["bound"]["fraction_of_bound"][0]) == 3
     printed = json.loads(capsys.readouterr().out)
     assert printed["design"] == str(out) and len(printed["fraction_of_bound"][0]) == 3
