@@ -15,6 +15,8 @@ energies are proportional to the weights, which is how a weight sweep traces the
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +24,12 @@ from .errors import DoeError
 from .losses import MAX_READ_LINES, PixelReads
 from .progress import Progress
 from .psf import PSFEngine
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from .optimize import OptimizerSettings
+    from .targets import Target
 
 __all__ = ["MAXMIN_ALGORITHMS", "PlaneLoss", "maximize_min", "maxmin_stage", "plane_energies", "plane_weights",
            "softmin_loss"]
@@ -31,7 +39,7 @@ log = logging.getLogger(__name__)
 MAXMIN_ALGORITHMS = ("LD_MMA", "LD_CCSAQ")
 
 
-def plane_weights(target, weights=None) -> np.ndarray:
+def plane_weights(target: Target, weights: ArrayLike | None = None) -> np.ndarray:
     """Weights (depths, wavelengths) of the planes; ``weights`` per wavelength or per plane, default 1."""
     shape = target.intensity.shape[:2]
     if weights is None:
@@ -45,7 +53,7 @@ def plane_weights(target, weights=None) -> np.ndarray:
     return np.array(w, dtype=float)
 
 
-def plane_energies(psf: np.ndarray, target) -> np.ndarray:
+def plane_energies(psf: np.ndarray, target: Target) -> np.ndarray:
     """Light (fraction of the coded view's) on each plane's target pixels, (depths, wavelengths)."""
     return np.sum(np.asarray(psf) * target.mask, axis=(-2, -1))
 
@@ -63,7 +71,7 @@ class PlaneLoss:
         ``fn(E) -> (value, dvalue_dE)``.
     """
 
-    def __init__(self, mask: np.ndarray, fn):
+    def __init__(self, mask: np.ndarray, fn: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> None:
         self.mask = np.asarray(mask, dtype=bool)
         self.fn = fn
         rows, cols = np.nonzero(self.mask.any(axis=(0, 1)))
@@ -72,17 +80,17 @@ class PlaneLoss:
             self.reads = PixelReads(rows=rows, cols=cols, energy=False)
             self._mask = self.mask[..., rows, cols]
 
-    def __call__(self, psf):
+    def __call__(self, psf: np.ndarray) -> tuple[float, np.ndarray]:
         value, d_e = self.fn(np.sum(np.asarray(psf) * self.mask, axis=(-2, -1)))
         return float(value), np.asarray(d_e, dtype=float)[..., None, None] * self.mask
 
-    def sparse(self, values, energy):
+    def sparse(self, values: np.ndarray, energy: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """The loss from the target pixels' values (depths, wavelengths, pixels); see :class:`doedesign.losses.Loss`."""
         value, d_e = self.fn(np.sum(values * self._mask, axis=-1))
         return float(value), np.asarray(d_e, dtype=float)[..., None] * self._mask, np.zeros_like(energy)
 
 
-def softmin_loss(target, weights=None, tau: float = 0.01) -> PlaneLoss:
+def softmin_loss(target: Target, weights: ArrayLike | None = None, tau: float = 0.01) -> PlaneLoss:
     """Engine loss ``psf -> (value, dvalue/dpsf)``: the negative soft minimum of ``E_p / w_p``.
 
     ``value = tau log sum_p exp(-E_p / (w_p tau))`` lies within ``tau log(planes)`` of
@@ -102,9 +110,10 @@ def softmin_loss(target, weights=None, tau: float = 0.01) -> PlaneLoss:
     return PlaneLoss(target.mask, fn)
 
 
-def maximize_min(fun, x0: np.ndarray, lower, upper, weights, algorithm: str = "LD_MMA", max_iter: int = 100,
-                 max_time_s: float | None = None,
-                 xtol_rel=1e-6, desc="max-min"):
+def maximize_min(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray, lower: ArrayLike,
+                 upper: ArrayLike, weights: ArrayLike, algorithm: str = "LD_MMA", max_iter: int = 100,
+                 max_time_s: float | None = None, xtol_rel: float = 1e-6,
+                 desc: str = "max-min") -> tuple[np.ndarray, list]:
     """Maximize ``min_p E_p(x) / w_p`` with nlopt's auxiliary-variable form.
 
     Parameters
@@ -179,8 +188,8 @@ def _single_plane_loss(mask, d, w):
     return PlaneLoss(one, lambda e: (float(e[d, 0]), pick))
 
 
-def maxmin_stage(engine: PSFEngine, target, weights: np.ndarray, h0: np.ndarray, support: np.ndarray, lower: float,
-                 upper: float, settings) -> tuple[np.ndarray, list]:
+def maxmin_stage(engine: PSFEngine, target: Target, weights: np.ndarray, h0: np.ndarray, support: np.ndarray, lower: float,
+                 upper: float, settings: OptimizerSettings) -> tuple[np.ndarray, list]:
     """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
 
     Each plane's energy and gradient come from a one-wavelength engine sharing the camera and

@@ -16,8 +16,7 @@ PACKAGES = ("doedesign", "masks", "metrology")
 # finishes them after merging. Each entry must still fail (the test below says when to drop it).
 TODO = {
     # Bayer study, PSF engine and optimizer (doedesign/psf.py, optimize.py, bayer.py, ...).
-    "doedesign.bayer", "doedesign.objectives", "doedesign.optimize", "doedesign.psf", "doedesign.psf_reads",
-    "doedesign.router",
+    "doedesign.bayer", "doedesign.optimize", "doedesign.psf",
     # GDS split (masks/gds.py, layout.py, polygons.py, the masks command and package).
     "masks", "masks.cli", "masks.gds", "masks.layout", "masks.polygons",
     # Tolerance and robust design.
