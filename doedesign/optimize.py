@@ -325,6 +325,10 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
 
     with Progress(max_iter, desc=desc) as bar:
         def objective(x, grad):
+            # nlopt's L-BFGS can evaluate past maxeval (in a line search, or after a failure that
+            # it retries): the budget is enforced here, before any further evaluation.
+            if len(history) >= max_iter:
+                raise nlopt.ForcedStop
             value, g = fun(x.reshape(shape))
             if not np.isfinite(value):
                 raise DoeError(f"{desc}: the loss became {value}")
@@ -334,9 +338,7 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
             if grad.size:
                 grad[:] = np.asarray(g, dtype=float).ravel()
             bar.update(1, status=f"loss {value:.5g}")
-            # nlopt's L-BFGS may evaluate once more than maxeval: the budget is enforced here.
-            if len(history) >= max_iter or (callback is not None
-                                            and callback(len(history), float(value), x.reshape(shape))):
+            if callback is not None and callback(len(history), float(value), x.reshape(shape)):
                 opt.force_stop()
             return float(value)
 
