@@ -17,8 +17,6 @@ PACKAGES = ("doedesign", "masks", "metrology")
 TODO = {
     # Bayer study, PSF engine and optimizer (doedesign/psf.py, optimize.py, bayer.py, ...).
     "doedesign.bayer", "doedesign.optimize", "doedesign.psf",
-    # GDS split (masks/gds.py, layout.py, polygons.py, the masks command and package).
-    "masks", "masks.cli", "masks.gds", "masks.layout", "masks.polygons",
     # Tolerance and robust design.
     "masks.tolerance", "masks.tolerance.analysis", "masks.tolerance.cli", "masks.tolerance.evaluate",
     "masks.tolerance.metrics", "masks.tolerance.report", "masks.tolerance.robust", "masks.tolerance.runner",
