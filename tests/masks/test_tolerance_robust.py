@@ -163,3 +163,23 @@ def test_provider_is_registered_and_seeded_like_the_tolerance_run():
     assert len(a) == 3 and all(isinstance(p, SmoothProcess) for p in a)
     assert np.array_equal(a[2].params.mask_overlay, b[2].params.mask_overlay)
     assert not np.array_equal(a[0].params.mask_overlay, a[1].params.mask_overlay)
+
+
+def test_doe_design_robust_runs_the_soft_min_over_process_samples(tmp_path):
+    """`doe design bayer --robust SPEC`: the default max-min Bayer objective becomes the soft
+    minimum (which has a robust form) and the report counts the process samples."""
+    import json
+
+    from doedesign.cli import main
+
+    (tmp_path / "run.toml").write_text(
+        "[camera]\nwindow_shape = [12, 12]\naxis_pixel = [6, 6]\nsensor_distance_m = 0.0006\n"
+        "focus_distance_m = inf\n")
+    (tmp_path / "fab.toml").write_text("[etch_depth]\nsigma_rel = 0.05\n[mask_overlay]\nsigma_um = 0.5\n")
+    out = tmp_path / "d.npz"
+    code = main(["design", "bayer", "--config", str(tmp_path / "run.toml"), "--size", "20", "--iterations", "3",
+                 "--anneal-iterations", "1", "--init", "zeros", "--out", str(out), "--robust",
+                 str(tmp_path / "fab.toml"), "--robust-samples", "2"])
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert code == 0 and out.is_file()
+    assert report["robust_samples"] == 2 and report["objective"] == "softmin"
