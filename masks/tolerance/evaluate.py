@@ -27,6 +27,8 @@ from ..process import ProcessParams
 from .metrics import MetricSet
 from .spec import ToleranceSpec
 
+__all__ = ["Evaluator", "evaluate_batch"]
+
 
 @dataclass
 class Evaluator:
@@ -83,6 +85,6 @@ class Evaluator:
         return {**job, "metrics": self.metrics(psf), "seconds": time.perf_counter() - t0}
 
 
-def evaluate_batch(evaluator, jobs):
+def evaluate_batch(evaluator: Evaluator, jobs: list[dict]) -> list[dict]:
     """Evaluate a list of jobs in order (one dask task)."""
     return [evaluator(job) for job in jobs]

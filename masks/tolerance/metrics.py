@@ -35,6 +35,8 @@ from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
 
+__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "metric_set", "ring_radii_px", "user_metric_functions"]
+
 log = logging.getLogger(__name__)
 
 DIRECTIONS = {"peak_fraction": "lower", "zero_order_leak": "lower", "ring_radius_error_px": "lower"}
@@ -128,7 +130,7 @@ class MetricSet:
 _SCRIPTS = {}
 
 
-def user_metric_functions(source, name="metrics script"):
+def user_metric_functions(source: str, name: str = "metrics script") -> dict:
     """``{name: function}`` of the ``metric_*`` functions of a script (compiled once per process)."""
     key = (name, source)
     if key not in _SCRIPTS:
@@ -144,7 +146,7 @@ def user_metric_functions(source, name="metrics script"):
     return _SCRIPTS[key]
 
 
-def ring_radii_px(psf, axis_pixel):
+def ring_radii_px(psf: np.ndarray, axis_pixel: tuple) -> np.ndarray:
     """Light-weighted mean distance (px) from the axis per depth, averaged over wavelengths."""
     rows, cols = psf.shape[-2:]
     rr, cc = np.mgrid[:rows, :cols]
@@ -154,7 +156,7 @@ def ring_radii_px(psf, axis_pixel):
     return mean_r.mean(axis=1)
 
 
-def metric_set(design, camera, nominal_psf, wavelengths_m, depths_m, script=None):
+def metric_set(design, camera, nominal_psf: np.ndarray, wavelengths_m, depths_m, script: str | None = None) -> MetricSet:
     """The metrics for this design's target kind (from its metadata), set up on its nominal PSF."""
     meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
     kind = str(meta.get("kind", "image"))

@@ -69,10 +69,10 @@ def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M):
 def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, robust_samples: int = 4,
                       eval_samples: int = 64, iterations: int = 40, anneal_iterations: int = 5,
                       measure: str = "mean", seed: int = 0, eval_seed: int = 1, scheduler: str = "inline",
-                      workers: int | None = None, keep: float = 0.9) -> dict:
+                      workers: int | None = None, keep: float = 0.9, init: str = "router") -> dict:
     """Design the Bayer element plainly and robustly, then run both through the same tolerance study.
 
-    Both designs start from the same router initial design and run the same stages (soft-min
+    Both designs start from the same initial design (``init``) and run the same stages (soft-min
     objective, ``iterations`` continuous + annealing); the robust one minimizes the mean (or
     CVaR) over process samples ``SeedSequence([seed, k])``, k < ``robust_samples``. The
     tolerance study draws ``eval_samples`` fresh ones from ``eval_seed`` (out of sample) with the
@@ -93,7 +93,7 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, r
 
     camera = study_camera(size_px, window_px)
     target = targets.bayer(camera)
-    settings = OptimizerSettings(max_iter=iterations, anneal_iter=anneal_iterations, init="router", seed=seed,
+    settings = OptimizerSettings(max_iter=iterations, anneal_iter=anneal_iterations, init=init, seed=seed,
                                  objective="softmin", robust_measure=measure)
     step = level_step_m("fused_silica", 550e-9, 16)
     depths = binary_depths_m(step, 4)

@@ -26,6 +26,9 @@ from doedesign.progress import Progress
 
 from .evaluate import evaluate_batch
 
+__all__ = ["SCHEDULERS", "batch_size", "load_done", "make_client", "n_workers", "open_store", "run_jobs",
+           "run_key"]
+
 log = logging.getLogger(__name__)
 
 # A task should take seconds: batches hold about this much work.
@@ -41,13 +44,13 @@ def _lost_work_errors():
     return (FutureCancelledError, KilledWorker)
 
 
-def run_key(parts):
+def run_key(parts) -> str:
     """Short hash of the run's inputs (design, spec, seed, sampling)."""
     text = json.dumps(parts, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def open_store(out_dir, key, description):
+def open_store(out_dir, key: str, description: dict) -> Path:
     """Create or reopen ``out_dir``; refuse one that holds another run's samples."""
     out = Path(out_dir)
     (out / "samples").mkdir(parents=True, exist_ok=True)
@@ -65,7 +68,7 @@ def open_store(out_dir, key, description):
     return out / "samples"
 
 
-def load_done(samples_dir, ids):
+def load_done(samples_dir, ids) -> dict:
     """Results already written for these job ids."""
     done = {}
     for job_id in ids:
@@ -78,7 +81,7 @@ def load_done(samples_dir, ids):
     return done
 
 
-def batch_size(seconds_per_job, n_jobs, n_workers):
+def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
     """Jobs per task: about :data:`TARGET_TASK_S` of work, at least two tasks per worker."""
     by_time = max(1, int(TARGET_TASK_S / max(seconds_per_job, 1e-3)))
     by_spread = max(1, math.ceil(n_jobs / (2 * max(n_workers, 1))))
@@ -86,7 +89,7 @@ def batch_size(seconds_per_job, n_jobs, n_workers):
 
 
 @contextlib.contextmanager
-def make_client(scheduler="processes", workers=None):
+def make_client(scheduler: str = "processes", workers: int | None = None):
     """A dask client: a LocalCluster of processes or threads, an existing cluster, or None (inline).
 
     ``workers`` defaults to the machine's cores. ``tcp://host:port`` connects to a running
@@ -117,14 +120,15 @@ def make_client(scheduler="processes", workers=None):
         yield client
 
 
-def n_workers(client):
+def n_workers(client) -> int:
     """Threads available on the client's cluster (1 inline)."""
     if client is None:
         return 1
     return max(sum(client.nthreads().values()), 1)
 
 
-def run_jobs(evaluator, jobs, samples_dir, client=None, seconds_per_job=1.0, desc="tolerance"):
+def run_jobs(evaluator, jobs: list[dict], samples_dir, client=None, seconds_per_job: float = 1.0,
+             desc: str = "tolerance") -> dict:
     """Evaluate ``jobs`` (skipping those already in ``samples_dir``); results by job id.
 
     Parameters

@@ -47,6 +47,9 @@ from doedesign.errors import DoeError
 
 from ..process import ProcessParams
 
+__all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "build_spec", "default_spec", "load_spec",
+           "meets", "nominal_process", "parse_threshold", "sample_seed", "spec_from_compare"]
+
 # The effects of masks.effects, as a tolerance spec names them (mask_rotation in urad here,
 # applied as the rotation in ProcessParams.mask_overlay).
 # effect -> (per_mask, skip mask 0, units {suffix: factor to SI}, report unit, clip at 0)
@@ -217,12 +220,12 @@ class ToleranceSpec:
                 "thresholds": {k: f"{op} {v:g}" for k, (op, v) in self.thresholds.items()}}
 
 
-def sample_seed(seed_root, index):
+def sample_seed(seed_root: int, index: int) -> int:
     """Integer seed of sample ``index`` of a run seeded ``seed_root`` (independent streams)."""
     return int(np.random.SeedSequence([int(seed_root), int(index)]).generate_state(1)[0])
 
 
-def parse_threshold(text, source="threshold"):
+def parse_threshold(text: str, source: str = "threshold") -> tuple[str, tuple[str, float]]:
     """``"metric >= 0.3"`` -> ``(metric, (">=", 0.3))``."""
     m = re.fullmatch(r"\s*([A-Za-z_][\w\[\]. ]*?)?\s*(>=|<=|>|<)\s*([-+0-9.eE]+)\s*", str(text))
     if not m:
@@ -234,12 +237,12 @@ def parse_threshold(text, source="threshold"):
     return (m.group(1) or "").strip(), (m.group(2), value)
 
 
-def meets(value, threshold):
+def meets(value: float, threshold: tuple[str, float]) -> bool:
     op, limit = threshold
     return bool(_OPS[op](value, limit))
 
 
-def build_spec(table, nominal_depths_m, source="spec"):
+def build_spec(table: dict, nominal_depths_m, source: str = "spec") -> ToleranceSpec:
     """Parse a spec dict (the TOML schema above) for a design with ``len(nominal_depths_m)`` masks."""
     if not isinstance(table, dict):
         raise DoeError(f"{source}: the spec must be a table")
@@ -338,7 +341,7 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
     return Param(effect, mask, component, dist, a, b)
 
 
-def load_spec(path, nominal_depths_m):
+def load_spec(path, nominal_depths_m) -> ToleranceSpec:
     """Read a spec: a TOML file, or a ``doe compare`` report.json (what the fab delivered)."""
     import json
     import tomllib
@@ -355,14 +358,14 @@ def load_spec(path, nominal_depths_m):
         raise DoeError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
 
 
-def default_spec(nominal_depths_m):
+def default_spec(nominal_depths_m) -> ToleranceSpec:
     """The built-in spec (:data:`DEFAULT_SPEC`)."""
     spec = build_spec(DEFAULT_SPEC, nominal_depths_m, "built-in default")
     spec.source = DEFAULT_SPEC_NOTE
     return spec
 
 
-def spec_from_compare(report, nominal_depths_m, source="compare report"):
+def spec_from_compare(report, nominal_depths_m, source: str = "compare report") -> ToleranceSpec:
     """Spec centred on the values a ``doe compare`` measured, with their standard errors as sigma."""
     n = len(nominal_depths_m)
     try:
@@ -395,6 +398,6 @@ def spec_from_compare(report, nominal_depths_m, source="compare report"):
                          table=table)
 
 
-def nominal_process(nominal_depths_m):
+def nominal_process(nominal_depths_m) -> ProcessParams:
     """The ideal process for these mask depths."""
     return ProcessParams.ideal(depths_m=nominal_depths_m)
