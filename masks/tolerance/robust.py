@@ -71,11 +71,13 @@ def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M):
 def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, robust_samples: int = 4,
                       eval_samples: int = 64, iterations: int = 40, anneal_iterations: int = 5,
                       measure: str = "mean", seed: int = 0, eval_seed: int = 1, scheduler: str = "inline",
-                      workers: int | None = None, keep: float = 0.9, init: str = "router") -> dict:
+                      workers: int | None = None, keep: float = 0.9, init: str = "router",
+                      warm_start: bool = False) -> dict:
     """Design the Bayer element plainly and robustly, then run both through the same tolerance study.
 
     Both designs start from the same initial design (``init``) and run the same stages (soft-min
-    objective, ``iterations`` continuous + annealing); the robust one minimizes the mean (or
+    objective, ``iterations`` continuous + annealing; with ``warm_start`` the robust design starts
+    from the plain one's continuous heights instead); the robust one minimizes the mean (or
     CVaR) over process samples ``SeedSequence([seed, k])``, k < ``robust_samples``. The
     tolerance study draws ``eval_samples`` fresh ones from ``eval_seed`` (out of sample) with the
     full process model at oversample 2. Yield: ``on_target_mean`` >= ``keep`` x the plain
@@ -104,11 +106,13 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, r
     spec = build_spec(spec_table, depths, "robust study spec")
     perturbations = spec_perturbations(spec, robust_samples, seed, depths, step, PITCH_M)
     out = {}
-    threshold = None
+    threshold = start = None
     for name, pert in (("nominal", None), ("robust", perturbations)):
         t0 = time.perf_counter()
         run = design_doe(target, camera, PITCH_M, (size_px, size_px), loss=LossSpec.parse("l1,energy"),
-                         settings=settings, perturbations=pert)
+                         settings=settings, init_height_m=start, perturbations=pert)
+        if warm_start:
+            start = run.continuous_height_m
         t_design = time.perf_counter() - t0
         design = run.design
         spec_eval = build_spec(spec_table, nominal_depths(design), "robust study spec")

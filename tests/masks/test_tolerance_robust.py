@@ -183,3 +183,16 @@ def test_doe_design_robust_runs_the_soft_min_over_process_samples(tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert code == 0 and out.is_file()
     assert report["robust_samples"] == 2 and report["objective"] == "softmin"
+
+
+@pytest.mark.parametrize("warm_start", [False, True])
+def test_nominal_vs_robust_pairs_the_two_designs_on_the_same_samples(tmp_path, warm_start):
+    from masks.tolerance.robust import nominal_vs_robust
+
+    r = nominal_vs_robust(16, 12, {"etch_depth": {"sigma_rel": 0.06}}, tmp_path, robust_samples=2, eval_samples=3,
+                          iterations=2, anneal_iterations=1, init="zeros", warm_start=warm_start)
+    plain, robust = (np.array(r[k]["samples"]) for k in ("nominal", "robust"))
+    assert plain.size == robust.size == 3
+    assert r["paired"]["mean_difference"] == pytest.approx(np.mean(robust - plain))
+    assert r["paired"]["robust_better_fraction"] == pytest.approx(np.mean(robust > plain))
+    assert r["nominal"]["threshold"] == r["robust"]["threshold"]
