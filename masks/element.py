@@ -8,6 +8,7 @@ GDS coordinates follow :mod:`masks.gds` (element centred on the die, rows toward
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,7 @@ def clear_aperture_m(design: Design) -> float | None:
     return None
 
 
-def preview(levels, masks, path, title: str) -> None:
+def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str) -> None:
     """Figure of the level map and every mask (row 0 at the top, white = open/etched)."""
     import matplotlib.pyplot as plt
 
@@ -57,9 +58,10 @@ def preview(levels, masks, path, title: str) -> None:
     save_figure(fig, path)
 
 
-def write_element(design: Design, out, *, source: str | None = None, tone: str = "dark", mirrored: bool = False,
-                  depths_m=None, layers=(1, 2, 3, 4), etch_order=None, clear_aperture=None,
-                  oasis: bool = False) -> dict:
+def write_element(design: Design, out: str | Path, *, source: str | None = None, tone: str = "dark",
+                  mirrored: bool = False, depths_m: Sequence[float] | None = None,
+                  layers: Sequence[int] = (1, 2, 3, 4), etch_order: Sequence[int] | None = None,
+                  clear_aperture: float | None = None, oasis: bool = False) -> dict:
     """Write ``OUT/<name>.gds`` (read back and verified), ``OUT/masks.png`` and ``OUT/report.json``.
 
     Parameters

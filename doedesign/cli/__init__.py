@@ -10,11 +10,14 @@ print one line and exit 2.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from importlib.metadata import entry_points
 import logging
 import sys
 
 from ..errors import DoeError
+
+__all__ = ["ENTRY_POINT_GROUP", "build_parser", "main"]
 
 ENTRY_POINT_GROUP = "doe.commands"
 
@@ -22,7 +25,7 @@ ENTRY_POINT_GROUP = "doe.commands"
 log = logging.getLogger("doe")
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="doe",
         description="Design, mask making and metrology of multi-level diffractive optical elements.")
@@ -33,7 +36,7 @@ def build_parser():
     return parser
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     import matplotlib
 
     # Files only, no windows: the CLI never needs an interactive backend.
