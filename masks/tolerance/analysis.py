@@ -49,7 +49,7 @@ def nominal_depths(design: Design) -> np.ndarray:
 
 
 def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design", oversample: int = 2,
-                    process_upsample: int | None = None, wavelengths_m=None,
+                    process_upsample: int | None = None, wavelengths_m: np.ndarray | None = None,
                     metric_script: str | None = None) -> tuple[Evaluator, dict, float]:
     """The evaluator of ``design`` under ``spec`` and the nominal (ideal element) metrics."""
     camera = design.camera()
@@ -81,9 +81,10 @@ def sampling_description(ev: Evaluator) -> dict:
                             "depth(s); sub-sample mask slivers are height-averaged (see masks/fabricated.py)")}
 
 
-def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_dir, design_name: str = "design",
-                       seed: int = 0, scheduler: str = "processes", workers: int | None = None, oversample: int = 2,
-                       process_upsample: int | None = None, wavelengths_m=None, sobol_base: int = 8,
+def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_dir: str | Path,
+                       design_name: str = "design", seed: int = 0, scheduler: str = "processes",
+                       workers: int | None = None, oversample: int = 2, process_upsample: int | None = None,
+                       wavelengths_m: np.ndarray | None = None, sobol_base: int = 8,
                        one_at_a_time: bool = True, thresholds: dict | None = None,
                        metric_script: str | None = None) -> dict:
     """Run the study and write ``report.json``, ``report.md``, ``distributions.png``, ``tornado.png``.

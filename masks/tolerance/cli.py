@@ -23,7 +23,7 @@ distributions.png and tornado.png.
 """
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("tolerance", help="Monte Carlo tolerance analysis, yield and sensitivity",
                               description=TOLERANCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("design", help="design file (.npz)")
@@ -47,7 +47,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_tolerance)
 
 
-def cmd_tolerance(args) -> int:
+def cmd_tolerance(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.psf import parse_wavelengths_nm

@@ -31,6 +31,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from doedesign import targets
+from doedesign.camera import Camera
+from doedesign.design import Design
 from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
@@ -61,7 +63,7 @@ class MetricSet:
     script_name: str = "metrics script"
 
     @property
-    def primary(self):
+    def primary(self) -> str:
         return PRIMARY.get(self.kind, "efficiency")
 
     def __call__(self, psf):
@@ -118,7 +120,7 @@ class MetricSet:
             out[name] = value
         return out
 
-    def directions(self):
+    def directions(self) -> dict:
         """metric -> "higher" or "lower" (is better), user metrics included."""
         out = dict(DIRECTIONS)
         if self.script_source:
@@ -156,7 +158,8 @@ def ring_radii_px(psf: np.ndarray, axis_pixel: tuple) -> np.ndarray:
     return mean_r.mean(axis=1)
 
 
-def metric_set(design, camera, nominal_psf: np.ndarray, wavelengths_m, depths_m, script: str | None = None) -> MetricSet:
+def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, wavelengths_m: np.ndarray,
+               depths_m: np.ndarray, script: str | None = None) -> MetricSet:
     """The metrics for this design's target kind (from its metadata), set up on its nominal PSF."""
     meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
     kind = str(meta.get("kind", "image"))

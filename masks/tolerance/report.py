@@ -7,6 +7,8 @@ helper (no shared Markdown module was on main when this was written).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from scipy import stats
 
@@ -69,7 +71,7 @@ def metric_summary(samples: list[dict], nominal: dict, directions: dict) -> dict
     return out
 
 
-def plot_distributions(samples: list[dict], nominal: dict, path) -> None:
+def plot_distributions(samples: list[dict], nominal: dict, path: str | Path) -> None:
     """Histogram of each metric with its nominal value."""
     import matplotlib.pyplot as plt
 
@@ -91,7 +93,7 @@ def plot_distributions(samples: list[dict], nominal: dict, path) -> None:
     plt.close(fig)
 
 
-def plot_tornado(oat: dict, path, top: int = 12) -> None:
+def plot_tornado(oat: dict, path: str | Path, top: int = 12) -> None:
     """Tornado chart: change of the metric at -1 / +1 sigma of each mask and effect."""
     import matplotlib.pyplot as plt
 

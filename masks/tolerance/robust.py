@@ -12,14 +12,16 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 
+from doedesign.camera import Camera
 from doedesign.levels import level_step_m
 
 from ..decompose import binary_depths_m
 from .smooth import SmoothProcess
-from .spec import default_spec, load_spec, nominal_process
+from .spec import ToleranceSpec, default_spec, load_spec, nominal_process
 
 __all__ = ["PITCH_M", "SMOOTH_EFFECTS", "nominal_vs_robust", "process_perturbations", "spec_perturbations",
            "study_camera"]
@@ -31,7 +33,7 @@ PITCH_M = 5.4e-6
 SMOOTH_EFFECTS = ("etch_depth", "etch_gradient", "linewidth_bias", "mask_overlay", "mask_rotation")
 
 
-def process_perturbations(spec, n_samples: int, seed: int, pitch_m: float, material: str = "fused_silica",
+def process_perturbations(spec: str | None, n_samples: int, seed: int, pitch_m: float, material: str = "fused_silica",
                           design_wavelength_m: float = 550e-9, n_levels: int = 16) -> list[SmoothProcess]:
     """``n_samples`` process samples of ``spec`` (a TOML / compare-report path, or None for the default).
 
@@ -43,7 +45,8 @@ def process_perturbations(spec, n_samples: int, seed: int, pitch_m: float, mater
     return spec_perturbations(tol, n_samples, seed, depths, step, pitch_m, n_levels)
 
 
-def spec_perturbations(tol, n_samples, seed, depths_m, step_m, pitch_m, n_levels=16):
+def spec_perturbations(tol: ToleranceSpec, n_samples: int, seed: int, depths_m: np.ndarray, step_m: float,
+                       pitch_m: float, n_levels: int = 16) -> list[SmoothProcess]:
     """Samples ``SeedSequence([seed, k])``, k < ``n_samples``, of a built spec as smooth perturbations."""
     ignored = sorted({p.effect for p in tol.params if p.effect not in SMOOTH_EFFECTS})
     if ignored:
@@ -57,10 +60,8 @@ def spec_perturbations(tol, n_samples, seed, depths_m, step_m, pitch_m, n_levels
     return out
 
 
-def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M):
+def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M) -> Camera:
     """The paper's camera scaled to a ``size_px`` aperture at the same f-number (spot size in pixels)."""
-    from doedesign.camera import Camera
-
     full = Camera()
     scale = size_px * pitch_m / full.aperture_diameter_m
     return Camera(aperture_diameter_m=size_px * pitch_m, focus_distance_m=math.inf,
@@ -68,7 +69,7 @@ def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M):
                   axis_pixel=(window_px // 2, window_px // 2))
 
 
-def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, robust_samples: int = 4,
+def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir: str | Path, robust_samples: int = 4,
                       eval_samples: int = 64, iterations: int = 40, anneal_iterations: int = 5,
                       measure: str = "mean", seed: int = 0, eval_seed: int = 1, scheduler: str = "inline",
                       workers: int | None = None, keep: float = 0.9, init: str = "router",
@@ -88,7 +89,6 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, r
     with its standard error.
     """
     import time
-    from pathlib import Path
 
     from doedesign import targets
     from doedesign.losses import LossSpec
@@ -129,7 +129,8 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir, r
                      "yield_ci95": rep["yield"]["ci95"], "threshold": rep["yield"]["thresholds"],
                      "design_s": t_design, "evaluations": run.report["evaluations"],
                      "per_colour_nominal": {k: v for k, v in rep["nominal"].items() if k.startswith("on_target_")},
-                     "samples": [s["metrics"]["on_target_mean"] for s in sorted(rep["samples"], key=lambda s: s["index"])]}
+                     "samples": [s["metrics"]["on_target_mean"]
+                                 for s in sorted(rep["samples"], key=lambda s: s["index"])]}
     # Both designs saw the same evaluation samples, so the comparison can be paired.
     diff = np.subtract(out["robust"]["samples"], out["nominal"]["samples"])
     out["paired"] = {"robust_better_fraction": float(np.mean(diff > 0)), "mean_difference": float(diff.mean()),

@@ -20,10 +20,6 @@ TODO = {
     "doedesign.router",
     # GDS split (masks/gds.py, layout.py, polygons.py, the masks command and package).
     "masks", "masks.cli", "masks.gds", "masks.layout", "masks.polygons",
-    # Tolerance and robust design.
-    "masks.tolerance", "masks.tolerance.analysis", "masks.tolerance.cli", "masks.tolerance.evaluate",
-    "masks.tolerance.metrics", "masks.tolerance.report", "masks.tolerance.robust", "masks.tolerance.runner",
-    "masks.tolerance.sensitivity", "masks.tolerance.spec",
     # Diagnosis and measurement-to-design matching.
     "metrology.diagnosis.breakdown", "metrology.diagnosis.camera", "metrology.diagnosis.effects",
     "metrology.diagnosis.engine", "metrology.diagnosis.heights", "metrology.diagnosis.noise",
