@@ -18,8 +18,6 @@ TODO = {
     # Bayer study, PSF engine and optimizer (doedesign/psf.py, optimize.py, bayer.py, ...).
     "doedesign.bayer", "doedesign.objectives", "doedesign.optimize", "doedesign.psf", "doedesign.psf_reads",
     "doedesign.router",
-    # GDS split (masks/gds.py, layout.py, polygons.py, the masks command and package).
-    "masks", "masks.cli", "masks.gds", "masks.layout", "masks.polygons",
     # Diagnosis and measurement-to-design matching.
     "metrology.diagnosis.breakdown", "metrology.diagnosis.camera", "metrology.diagnosis.effects",
     "metrology.diagnosis.engine", "metrology.diagnosis.heights", "metrology.diagnosis.noise",
