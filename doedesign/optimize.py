@@ -411,6 +411,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     """
     settings = settings or OptimizerSettings()
     loss = loss or LossSpec()
+    if perturbations and settings.objective == "maxmin":
+        raise DoeError("robust design: the maxmin objective has no robust form; use objective loss or softmin")
     if tuple(target.window_shape) != tuple(camera.window_shape) or target.axis_pixel != camera.axis_pixel:
         raise DoeError(f"target window {tuple(target.window_shape)} / axis {target.axis_pixel} does not match the "
                        f"camera's {camera.window_shape} / {camera.axis_pixel}")

@@ -213,7 +213,9 @@ def cmd_design(args: argparse.Namespace) -> int:
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
-    opt.setdefault("objective", DEFAULT_OBJECTIVE.get(kind, "loss"))
+    # The max-min stage has no robust form; its smooth stand-in, the soft minimum, has.
+    opt.setdefault("objective", "softmin" if args.robust and DEFAULT_OBJECTIVE.get(kind) == "maxmin"
+                   else DEFAULT_OBJECTIVE.get(kind, "loss"))
     opt.setdefault("max_time_s", 45.0)
     opt.setdefault("anneal_iter", 10)
     if args.no_quantize:

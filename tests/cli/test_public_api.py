@@ -17,10 +17,6 @@ PACKAGES = ("doedesign", "masks", "metrology")
 TODO = {
     # Bayer study, PSF engine and optimizer (doedesign/psf.py, optimize.py, bayer.py, ...).
     "doedesign.bayer", "doedesign.optimize", "doedesign.psf",
-    # Tolerance and robust design.
-    "masks.tolerance", "masks.tolerance.analysis", "masks.tolerance.cli", "masks.tolerance.evaluate",
-    "masks.tolerance.metrics", "masks.tolerance.report", "masks.tolerance.robust", "masks.tolerance.runner",
-    "masks.tolerance.sensitivity", "masks.tolerance.spec",
     # Diagnosis and measurement-to-design matching.
     "metrology.diagnosis.breakdown", "metrology.diagnosis.camera", "metrology.diagnosis.effects",
     "metrology.diagnosis.engine", "metrology.diagnosis.heights", "metrology.diagnosis.noise",
