@@ -144,7 +144,9 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[P
     params = ProcessParams.ideal().copy(mask_overlay=overlay, roughness=0.5e-9, seed=cfg.seed)
     # Place the field where the pattern has structure, inside the element's inscribed circle: a
     # flat zone of a lens-like design cannot be registered or tell anything about the masks.
-    r0, _, c0, _ = busiest_window(design.levels, cfg.field_px, need_flat=False, inside_circle=True)
+    # It must also hold unetched surface (1 % of the field), which compare levels on.
+    r0, _, c0, _ = busiest_window(design.levels, cfg.field_px, need_flat=False, inside_circle=True,
+                                  min_level0_px=max(16, cfg.field_px ** 2 // 100))
     centre = (float(r0 + cfg.field_px // 2), float(c0 + cfg.field_px // 2))
     centre = (centre[0] + rng.uniform(-2, 2), centre[1] + rng.uniform(-2, 2))
     scale = cfg.measurement_pixel_m / design.pitch_m

@@ -16,7 +16,8 @@ from doedesign.errors import DoeError
 __all__ = ["busiest_window"]
 
 
-def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
+def busiest_window(levels: np.ndarray, size_px: int, need_flat: bool = True, inside_circle: bool = False,
+                   min_level0_px: int = 0) -> tuple[int, int, int, int]:
     """The window of ``size_px`` design pixels per side with the most level edges.
 
     Parameters
@@ -30,6 +31,10 @@ def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
     inside_circle : bool
         Keep the whole window (its diagonal) inside the element's inscribed circle, as a
         profilometer field on a round element must be.
+    min_level0_px : int
+        Keep only windows holding at least this many unetched (level-0) pixels whose 3 x 3
+        neighbourhood is unetched too: a profilometer field is levelled on, and its depths
+        measured from, the unetched surface, so a field without it cannot be compared.
 
     Returns
     -------
@@ -56,6 +61,13 @@ def busiest_window(levels, size_px, need_flat=True, inside_circle=False):
             raise DoeError(f"a {h} x {w} pixel window does not fit inside the inscribed circle of a "
                            f"{rows} x {cols} pixel design")
         score = np.where(inside, score, -np.inf)
+    if min_level0_px > 0:
+        top = ndi.binary_erosion(levels == 0, structure=np.ones((3, 3), bool), border_value=0)
+        enough = window_sums(top.astype(float), h, w) >= min_level0_px
+        if not (enough & np.isfinite(score)).any():
+            raise DoeError(f"no {h} x {w} pixel window of the design holds {min_level0_px} unetched "
+                           "(level-0) pixels to level and measure depths on")
+        score = np.where(enough, score, -np.inf)
     r0, c0 = (int(v) for v in np.unravel_index(np.argmax(score), score.shape))
     return (r0, r0 + h, c0, c0 + w)
 

@@ -227,7 +227,8 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
         use &= np.asarray(valid, bool)
     present = np.unique(labels[use])
     if 0 not in present:
-        raise DoeError("joint levelling needs level-0 (unetched) pixels")
+        raise DoeError("the measured field holds no unetched (level-0) surface to level on and measure depths from; "
+                       "measure a field that includes some unetched surface")
     rows, cols = _subsample(use, max_points)
     lab = labels[rows, cols]
     index = np.searchsorted(present, lab)
