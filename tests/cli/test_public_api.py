@@ -19,7 +19,6 @@ TODO = {
     "metrology.diagnosis.breakdown", "metrology.diagnosis.camera", "metrology.diagnosis.effects",
     "metrology.diagnosis.engine", "metrology.diagnosis.heights", "metrology.diagnosis.noise",
     "metrology.diagnosis.plots", "metrology.diagnosis.psf", "metrology.diagnosis.synthetic",
-    "metrology.diagnosis.window",
 }
 
 
