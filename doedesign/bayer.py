@@ -24,9 +24,12 @@ so lost light shows up as noise, as it would in a camera.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import ndimage, signal
 
 from .errors import DoeError
@@ -47,9 +50,11 @@ PAPER_TABLE1 = {
 }
 # Offsets (rows, cols) from the axis of the Bayer target's R, G, B spots (supplement Eq. 1).
 TARGET_OFFSETS = ((0, 0), (1, 0), (1, 1))
+# PSNR (dB) per colour space channel: "rgb_db", "l_db", "u_db", "v_db".
+_Scores = dict[str, float]
 
 
-def load_images(names=IMAGES, crop=None):
+def load_images(names: Sequence[str] = IMAGES, crop: int | None = None) -> dict[str, np.ndarray]:
     """Natural colour test images from :mod:`skimage.data` as float arrays in [0, 1].
 
     ``crop`` (int) keeps a centred ``crop x crop`` region for speed; sizes are cut to even
@@ -74,7 +79,7 @@ def load_images(names=IMAGES, crop=None):
     return out
 
 
-def delta_kernels(offsets):
+def delta_kernels(offsets: Sequence[tuple[int, int]]) -> np.ndarray:
     """One small kernel per channel with all its light on ``offsets[c]`` = (drow, dcol) from the centre."""
     m = max(max(abs(r), abs(c)) for r, c in offsets)
     size = 2 * m + 1
@@ -84,7 +89,7 @@ def delta_kernels(offsets):
     return k
 
 
-def psf_kernels(psf, axis_pixel, radius_px=None):
+def psf_kernels(psf: ArrayLike, axis_pixel: tuple[int, int], radius_px: int | None = None) -> np.ndarray:
     """Per-channel convolution kernels (3, 2r+1, 2r+1) centred on the axis from PSFs (3, rows, cols).
 
     ``radius_px`` (default: as far as the window reaches on every side) crops the PSF; the
@@ -98,7 +103,7 @@ def psf_kernels(psf, axis_pixel, radius_px=None):
     return psf[:, r0 - r:r0 + r + 1, c0 - r:c0 + r + 1].copy()
 
 
-def apply_psf(img, kernels):
+def apply_psf(img: np.ndarray, kernels: np.ndarray) -> np.ndarray:
     """Sensor image per channel: the scene convolved with its kernel (light outside the frame is dark)."""
     out = np.empty_like(img)
     for ch in range(3):
@@ -113,20 +118,20 @@ def apply_psf(img, kernels):
     return out
 
 
-def rggb_masks(shape):
+def rggb_masks(shape: tuple[int, int]) -> np.ndarray:
     """Boolean (3, rows, cols) masks of the R, G and B sites of an RGGB mosaic."""
     rr, cc = np.meshgrid(np.arange(shape[0]) % 2, np.arange(shape[1]) % 2, indexing="ij")
     return np.stack([(rr == 0) & (cc == 0), rr != cc, (rr == 1) & (cc == 1)])
 
 
-def mosaic(sensor_rgb, rng, sigma=NOISE_SIGMA):
+def mosaic(sensor_rgb: np.ndarray, rng: np.random.Generator, sigma: float = NOISE_SIGMA) -> np.ndarray:
     """RGGB samples with 0/1 transmittance, Gaussian noise and clipping to [0, 1]."""
     masks = rggb_masks(sensor_rgb.shape[:2])
     raw = np.sum(np.moveaxis(sensor_rgb, -1, 0) * masks, axis=0)
     return np.clip(raw + rng.normal(0.0, sigma, raw.shape), 0.0, 1.0)
 
 
-def nearest_neighbour(raw):
+def nearest_neighbour(raw: np.ndarray) -> np.ndarray:
     """Cell-wise reconstruction: R from (0, 0), G from (1, 0), B from (1, 1) of each 2 x 2 cell."""
     rows, cols = raw.shape
     if rows % 2 or cols % 2:
@@ -135,7 +140,7 @@ def nearest_neighbour(raw):
     return np.stack([np.repeat(np.repeat(c, 2, axis=0), 2, axis=1) for c in cells], axis=-1)
 
 
-def bilinear_demosaic(raw):
+def bilinear_demosaic(raw: np.ndarray) -> np.ndarray:
     """Standard bilinear demosaicing: normalized convolution of each channel's samples."""
     masks = rggb_masks(raw.shape)
     kern_rb = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], float) / 4
@@ -162,7 +167,7 @@ def _luv_peaks():
     return luv.reshape(-1, 3).max(axis=0) - luv.reshape(-1, 3).min(axis=0)
 
 
-def psnr_scores(reference, estimate, margin=4):
+def psnr_scores(reference: np.ndarray, estimate: np.ndarray, margin: int = 4) -> _Scores:
     """PSNR (dB) in RGB and per LUV channel on the interior (``margin`` px dropped at each edge)."""
     from skimage.color import rgb2luv
 
@@ -187,7 +192,8 @@ class Method:
     kernels: np.ndarray
     reconstruct: str = "nearest"
 
-    def simulate(self, img, rng):
+    def simulate(self, img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The reconstructed image (rows, cols, 3) of ``img`` seen through this method."""
         gain = self.kernels.sum(axis=(-2, -1))
         if np.any(gain <= 0):
             raise DoeError(f"{self.name}: a channel's PSF holds no light")
@@ -197,7 +203,8 @@ class Method:
         return rec / gain
 
 
-def standard_methods(doe_psf=None, axis_pixel=(256, 256), rggb=False):
+def standard_methods(doe_psf: np.ndarray | None = None, axis_pixel: tuple[int, int] = (256, 256),
+                     rggb: bool = False) -> list[Method]:
     """The rows of Table 1; ``doe_psf`` (3, rows, cols) R, G, B adds ``proposed_doe``."""
     ideal = delta_kernels(((0, 0),) * 3)
     target = delta_kernels(TARGET_OFFSETS)
@@ -208,7 +215,8 @@ def standard_methods(doe_psf=None, axis_pixel=(256, 256), rggb=False):
     return methods
 
 
-def evaluate(images, methods, seed=0):
+def evaluate(images: dict[str, np.ndarray], methods: Sequence[Method], seed: int = 0
+             ) -> tuple[dict[str, _Scores], dict[str, dict[str, _Scores]], dict[str, dict[str, np.ndarray]]]:
     """Mean PSNR per method over the images (each image with its own noise draw, seeded).
 
     Returns
@@ -230,7 +238,8 @@ def evaluate(images, methods, seed=0):
     return table, per_image, recs
 
 
-def figure(images, recs, path, image_name=None):
+def figure(images: dict[str, np.ndarray], recs: dict[str, dict[str, np.ndarray]], path: str | Path,
+           image_name: str | None = None) -> Path:
     """Fig. 2-like panel: reconstructions (top) and mean |dU|+|dV| error maps (bottom)."""
     import matplotlib.pyplot as plt
     from skimage.color import rgb2luv

@@ -53,9 +53,12 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .bounds import bound_report, spot_bound
 from .design import Design
@@ -67,6 +70,11 @@ from .objectives import maxmin_stage, plane_weights, softmin_loss
 from .progress import Progress
 from .psf import PSFEngine
 from .router import router_start
+
+if TYPE_CHECKING:
+    from .camera import Camera
+    from .materials import Material
+    from .targets import Target
 
 __all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OptimizerSettings",
            "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
@@ -83,10 +91,14 @@ ROBUST_MEASURES = ("mean", "cvar")
 WRAP_SPAN = 8
 # Weights of the level penalty relative to the continuous loss, one re-optimization each.
 ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
+# callback(evaluation, loss, height_m); True stops the stage.
+StageCallback = Callable[[int, float, np.ndarray], bool | None]
+# h -> (h', vjp): a perturbed height map and the pullback of a gradient at h' to h.
+Perturbation = Callable[[np.ndarray], tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]
 
 
 # -- levels and bounds ---------------------------------------------------------------------------
-def height_bounds(step_m, n_levels=N_LEVELS, height_range="process"):
+def height_bounds(step_m: float, n_levels: int = N_LEVELS, height_range: str = "process") -> tuple[float, float]:
     """(lower, upper) height bounds in metres for ``height_range`` (see the module docstring)."""
     if height_range == "process":
         return -(n_levels - 1) * step_m, 0.0
@@ -97,7 +109,8 @@ def height_bounds(step_m, n_levels=N_LEVELS, height_range="process"):
     raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {height_range!r}")
 
 
-def level_penalty(height_m, step_m, support=None):
+def level_penalty(height_m: ArrayLike, step_m: float,
+                  support: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
     h = np.asarray(height_m, dtype=float)
     s = np.ones(h.shape, bool) if support is None else support
@@ -124,7 +137,7 @@ def _neighbour_differences(h):
 _OFFSETS = ((-1, 0), (1, 0), (0, -1), (0, 1))
 
 
-def isolation_penalty(height_m, step_m):
+def isolation_penalty(height_m: ArrayLike, step_m: float) -> tuple[float, np.ndarray]:
     """How far one-pixel pillars stick up and holes dig down, in levels, per pixel.
 
     A pixel higher than all its neighbours contributes ``min(h - neighbour) / step`` (the
@@ -149,7 +162,7 @@ def isolation_penalty(height_m, step_m):
     return value, grad
 
 
-def isolated_pixels(levels):
+def isolated_pixels(levels: ArrayLike) -> int:
     """Number of one-pixel pillars and holes: pixels above (or below) all their in-array neighbours."""
     d, inside = _neighbour_differences(np.asarray(levels, dtype=float))
     up = np.all(np.where(inside, d > 0, True), axis=0)
@@ -164,9 +177,10 @@ def _wrap_into(h, lower, step_m, n_levels):
     return np.where(h < lower, np.where(h < lower - step_m / 2, 0.0, lower), h)
 
 
-def initial_height(kind, shape, step_m, lower, rng, n_levels=N_LEVELS, period_px=16, arms="+",
-                   pitch_m=5.4e-6, camera=None, design_wavelength_m=550e-9, material="fused_silica",
-                   focus_depth_m=None):
+def initial_height(kind: str, shape: tuple[int, int], step_m: float, lower: float, rng: np.random.Generator,
+                   n_levels: int = N_LEVELS, period_px: int = 16, arms: str = "+", pitch_m: float = 5.4e-6,
+                   camera: Camera | None = None, design_wavelength_m: float = 550e-9,
+                   material: str | Material = "fused_silica", focus_depth_m: float | None = None) -> np.ndarray:
     """A starting height map.
 
     Parameters
@@ -292,8 +306,10 @@ def robust_value_and_grad(value_and_grad, h, perturbations, measure="mean", cvar
     return float(weights @ values), sum(w * g for w, g in zip(weights, grads) if w)
 
 
-def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel=1e-7, max_time_s=None,
-             callback=None, desc="optimize"):
+def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarray, lower: ArrayLike,
+             upper: ArrayLike, algorithm: str = "LD_LBFGS", max_iter: int = 100, ftol_rel: float = 1e-7,
+             max_time_s: float | None = None, callback: StageCallback | None = None,
+             desc: str = "optimize") -> tuple[np.ndarray, list[float]]:
     """Minimize ``fun(x) -> (value, grad)`` over a bounded array with nlopt.
 
     Parameters
@@ -372,7 +388,7 @@ class DesignRun:
     report: dict = field(default_factory=dict)
 
 
-def coded_support(camera, pitch_m, shape):
+def coded_support(camera: Camera, pitch_m: float, shape: tuple[int, int]) -> np.ndarray:
     """Boolean map of the design pixels that the coded half-aperture sees (any light at all)."""
     grid = camera.pupil_grid_shape(shape, pitch_m)
     coded = camera.view_weights(grid, pitch_m)[0]
@@ -380,9 +396,11 @@ def coded_support(camera, pitch_m, shape):
     return coded[oy:oy + shape[0], ox:ox + shape[1]] > 0
 
 
-def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
-               loss=None, settings=None, init_height_m=None, callback=None, doe_oversample=1, perturbations=None,
-               full_window=False):
+def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int, int], material: str = "fused_silica",
+               design_wavelength_m: float = 550e-9, loss: LossSpec | None = None,
+               settings: OptimizerSettings | None = None, init_height_m: np.ndarray | None = None,
+               callback: StageCallback | None = None, doe_oversample: int = 1,
+               perturbations: Sequence[Perturbation] | None = None, full_window: bool = False) -> DesignRun:
     """Optimize a DOE for ``target`` and quantize it to the process levels.
 
     Parameters

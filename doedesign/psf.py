@@ -26,17 +26,25 @@ Fourier transform from the lag grid to the window's pixel centres (Hermitian hal
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.fft as sfft
+from numpy.typing import ArrayLike
 
 from .camera import Camera
 from .errors import DoeError, SamplingError
 from .fileio import dumps_json, read_npz, write_npz
 from .materials import get_material
 from .psf_reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
+
+if TYPE_CHECKING:
+    from .design import Design
+    from .materials import Material
+    from .progress import Progress
 
 __all__ = ["KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "PSFEngine", "PSFResult", "VIEWS",
            "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
@@ -75,21 +83,21 @@ class PSFResult:
     sampling: dict = field(default_factory=dict)
 
     @property
-    def energy_in_window(self):
+    def energy_in_window(self) -> np.ndarray:
         return self.psf.sum(axis=(-2, -1))
 
-    def view(self, name):
+    def view(self, name: str) -> np.ndarray:
         """The PSF of one view, shaped (depths, wavelengths, rows, cols)."""
         return self.psf[list(self.views).index(name)]
 
-    def polychromatic(self, weights):
+    def polychromatic(self, weights: ArrayLike) -> np.ndarray:
         """Spectrally weighted PSF (views, depths, rows, cols); weights are normalized to sum 1."""
         w = np.asarray(weights, dtype=float)
         if w.shape != (len(self.wavelengths_m),) or np.any(w < 0) or w.sum() <= 0:
             raise DoeError(f"spectral weights must be {len(self.wavelengths_m)} non-negative numbers, not all zero")
         return np.tensordot(self.psf, w / w.sum(), axes=([2], [0]))
 
-    def save(self, path):
+    def save(self, path: str | Path) -> Path:
         """Write the PSF ``.npz`` (fields documented in the README)."""
         return write_npz(
             path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
@@ -98,7 +106,7 @@ class PSFResult:
             sampling=np.str_(dumps_json(self.sampling, indent=None)))
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path: str | Path) -> PSFResult:
         """Read a PSF ``.npz`` written by :meth:`save`."""
         path = Path(path)
         data = read_psf_arrays(path, ("psf", "views", "wavelengths_m", "depths_m", "pixel_pitch_m"))
@@ -110,7 +118,7 @@ class PSFResult:
                    axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))))
 
 
-def read_psf_arrays(path, required, what="PSF file"):
+def read_psf_arrays(path: str | Path, required: Iterable[str], what: str = "PSF file") -> dict[str, np.ndarray]:
     """All arrays of a PSF ``.npz`` after checking the ``required`` fields; errors name the file."""
     return read_npz(path, required, what)
 
@@ -139,8 +147,9 @@ class PSFEngine:
         it); gradients are always computed in double precision.
     """
 
-    def __init__(self, camera: Camera, pitch_m, shape, material="fused_silica", wavelengths_m=(550e-9,),
-                 depths_m=None, doe_oversample=1, precision="double"):
+    def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
+                 material: str | Material = "fused_silica", wavelengths_m: ArrayLike = (550e-9,),
+                 depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double") -> None:
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
         self.camera = camera
@@ -403,7 +412,7 @@ class PSFEngine:
             raise DoeError(f"height map holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
         return h
 
-    def psf(self, height_m, views=VIEWS, progress=None):
+    def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None) -> PSFResult:
         """PSFs of the requested views for every depth and wavelength (see :class:`PSFResult`)."""
         h = self._check_height(height_m)
         for v in views:
@@ -428,7 +437,8 @@ class PSFEngine:
                          depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
                          axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
 
-    def value_and_grad(self, height_m, loss_fn, full_window=False):
+    def value_and_grad(self, height_m: ArrayLike, loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
+                       full_window: bool = False) -> tuple[float, np.ndarray]:
         """Loss of the coded PSF and its exact (adjoint) gradient with respect to the heights.
 
         A loss with a ``reads`` attribute (:class:`doedesign.losses.PixelReads`, as
@@ -560,7 +570,7 @@ class PSFEngine:
 MAX_WAVELENGTHS = 1000
 
 
-def parse_wavelengths_nm(text):
+def parse_wavelengths_nm(text: str) -> np.ndarray:
     """Wavelengths in metres from ``"486,589,656"`` or ``"400:700:10"`` (inclusive), in nm."""
     text = str(text).strip()
     try:
@@ -584,8 +594,9 @@ def parse_wavelengths_nm(text):
     return values * 1e-9
 
 
-def compute_psf(design, camera=None, wavelengths_m=(486e-9, 589e-9, 656e-9), depths_m=None,
-                doe_oversample=1, views=VIEWS, progress=None):
+def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9),
+                depths_m: ArrayLike | None = None, doe_oversample: int = 1, views: Sequence[str] = VIEWS,
+                progress: Progress | None = None) -> PSFResult:
     """PSFs of a :class:`~doedesign.design.Design` through ``camera`` (default: the seed camera)."""
     camera = camera or Camera()
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths_m, depths_m,

@@ -313,10 +313,15 @@ def markdown_report(report: dict, out: Path) -> str:
     ]
     tol = report.get("tolerance")
     if tol:
-        m, y = tol["metrics"][tol["primary_metric"]], tol["yield"]
+        from masks.tolerance.metrics import metric_unit
+        from masks.tolerance.report import yield_verdict
+
+        name = tol["primary_metric"]
+        m, y = tol["metrics"][name], tol["yield"]
         parts[-1:-1] = [
             "## Tolerance", f"{tol['samples']} process samples, {tol['spec']}. {tol['sampling']}.", "",
-            md.table([(tol["primary_metric"], md.fmt(m["nominal"], 4), md.fmt(m["mean"], 4),
+            f"Yield: {yield_verdict(y)}.", "",
+            md.table([(f"{name} ({metric_unit(name)})", md.fmt(m["nominal"], 4), md.fmt(m["mean"], 4),
                        md.fmt(m["worst_decile_mean"], 4), f"{y['passed']}/{y['samples']}",
                        f"{md.fmt(y['ci95'][0], 2)}-{md.fmt(y['ci95'][1], 2)}")],
                      ("metric", "nominal", "mean", "worst decile", "yield", "95 % interval")),

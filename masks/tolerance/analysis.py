@@ -16,13 +16,14 @@ import numpy as np
 from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path, write_json
+from doedesign.fileio import write_json
 from doedesign.levels import design_levels, level_step_m
 
 from ..decompose import binary_depths_m
 from .evaluate import Evaluator
 from .metrics import DIRECTIONS, metric_set
-from .report import default_thresholds, markdown, metric_summary, plot_distributions, plot_tornado, yield_summary
+from .report import (default_thresholds, metric_summary, plot_distributions, plot_tornado, tolerance_page,
+                     yield_summary)
 from .runner import make_client, n_workers, open_store, run_jobs, run_key
 from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
 from .spec import ToleranceSpec, nominal_process
@@ -158,6 +159,5 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
     plot_distributions(samples, nominal, out / "distributions.png")
     if sensitivity.get("one_at_a_time") and sensitivity["one_at_a_time"]["rows"]:
         plot_tornado(sensitivity["one_at_a_time"], out / "tornado.png")
-    with atomic_path(out / "report.md") as tmp:
-        Path(tmp).write_text(markdown(report))
+    tolerance_page(report, out)
     return report

@@ -37,7 +37,7 @@ from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
 
-__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "metric_set", "ring_radii_px", "user_metric_functions"]
+__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "metric_set", "metric_unit", "ring_radii_px", "user_metric_functions"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,21 @@ DIRECTIONS = {"peak_fraction": "lower", "zero_order_leak": "lower", "ring_radius
 PRIMARY = {"bayer": "on_target_mean", "hyperspectral": "first_order_efficiency", "spots": "efficiency",
            "hdr-streak": "streak_energy", "depth": "ring_radius_error_px"}
 BAYER_CHANNELS = ("R", "G", "B")
+# Built-in metrics that are not a fraction of the light through the coded half-aperture.
+_OTHER_UNITS = {"peak_fraction": "fraction of window light", "spot_uniformity": "ratio"}
+_FRACTION_METRICS = {"first_order_efficiency", "streak_energy", "efficiency", "zero_order_leak"}
+
+
+def metric_unit(name: str) -> str:
+    """The unit of a metric, for report columns: built-in metrics are fractions of the light
+    through the coded half-aperture unless named ``_px``; a user script's metrics carry its own."""
+    if "_px" in name:
+        return "px"
+    if name in _OTHER_UNITS:
+        return _OTHER_UNITS[name]
+    if name.startswith("on_target_") or name in _FRACTION_METRICS:
+        return "fraction of light"
+    return "script's unit"
 
 
 @dataclass

@@ -1,28 +1,38 @@
 """Summaries, yield, plots and report.md of a tolerance run.
 
 Yield is the fraction of Monte Carlo samples meeting every threshold, with an exact
-(Clopper-Pearson) 95 % binomial interval. The Markdown is written with a small local table
-helper (no shared Markdown module was on main when this was written).
+(Clopper-Pearson) 95 % binomial interval, judged against :data:`YIELD_GOAL`: met when the
+interval lies above it, missed when it lies below, undecided (more samples needed) when it
+straddles it. ``report.md`` is built from the shared blocks of :mod:`doedesign.report_md`
+like every other page: a summary first, tables with units, verdicts in words, figures
+inline and a link to ``report.json``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import math
+
 import numpy as np
 from scipy import stats
 
+from doedesign import report_md as md
 from doedesign.fileio import save_figure
 
+from .metrics import metric_unit
 from .spec import meets
 
-__all__ = ["clopper_pearson", "default_thresholds", "markdown", "md_table", "metric_summary",
-           "plot_distributions", "plot_tornado", "yield_summary"]
+__all__ = ["YIELD_GOAL", "clopper_pearson", "default_thresholds", "meets_goal", "metric_summary", "most_important",
+           "plot_distributions", "plot_tornado", "samples_to_show", "tolerance_page", "tolerance_sections",
+           "yield_summary", "yield_verdict"]
 
 CONFIDENCE = 0.95
 # Without user thresholds, the primary metric must keep this share of its nominal value
 # (or, for a lower-is-better metric, stay below nominal / this).
 DEFAULT_KEEP = 0.9
+# The yield a process is judged against: nine elements in ten within the thresholds.
+YIELD_GOAL = 0.9
 
 
 def clopper_pearson(k: int, n: int, confidence: float = CONFIDENCE) -> list[float]:
@@ -33,6 +43,23 @@ def clopper_pearson(k: int, n: int, confidence: float = CONFIDENCE) -> list[floa
     lo = 0.0 if k == 0 else float(stats.beta.ppf(a, k, n - k + 1))
     hi = 1.0 if k == n else float(stats.beta.ppf(1 - a, k + 1, n - k))
     return [lo, hi]
+
+
+def meets_goal(ci95: list[float], goal: float = YIELD_GOAL) -> bool | None:
+    """True when the whole yield interval lies at or above ``goal``, False when below, None when it straddles."""
+    if ci95[0] >= goal:
+        return True
+    if ci95[1] < goal:
+        return False
+    return None
+
+
+def samples_to_show(goal: float = YIELD_GOAL, confidence: float = CONFIDENCE) -> int:
+    """Fewest samples, all passing, whose Clopper-Pearson lower bound reaches ``goal``.
+
+    With k = n the lower bound is ``((1 - confidence) / 2) ** (1 / n)`` in closed form.
+    """
+    return max(1, math.ceil(math.log((1 - confidence) / 2) / math.log(goal)))
 
 
 def default_thresholds(primary: str, nominal: dict, direction: str) -> dict:
@@ -50,9 +77,11 @@ def yield_summary(samples: list[dict], thresholds: dict) -> dict:
     k = int(sum(passed))
     per = {m: float(np.mean([meets(s["metrics"][m], t) for s in samples])) if n else 0.0
            for m, t in thresholds.items()}
+    ci95 = clopper_pearson(k, n)
     return {"thresholds": {m: f"{op} {v:.6g}" for m, (op, v) in thresholds.items()}, "samples": n, "passed": k,
-            "fraction": k / n if n else 0.0, "ci95": clopper_pearson(k, n), "per_threshold": per,
-            "interval": "Clopper-Pearson exact binomial, 95 %"}
+            "fraction": k / n if n else 0.0, "ci95": ci95, "per_threshold": per,
+            "interval": "Clopper-Pearson exact binomial, 95 %", "goal": YIELD_GOAL,
+            "meets_goal": meets_goal(ci95)}
 
 
 def metric_summary(samples: list[dict], nominal: dict, directions: dict) -> dict:
@@ -111,51 +140,157 @@ def plot_tornado(oat: dict, path: str | Path, top: int = 12) -> None:
     plt.close(fig)
 
 
-def md_table(header: list, rows: list) -> str:
-    """A Markdown table from a header and rows of cells."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines)
+def _unit_label(name: str, unit: str) -> str:
+    return f"{name} ({unit or 'plain number'})"
 
 
-def _cell(value):
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return str(value)
+_NOT_VALUES = ("name", "effect", "mask", "dist")
 
 
-def markdown(report: dict) -> str:
-    """report.md text of a tolerance report."""
-    y = report["yield"]
-    lines = [f"# Tolerance analysis of {report['design']}", "",
-             f"{report['run']['samples']} Monte Carlo samples (seed {report['run']['seed']}), "
-             f"scheduler {report['run']['scheduler']} with {report['run']['workers']} worker threads, "
-             f"{report['timing']['seconds_per_sample']:.3g} s per sample.", "",
-             f"Spec: {report['spec']['source']}.", "",
-             md_table(["parameter", "dist", "values"],
-                      [[p["name"], p["dist"], ", ".join(f"{k} {v:.4g}" for k, v in p.items()
-                                                        if k not in ("name", "effect", "mask", "dist"))]
-                       for p in report["spec"]["parameters"]]), "",
-             f"Sampling: {report['sampling']['description']}", "",
-             "## Metrics", "",
-             md_table(["metric", "better", "nominal", "mean", "p10", "p90", "worst decile"],
-                      [[k, v["direction"].split()[0], v["nominal"], v["mean"], v["p10"], v["p90"],
-                        v["worst_decile_mean"]] for k, v in report["metrics"].items()]), "",
-             "## Yield", "",
-             f"{y['passed']} of {y['samples']} samples meet {', '.join(f'{m} {t}' for m, t in y['thresholds'].items())}"
-             f": yield {y['fraction']:.3f} (95 % interval {y['ci95'][0]:.3f} - {y['ci95'][1]:.3f}).", "",
-             "![distributions](distributions.png)", ""]
-    oat = report["sensitivity"].get("one_at_a_time")
+def _param_unit(row: dict) -> str:
+    """A spec row's unit, from its value keys (``sigma_nm`` -> ``nm``; none for a plain number)."""
+    return next((k.partition("_")[2] for k in row if k not in _NOT_VALUES), "")
+
+
+def _param_values(row: dict) -> str:
+    """``mean 0, sigma 2.24`` (the unit is in the parameter's name)."""
+    return ", ".join(f"{k.partition('_')[0]} {md.fmt(v, 4)}" for k, v in row.items() if k not in _NOT_VALUES)
+
+
+def _param_label(row: dict) -> str:
+    """``mask 3 mask_overlay dx`` from a spec row (the label of :attr:`masks.tolerance.spec.Param.label`)."""
+    base, unit = row["name"].split("[")[0], _param_unit(row)
+    base = base.removesuffix(f"_{unit}") if unit else base
+    return ("" if row["mask"] is None else f"mask {row['mask']} ") + base.replace(".", " ")
+
+
+def _varied(parameters: list[dict]) -> str:
+    """``etch_depth on masks 0, 1, 2, 3; mask_overlay on mask 3``: what the spec varies."""
+    masks = {}
+    for p in parameters:
+        if p["dist"] != "fixed":
+            masks.setdefault(p["effect"], set())
+            if p["mask"] is not None:
+                masks[p["effect"]].add(p["mask"])
+    words = []
+    for effect, on in masks.items():
+        where = "" if not on else f" on mask{'s' if len(on) > 1 else ''} {', '.join(str(m) for m in sorted(on))}"
+        words.append(effect + where)
+    return "; ".join(words) or "nothing (every parameter fixed)"
+
+
+def most_important(sensitivity: dict) -> tuple[str, str] | None:
+    """The mask and effect that moves the primary metric most: (its label, a sentence saying by how much);
+    None without a sensitivity run.
+
+    The one-at-a-time swing is used when it was run (deterministic, one sigma each way), else
+    the largest total Sobol index.
+    """
+    oat = sensitivity.get("one_at_a_time")
     if oat and oat["rows"]:
-        lines += ["## Sensitivity", "",
-                  f"One at a time ({oat['metric']}, centre {oat['centre_value']:.4g}):", "",
-                  md_table(["mask and effect", "-1 sigma", "+1 sigma", "change at -1", "change at +1"],
-                           [[r["label"], r["low_value"], r["high_value"], r["low_delta"], r["high_delta"]]
-                            for r in oat["rows"]]), "", "![tornado](tornado.png)", ""]
-    sob = report["sensitivity"].get("sobol")
+        top = oat["rows"][0]
+        if top["swing"] == 0:
+            return None
+        unit = metric_unit(oat["metric"])
+        centre = oat["centre_value"]
+        rel = f", {100 * top['swing'] / abs(centre):.2g} % of its nominal value" if centre else ""
+        return top["label"], (f"one sigma of it moves {oat['metric']} by up to {md.fmt(top['swing'], 3, unit)}{rel} "
+                              "(one at a time)")
+    sob = sensitivity.get("sobol")
+    if sob and sob["groups"] and max(sob["ST"]) > 0:
+        i = int(np.argmax(sob["ST"]))
+        return sob["groups"][i], (f"total Sobol index {md.fmt_pm(sob['ST'][i], sob['ST_conf'][i], 2)} of "
+                                  f"{sob['metric']}'s variance ({sob['runs']} runs)")
+    return None
+
+
+def _no_ranking(sensitivity: dict) -> str:
+    ran = (sensitivity.get("one_at_a_time") or {}).get("rows") or sensitivity.get("sobol")
+    return f"no parameter moved {sensitivity['metric']}" if ran else "not computed (no sensitivity run)"
+
+
+def _percent(fraction: float) -> str:
+    return md.fmt(100 * fraction, 3, "%")
+
+
+def yield_verdict(y: dict, most: tuple[str, str] | None = None) -> str:
+    """The yield judged against its goal, in words (see :func:`meets_goal`); ``most`` names what to tighten."""
+    goal, (lo, hi) = y.get("goal", YIELD_GOAL), y["ci95"]
+    interval = f"95 % interval {_percent(lo)} to {_percent(hi)}"
+    ok = meets_goal([lo, hi], goal)
+    if ok is None:
+        return md.verdict(None, "", f"{y['samples']} samples cannot tell whether the yield reaches "
+                                    f"{100 * goal:g} % ({interval}); at least {samples_to_show(goal)} samples, all "
+                                    "passing, are needed to show it")
+    fix = f"; tighten the process on {most[0]} first, or relax the thresholds" if most else ""
+    return md.verdict(ok, f"at least {100 * goal:g} % of elements meet the thresholds ({interval})",
+                      f"the yield is below {100 * goal:g} % ({interval}){fix}")
+
+
+def tolerance_sections(report: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
+    """Markdown parts of a tolerance report: summary, parameters, metrics, yield, sensitivity, figures."""
+    h = "#" * level
+    y, run, spec, sens = report["yield"], report["run"], report["spec"], report["sensitivity"]
+    most = most_important(sens)
+    thresholds = ", ".join(f"{m} {t}" for m, t in y["thresholds"].items())
+    parts = [f"{h} Summary",
+             f"- **Toleranced**: `{report['design']}` under the process spec {spec['source']}, varying "
+             f"{_varied(spec['parameters'])}.",
+             f"- **Samples**: {run['samples']} Monte Carlo process samples (seed {run['seed']}), each judged on "
+             f"{thresholds}.",
+             f"- **Yield**: {_percent(y['fraction'])} ({y['passed']} of {y['samples']} samples), 95 % interval "
+             f"{_percent(y['ci95'][0])} to {_percent(y['ci95'][1])} (Clopper-Pearson).",
+             f"- **Matters most**: {': '.join(most) if most else _no_ranking(sens)}.",
+             f"- Verdict: {yield_verdict(y, most)}.", "",
+             f"{h} Process parameters varied",
+             md.table([(_unit_label(_param_label(p), _param_unit(p)), p["dist"], _param_values(p))
+                       for p in spec["parameters"]], ("parameter", "distribution", "values")),
+             f"Sampling: {report['sampling']['description']}; {md.fmt(report['timing']['seconds_per_sample'], 3)} s "
+             f"per sample ({run['scheduler']} scheduler, {run['workers']} worker "
+             f"thread{'' if run['workers'] == 1 else 's'}).", "",
+             f"{h} Metrics over the samples",
+             "Each metric's unit is in its row; p10 and p90 are the 10th and 90th percentiles over the samples.", "",
+             md.table([(_unit_label(k, metric_unit(k)), v["direction"].split()[0], md.fmt(v["nominal"], 4),
+                        md.fmt(v["mean"], 4),
+                        md.fmt(100 * (v["mean"] / v["nominal"] - 1) if v["nominal"] else None, 3),
+                        md.fmt(v["p10"], 4), md.fmt(v["p90"], 4), md.fmt(v["worst_decile_mean"], 4))
+                       for k, v in report["metrics"].items()],
+                      ("metric", "better", "nominal", "mean", "mean change (%)", "p10", "p90", "worst-decile mean")),
+             f"{h} Yield",
+             f"{y['passed']} of {y['samples']} samples meet every threshold: yield {_percent(y['fraction'])}, 95 % "
+             f"interval {_percent(y['ci95'][0])} to {_percent(y['ci95'][1])} ({y['interval']}); judged against a "
+             f"goal of {_percent(y.get('goal', YIELD_GOAL))}.", "",
+             md.table([(f"{m} {t}", md.fmt(100 * y["per_threshold"][m], 3)) for m, t in y["thresholds"].items()],
+                      ("threshold", "samples passing (%)")),
+             md.figure(folder, prefix + "distributions.png", "each metric over the samples, nominal element dashed")]
+    oat, sob = sens.get("one_at_a_time"), sens.get("sobol")
+    if (oat and oat["rows"]) or sob:
+        parts.append(f"{h} Which mask and effect matters")
+    if oat and oat["rows"]:
+        unit = metric_unit(oat["metric"])
+        param_units = {p["name"]: _param_unit(p) for p in spec["parameters"]}
+        parts += [f"One at a time: each parameter at its -1 and +1 sigma quantiles (15.9 % and 84.1 %), the others "
+                  f"at their centre; change of {oat['metric']} from {md.fmt(oat['centre_value'], 4, unit)}, "
+                  "largest first.", "",
+                  md.table([(_unit_label(r["label"], param_units.get(r["param"], "")), md.fmt(r["low_value"], 4),
+                             md.fmt(r["high_value"], 4), md.fmt(r["low_delta"], 3), md.fmt(r["high_delta"], 3))
+                            for r in oat["rows"]],
+                           ("mask and effect", "-1 sigma value", "+1 sigma value", f"change at -1 sigma ({unit})",
+                            f"change at +1 sigma ({unit})")),
+                  md.figure(folder, prefix + "tornado.png", f"change of {oat['metric']} at -1 / +1 sigma")]
     if sob:
-        lines += [f"Sobol indices of {sob['metric']} ({sob['runs']} runs):", "",
-                  md_table(["mask and effect", "S1", "S1 +-", "ST", "ST +-"],
-                           [[g, a, b, c, d] for g, a, b, c, d in zip(sob["groups"], sob["S1"], sob["S1_conf"],
-                                                                     sob["ST"], sob["ST_conf"])]), ""]
-    return "\n".join(lines) + "\n"
+        parts += [f"Sobol indices of {sob['metric']} ({sob['runs']} runs, ± 95 % bootstrap interval): the share of "
+                  "its variance each mask and effect causes alone (first order) and with its interactions (total). "
+                  "An interval wider than the index means the run is too short to rank them (raise --sobol-base).",
+                  "", md.table([(g, md.fmt_pm(a, b, 3, None), md.fmt_pm(c, d, 3, None))
+                                for g, a, b, c, d in zip(sob["groups"], sob["S1"], sob["S1_conf"], sob["ST"],
+                                                         sob["ST_conf"])],
+                               ("mask and effect", "first order S1 (share of variance)",
+                                "total ST (share of variance)"))]
+    return parts
+
+
+def tolerance_page(report: dict, folder: str | Path) -> Path:
+    """The whole ``report.md`` of ``doe tolerance``, beside its report.json."""
+    title = f"# Tolerance analysis of `{report['design']}`"
+    return md.write_markdown(Path(folder) / "report.md", [title, *tolerance_sections(report, folder), md.json_link()])

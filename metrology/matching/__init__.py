@@ -2,3 +2,5 @@
 instrument frame to the design frame, the comparison (per-level heights, etch depths,
 overlay, linewidth), the PSF predicted from measured heights and the 3-D rendering.
 """
+
+__all__: list[str] = []

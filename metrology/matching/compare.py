@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,14 @@ from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MATCH_TOLERANCE_ST
                                        MIN_LEVEL_AGREEMENT, DepthFit, LevelStats, binary_code_matrix,
                                        fit_etch_depths, interior_mask, level_agreement, level_heights,
                                        match_quality)
+
+if TYPE_CHECKING:
+    from doedesign.design import Design
+    from doedesign.progress import Progress
+    from masks.process import ProcessParams
+    from metrology.formats.measurement import Measurement
+    from metrology.matching.level import LevelResult
+    from metrology.matching.register import Registration
 
 # The names below stay importable from here (the comparison's public API before the split).
 __all__ = ["Comparison", "DepthFit", "EdgeFit", "InstrumentFit", "LEVEL_REPEATABILITY_M", "MATCH_TOLERANCE_STEPS",
@@ -61,8 +70,8 @@ class Comparison:
     height_m: np.ndarray
     labels: np.ndarray
     interior: np.ndarray
-    registration: object
-    levelling: object
+    registration: Registration
+    levelling: LevelResult
     stats: LevelStats
     depth_fit: DepthFit
     edge_fit: EdgeFit
@@ -70,16 +79,17 @@ class Comparison:
     nominal_depths_m: np.ndarray
     error_design_m: np.ndarray
     error_model_m: np.ndarray
-    model_window: tuple
+    model_window: tuple[int, int, int, int]
     spikes_removed: int
     roughness_m: float
     match: dict = field(default_factory=dict)
 
-    def fitted_params(self):
+    def fitted_params(self) -> ProcessParams:
         """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
         return fitted_process(self.instrument_fit, n_masks=self.nominal_depths_m.size)
 
-    def report(self):
+    def report(self) -> dict:
+        """The comparison's JSON summary (units in the keys)."""
         nm, um = 1e9, 1e6
         e, d, s, f = self.edge_fit, self.depth_fit, self.stats, self.instrument_fit
         _, rms_design = error_map(self.error_design_m, 0.0)
@@ -133,7 +143,9 @@ class Comparison:
         }
 
 
-def compare_measurement(measurement, design, n_masks=4, window_px=INSTRUMENT_WINDOW_PX, progress=None, force=False):
+def compare_measurement(measurement: Measurement, design: Design, n_masks: int = 4,
+                        window_px: int = INSTRUMENT_WINDOW_PX, progress: Progress | None = None,
+                        force: bool = False) -> Comparison:
     """Level, register and compare a measurement with its design.
 
     Parameters

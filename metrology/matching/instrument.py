@@ -34,7 +34,9 @@ footprint is far below the noise).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -42,6 +44,10 @@ import scipy.signal as sig
 from scipy.special import erf
 
 from doedesign.errors import DoeError
+
+if TYPE_CHECKING:
+    from masks.process_params import ProcessParams
+    from metrology.matching.register import Registration
 
 __all__ = ["FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMENT_PARAMS", "Placement", "busiest_camera_window",
            "footprint_kernel", "levelling_basis", "robust_valid"]
@@ -68,16 +74,17 @@ class Placement:
     offset: np.ndarray
 
     @classmethod
-    def from_registration(cls, registration):
+    def from_registration(cls, registration: Registration) -> Placement:
         """The placement of a :class:`~metrology.matching.register.Registration`."""
         return cls(np.array(registration.matrix, float), np.array(registration.offset, float))
 
-    def to_design(self, rows, cols):
+    def to_design(self, rows: np.ndarray | float, cols: np.ndarray | float,
+                  ) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Design coordinates (R, C) of camera coordinates (rows, cols)."""
         m, t = self.matrix, self.offset
         return m[0, 0] * rows + m[0, 1] * cols + t[0], m[1, 0] * rows + m[1, 1] * cols + t[1]
 
-    def refined(self, values, shape):
+    def refined(self, values: Sequence[float], shape: tuple[int, int]) -> Placement:
         """This placement moved by nuisance ``values`` (see :data:`PLACEMENT_PARAMS`).
 
         ``shift_row_px``, ``shift_col_px``: design pixels, of the field centre;
@@ -98,7 +105,7 @@ def _cell_gaussian(x_m, step_m, sigma_m):
     return 0.5 * (erf((x_m + step_m / 2) / s) - erf((x_m - step_m / 2) / s))
 
 
-def footprint_kernel(matrix, pitch_m, step_m, sigma_m):
+def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float) -> np.ndarray:
     """Blur-and-pixel kernel on the fine grid (see the module docstring, step 2).
 
     Parameters
@@ -149,7 +156,8 @@ class InstrumentModel:
         Requested fine-grid spacing.
     """
 
-    def __init__(self, levels, pitch_m, shape, placement, step_m=FINE_STEP_M):
+    def __init__(self, levels: np.ndarray, pitch_m: float, shape: tuple[int, int], placement: Placement,
+                 step_m: float = FINE_STEP_M) -> None:
         from masks.process import fine_upsample
 
         self.levels = np.asarray(levels)
@@ -169,7 +177,7 @@ class InstrumentModel:
             raise DoeError("the camera field does not overlap the design under this placement")
         self._cache = {}
 
-    def fine_surface(self, params):
+    def fine_surface(self, params: ProcessParams) -> np.ndarray:
         """Model heights (m) on the fine grid of the window (0 outside the design)."""
         from masks.process import simulate_surface
 
@@ -181,13 +189,13 @@ class InstrumentModel:
         out[a:a + s.height_m.shape[0], b:b + s.height_m.shape[1]] = s.height_m
         return out
 
-    def camera_map(self, fine_m, sigma_m):
+    def camera_map(self, fine_m: np.ndarray, sigma_m: float) -> np.ndarray:
         """Spline coefficients of what a camera pixel centred at each fine cell reports."""
         kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
         value = sig.fftconvolve(np.pad(fine_m, kernel.shape[0] // 2, mode="edge"), kernel[::-1, ::-1], mode="valid")
         return ndi.spline_filter(value, order=3, mode="nearest")
 
-    def sample(self, coeffs, placement):
+    def sample(self, coeffs: np.ndarray, placement: Placement) -> np.ndarray:
         """Camera-frame heights from :meth:`camera_map` coefficients under ``placement``."""
         r, c = np.mgrid[:self.shape[0], :self.shape[1]].astype(float)
         R, C = placement.to_design(r, c)
@@ -196,7 +204,8 @@ class InstrumentModel:
         fc = (C - self.window[2] + 0.5) * u - 0.5
         return ndi.map_coordinates(coeffs, [fr, fc], order=3, mode="nearest", prefilter=False)
 
-    def render(self, params, placement, sigma_m, surface=None):
+    def render(self, params: ProcessParams, placement: Placement, sigma_m: float,
+               surface: Callable[[np.ndarray, float], np.ndarray] | None = None) -> np.ndarray:
         """Model heights (m) in the camera frame, before levelling.
 
         Parameters
@@ -215,7 +224,7 @@ class InstrumentModel:
         return self.sample(self.camera_map(fine, sigma_m), placement)
 
 
-def levelling_basis(shape, curvature=False):
+def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarray:
     """Columns of the levelling fit on a camera field: piston, tilt (col, row), curvature.
 
     Coordinates are centred and scaled to +-1 so the columns are well conditioned.
@@ -230,21 +239,21 @@ def levelling_basis(shape, curvature=False):
 class Leveller:
     """Projects piston, tilt (and optionally curvature) out of residuals on valid pixels."""
 
-    def __init__(self, shape, valid, curvature=False):
+    def __init__(self, shape: tuple[int, int], valid: np.ndarray, curvature: bool = False) -> None:
         self.valid = np.asarray(valid, bool)
         basis = levelling_basis(shape, curvature)[self.valid.ravel()]
         self.q, _ = np.linalg.qr(basis)
 
-    def coefficients(self, residual):
+    def coefficients(self, residual: np.ndarray) -> np.ndarray:
         """Projection coefficients (on the orthonormal basis) of a 1-D residual on valid pixels."""
         return self.q.T @ residual
 
-    def __call__(self, residual):
+    def __call__(self, residual: np.ndarray) -> np.ndarray:
         """The residual (1-D, valid pixels) with the levelling terms removed."""
         return residual - self.q @ (self.q.T @ residual)
 
 
-def robust_valid(residual_map, valid, k=6.0):
+def robust_valid(residual_map: np.ndarray, valid: np.ndarray, k: float = 6.0) -> np.ndarray:
     """Valid pixels whose residual lies within ``k`` robust sigmas (1.4826 MAD) of the median:
     spikes and fringe-order errors are excluded, never smoothed."""
     vals = residual_map[valid]
@@ -255,7 +264,8 @@ def robust_valid(residual_map, valid, k=6.0):
     return keep
 
 
-def busiest_camera_window(levels, placement, shape, size):
+def busiest_camera_window(levels: np.ndarray, placement: Placement, shape: tuple[int, int],
+                          size: int) -> tuple[int, int]:
     """The ``size`` x ``size`` camera window (row0, col0) richest in every mask's edges.
 
     Score: the sum over masks of ``log(1 + edges of that mask)``, so a window that misses a

@@ -60,7 +60,8 @@ class LevelResult:
     level_offsets_m: np.ndarray | None = None
 
 
-def remove_spikes(height_m, threshold_m=DEFAULT_SPIKE_THRESHOLD_M, passes=2):
+def remove_spikes(height_m: np.ndarray, threshold_m: float = DEFAULT_SPIKE_THRESHOLD_M,
+                  passes: int = 2) -> tuple[np.ndarray, int]:
     """Mark as invalid (NaN) the pixels that stand out from all their 8 neighbours.
 
     Parameters
@@ -114,7 +115,7 @@ def _subsample(mask, max_points):
     return rows, cols
 
 
-def fit_plane(height_m, mask, max_points=400_000):
+def fit_plane(height_m: np.ndarray, mask: np.ndarray, max_points: int = 400_000) -> np.ndarray:
     """Least-squares plane through the pixels in ``mask``.
 
     Returns
@@ -131,7 +132,7 @@ def fit_plane(height_m, mask, max_points=400_000):
     return coef
 
 
-def plane_image(plane, shape):
+def plane_image(plane: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The plane ``(offset, slope_x, slope_y)`` evaluated on an array of ``shape``."""
     rc, cc = (shape[0] - 1) / 2, (shape[1] - 1) / 2
     r = np.arange(shape[0])[:, None] - rc
@@ -152,7 +153,7 @@ def _histogram_peaks(values, min_fraction=0.02):
     return centres[peaks], smooth[peaks], bin_m
 
 
-def top_level_mask(residual_m, valid, window_m=None):
+def top_level_mask(residual_m: np.ndarray, valid: np.ndarray, window_m: float | None = None) -> np.ndarray:
     """Pixels of the topmost height cluster (the unetched level 0).
 
     Parameters
@@ -176,7 +177,7 @@ def top_level_mask(residual_m, valid, window_m=None):
     return valid & (np.abs(residual_m - top) <= window_m)
 
 
-def level_on_top(height_m, valid=None, iterations=4):
+def level_on_top(height_m: np.ndarray, valid: np.ndarray | None = None, iterations: int = 4) -> LevelResult:
     """Level on a plane fitted to the unetched (level-0) pixels, found from the histogram.
 
     Starts from a plane through all pixels (biased by the pattern, but close enough to
@@ -198,7 +199,8 @@ def level_on_top(height_m, valid=None, iterations=4):
     return LevelResult(out, plane, ref)
 
 
-def level_joint(height_m, labels, valid=None, max_points=400_000):
+def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | None = None,
+                max_points: int = 400_000) -> LevelResult:
     """Fit one plane jointly with one height offset per level; level 0 ends at 0.
 
     Pixels further than 5 robust sigmas from the first fit are dropped and the fit repeated.
@@ -251,7 +253,8 @@ def level_joint(height_m, labels, valid=None, max_points=400_000):
     return LevelResult(out, plane, use, offsets - offsets[0])
 
 
-def classify_by_histogram(height_m, valid=None, n_levels=16):
+def classify_by_histogram(height_m: np.ndarray, valid: np.ndarray | None = None,
+                          n_levels: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Level labels from the height histogram: each pixel to its nearest cluster peak.
 
     For levelled data before registration. Peaks are taken from the top down (level 0

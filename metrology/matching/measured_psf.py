@@ -20,13 +20,21 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
 from masks.fabricated import DEFAULT_TARGET_FRACTION, fabricated_height, target_from_psf
+
+if TYPE_CHECKING:
+    from doedesign.camera import Camera
+    from doedesign.design import Design
+    from doedesign.progress import Progress
+    from masks.process_params import ProcessParams
 
 __all__ = ["DEFAULT_TARGET_FRACTION", "MIN_APERTURE_PX_COARSE_DESIGN", "PSFComparison", "compare_psf",
            "target_from_psf"]
@@ -66,11 +74,12 @@ class PSFComparison:
     oversample: int
 
     @property
-    def difference(self):
+    def difference(self) -> np.ndarray:
         """Measured minus design PSF."""
         return self.measured_psf - self.design_psf
 
-    def report(self):
+    def report(self) -> dict:
+        """Light on target and in the window per wavelength, design against measured (JSON summary)."""
         wl_nm = [float(v) for v in self.wavelengths_m * 1e9]
         per = {}
         for i, w in enumerate(wl_nm):
@@ -95,8 +104,9 @@ class PSFComparison:
         }
 
 
-def compare_psf(design, params, camera=None, wavelengths_m=(486e-9, 589e-9, 656e-9), oversample=2,
-                target=None, progress=None):
+def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = None,
+                wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9), oversample: int = 2,
+                target: np.ndarray | None = None, progress: Progress | None = None) -> PSFComparison:
     """Coded PSF of the design and of the design made with ``params``.
 
     Parameters

@@ -24,9 +24,11 @@ The result is an affine map from measurement pixel (row, col) to design pixel
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 import scipy.fft as sfft
 from scipy import ndimage, optimize
 
@@ -48,11 +50,12 @@ GOOD_MATCH_NCC = 0.9
 # Comb peaks tried as the DOE pitch (the strongest first).
 SCALE_CANDIDATES = 4
 
-# The 8 array orientations: (transpose, flip_rows, flip_cols), applied in that order.
+# An array orientation (transpose, flip_rows, flip_cols), applied in that order; all 8 of them.
+Orientation = tuple[bool, bool, bool]
 ORIENTATIONS = tuple((t, fr, fc) for t in (False, True) for fr in (False, True) for fc in (False, True))
 
 
-def orient(array, orientation):
+def orient(array: np.ndarray, orientation: Orientation) -> np.ndarray:
     """Apply ``(transpose, flip_rows, flip_cols)`` to a 2-D array, in that order."""
     t, fr, fc = orientation
     out = array.T if t else array
@@ -92,24 +95,24 @@ class Registration:
     matrix: np.ndarray
     offset: np.ndarray
     pitch_m: float
-    design_shape: tuple
-    measurement_shape: tuple
+    design_shape: tuple[int, int]
+    measurement_shape: tuple[int, int]
     match_ncc: float = float("nan")
 
-    def to_design(self, rows, cols):
+    def to_design(self, rows: ArrayLike, cols: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Design coordinates (R, C) of measurement coordinates (rows, cols)."""
         rows, cols = np.asarray(rows, float), np.asarray(cols, float)
         m, t = self.matrix, self.offset
         return m[0, 0] * rows + m[0, 1] * cols + t[0], m[1, 0] * rows + m[1, 1] * cols + t[1]
 
-    def to_measurement(self, r_design, c_design):
+    def to_measurement(self, r_design: ArrayLike, c_design: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Measurement coordinates (rows, cols) of design coordinates (R, C)."""
         inv = np.linalg.inv(self.matrix)
         dr = np.asarray(r_design, float) - self.offset[0]
         dc = np.asarray(c_design, float) - self.offset[1]
         return inv[0, 0] * dr + inv[0, 1] * dc, inv[1, 0] * dr + inv[1, 1] * dc
 
-    def decompose(self):
+    def decompose(self) -> dict:
         """Orientation, rotation and per-axis scale.
 
         Returns
@@ -135,8 +138,9 @@ class Registration:
         raise DoeError("registration matrix has no valid decomposition")  # unreachable for a similarity
 
     @classmethod
-    def from_parameters(cls, scale, rotation_deg, orientation, centre_design_rc, pitch_m, design_shape,
-                        measurement_shape):
+    def from_parameters(cls, scale: float, rotation_deg: float, orientation: Sequence[bool],
+                        centre_design_rc: Sequence[float], pitch_m: float, design_shape: Sequence[int],
+                        measurement_shape: Sequence[int]) -> Registration:
         """The map that orients, turns and scales the measurement onto the design.
 
         ``matrix = scale * rotation @ orientation``; the measurement's centre pixel lands at
@@ -150,18 +154,18 @@ class Registration:
         return cls(matrix, offset, float(pitch_m), tuple(design_shape), tuple(measurement_shape))
 
     @property
-    def pixel_size_m(self):
+    def pixel_size_m(self) -> float:
         """Effective measurement pixel size (m) implied by the DOE pitch."""
         return self.pitch_m * self.decompose()["scale"]
 
-    def centre_offset_m(self):
+    def centre_offset_m(self) -> tuple[float, float]:
         """Position (x right, y up; m) of the measurement's centre from the design centre."""
         rc = (self.measurement_shape[0] - 1) / 2, (self.measurement_shape[1] - 1) / 2
         r, c = self.to_design(*rc)
         return ((c - (self.design_shape[1] - 1) / 2) * self.pitch_m,
                 -(r - (self.design_shape[0] - 1) / 2) * self.pitch_m)
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """Plain JSON summary (units in the key names)."""
         d = self.decompose()
         x, y = self.centre_offset_m()
@@ -330,7 +334,8 @@ def _normalized_xcorr(image, template, valid):
     return ncc
 
 
-def register(height_m, design_height_m, pitch_m, pixel_size_m=None, scale_tolerance=0.15):
+def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, pixel_size_m: float | None = None,
+             scale_tolerance: float = 0.15) -> Registration:
     """Find the affine map from the measurement's pixels to the design's pixels.
 
     Parameters
@@ -463,7 +468,8 @@ def _match(h, design, pitch_m, theta, u_lattice, v_lattice):
                                match_ncc=score), 1 / fu
 
 
-def resample_to_design(height_m, registration, upsample=1, region=None):
+def resample_to_design(height_m: np.ndarray, registration: Registration, upsample: int = 1,
+                       region: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """Measured heights on the design grid (or a finer grid aligned with it).
 
     Parameters
@@ -497,7 +503,8 @@ def resample_to_design(height_m, registration, upsample=1, region=None):
     return np.where(inside & (ok > 0.999), vals, np.nan)
 
 
-def design_on_measurement(values, registration, measurement_shape=None, fill=-1):
+def design_on_measurement(values: np.ndarray, registration: Registration,
+                          measurement_shape: tuple[int, int] | None = None, fill: float = -1) -> np.ndarray:
     """Design-pixel values (e.g. levels) at each measurement pixel, nearest design pixel.
 
     Returns an array shaped like the measurement; ``fill`` where the pixel maps outside

@@ -8,6 +8,7 @@ comparison report never dies on a picture.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -18,7 +19,8 @@ __all__ = ["render_surface"]
 log = logging.getLogger(__name__)
 
 
-def render_surface(height_m, pixel_size_m, path, z_exaggeration=None, max_side=250, title=None):
+def render_surface(height_m: np.ndarray, pixel_size_m: float, path: str | Path, z_exaggeration: float | None = None,
+                   max_side: int = 250, title: str | None = None) -> str | None:
     """Render a height map as a shaded 3-D surface to a PNG.
 
     Parameters

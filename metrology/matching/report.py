@@ -14,13 +14,14 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import ensure_output_dir, json_ready, output_run, write_json, write_npz
 from doedesign.progress import Progress
 from metrology.formats.measurement import Measurement
-from metrology.matching.compare import compare_measurement
+from metrology.matching.compare import Comparison, compare_measurement
 from metrology.report_pages import compare_page
 
 __all__ = ["write_comparison"]
@@ -28,9 +29,11 @@ __all__ = ["write_comparison"]
 log = logging.getLogger(__name__)
 
 
-def write_comparison(measurement: Measurement, design: Design, out, *, measurement_source: str = "measurement",
-                     design_source: str = "design", wavelengths_m=(486e-9, 589e-9, 656e-9), psf_oversample: int = 1,
-                     psf: bool = True, render: bool = True, force: bool = False, comparison=None) -> dict:
+def write_comparison(measurement: Measurement, design: Design, out: str | Path, *,
+                     measurement_source: str = "measurement", design_source: str = "design",
+                     wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9), psf_oversample: int = 1,
+                     psf: bool = True, render: bool = True, force: bool = False,
+                     comparison: Comparison | None = None) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
