@@ -21,11 +21,19 @@ PSF domain (a PSF stack shaped (views, wavelengths, rows, cols))
 
 Users add their own effect from a script::
 
-    @register_effect(name="my_tilt", domain="height", stage="surface",
-                     params=[Parameter("slope", "rad", -1e-3, 1e-3, 1e-4)],
-                     description="A residual plane the levelling missed.")
-    def my_tilt(height_m, values, step_m):
-        ...
+    @register_effect(name="depth_nonlinearity", domain="height", stage="surface",
+                     params=[Parameter("k_per_m", "1/m", -1e5, 1e5, 5e3)],
+                     description="The etch rate changed with depth: every height h became h + k h**2.")
+    def depth_nonlinearity(height_m, values, step_m):
+        return height_m + values[0] * height_m ** 2
+
+and rerun: the library's ``candidates`` (``None`` = every registered effect of the domain) or
+``doe diagnose --effects-file mine.py`` (the file registers them). A ``"surface"`` effect acts on
+the model heights (m) on the fine grid in the design frame, before the instrument's blur and
+pixels; a ``"process"`` effect maps :class:`masks.process.ProcessParams` to new ones.
+``kind="artefact"`` marks a measurement artefact. :func:`unregister_effect` removes it. When no
+registered effect explains a structured residual, the diagnosis names none and reports where
+the residual lives (:mod:`metrology.diagnosis.locate`): that is when to write one.
 """
 
 from __future__ import annotations

@@ -139,3 +139,31 @@ def test_effect_outside_the_vocabulary_is_unexplained_then_named_once_registered
     k = second.model["test_depth_nonlinearity"][0]
     assert k == pytest.approx(case.truth["depth_nonlinearity"]["per_m"], rel=0.2)
     assert second.final_residual_rms < 1.3 * second.noise_floor and not second.unexplained
+
+
+def test_effects_file_registers_user_effects_and_bad_files_fail_in_one_line(tmp_path, capsys):
+    from doedesign.cli import main
+    from metrology.cli.diagnose import load_effects_file
+    from metrology.diagnosis.effects import get_effect, unregister_effect
+
+    good = tmp_path / "mine.py"
+    good.write_text(
+        "from metrology.diagnosis import Parameter, register_effect\n"
+        "@register_effect(name='test_file_effect', domain='height', stage='surface',\n"
+        "                 params=[Parameter('k_per_m', '1/m', -1e5, 1e5, 5e3)],\n"
+        "                 description='A user effect from a file.')\n"
+        "def f(h, v, s):\n"
+        "    return h + v[0] * h ** 2\n")
+    try:
+        load_effects_file(good)
+        assert get_effect("test_file_effect").description == "A user effect from a file."
+    finally:
+        unregister_effect("test_file_effect")
+    bad = tmp_path / "bad.py"
+    bad.write_text("raise ValueError('nope')\n")
+    for path, message in ((bad, "the effects file failed: ValueError: nope"), (tmp_path / "none.py", "not found")):
+        code = main(["diagnose", "--design", str(tmp_path / "d.npz"), "--measured", str(tmp_path / "m.datx"),
+                     "--effects-file", str(path), "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and message in err and len(err.splitlines()) == 1
+        assert not (tmp_path / "out").exists()
