@@ -2,3 +2,5 @@
 optimization and evaluation, plus the ``doe`` command-line program."""
 
 __version__ = "0.1.0"
+
+__all__ = ["__version__"]

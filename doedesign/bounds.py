@@ -19,18 +19,25 @@ half-disc integral in tests/doedesign/test_bounds.py).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import signal
 
+from .camera import Camera
 from .psf import PSFEngine
+from .targets import Target
+
+__all__ = ["bound_report", "diffraction_limited_psf", "spot_bound"]
 
 
-def diffraction_limited_psf(camera, pitch_m, shape, wavelengths_m, material="fused_silica"):
+def diffraction_limited_psf(camera: Camera, pitch_m: float, shape: tuple[int, int], wavelengths_m: ArrayLike,
+                            material: str = "fused_silica") -> np.ndarray:
     """Coded-view PSF (wavelengths, rows, cols) of a flat DOE in focus: the diffraction-limited spot."""
     engine = PSFEngine(camera, pitch_m, shape, material, wavelengths_m, [camera.focus_distance_m])
     return engine.psf(np.zeros(tuple(shape)), views=("coded",)).psf[0, 0]
 
 
-def spot_bound(camera, pitch_m, shape, target, material="fused_silica", spot=None):
+def spot_bound(camera: Camera, pitch_m: float, shape: tuple[int, int], target: Target,
+               material: str = "fused_silica", spot: np.ndarray | None = None) -> np.ndarray:
     """Single-colour bound per (depth, wavelength) plane of ``target`` (fractions of the coded view's light).
 
     Parameters
@@ -71,7 +78,7 @@ def spot_bound(camera, pitch_m, shape, target, material="fused_silica", spot=Non
     return out
 
 
-def bound_report(energy_on_target, bound):
+def bound_report(energy_on_target: ArrayLike, bound: ArrayLike) -> dict:
     """Per-plane energies beside their bound: ``{"energy", "bound", "fraction_of_bound", "weakest"}``."""
     e = np.asarray(energy_on_target, dtype=float)
     b = np.asarray(bound, dtype=float)

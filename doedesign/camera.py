@@ -52,7 +52,7 @@ class Camera:
     axis_pixel: tuple = (256, 256)
     doe_side: str = "left"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.doe_side not in SIDES:
             raise DoeError(f"camera: doe_side must be one of {SIDES}, got {self.doe_side!r}")
         for name in ("focus_distance_m", "sensor_distance_m", "pixel_pitch_m"):
@@ -67,17 +67,17 @@ class Camera:
             raise DoeError(f"camera: window_shape must be (rows, cols), got {self.window_shape}")
 
     @property
-    def focal_length_m(self):
+    def focal_length_m(self) -> float:
         """Focal length imaging ``focus_distance_m`` onto the sensor (49.50 mm by default)."""
         return 1.0 / (1.0 / self.focus_distance_m + 1.0 / self.sensor_distance_m)
 
     @property
-    def f_number(self):
+    def f_number(self) -> float:
         if self.aperture_diameter_m is None:
             return float("nan")
         return self.focal_length_m / self.aperture_diameter_m
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         d = asdict(self)
         d["focal_length_m"] = self.focal_length_m
         # Strict JSON has no Infinity: a lens focused at infinity is written "inf".
@@ -86,14 +86,14 @@ class Camera:
         return d
 
     @classmethod
-    def from_dict(cls, d):
+    def from_dict(cls, d: dict) -> Camera:
         keys = {f for f in cls.__dataclass_fields__}
         d = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in keys}
         if str(d.get("focus_distance_m")).lower() == "inf":
             d["focus_distance_m"] = np.inf
         return cls(**d)
 
-    def pupil_grid_shape(self, design_shape, pitch_m):
+    def pupil_grid_shape(self, design_shape: tuple[int, int], pitch_m: float) -> tuple[int, int]:
         """Shape of the pupil grid (DOE pixels) holding the aperture; the design is centred in it."""
         if self.aperture_diameter_m is None:
             return tuple(design_shape)
@@ -106,7 +106,7 @@ class Camera:
                 "crop the design to the clear aperture")
         return (n, n)
 
-    def view_weights(self, grid_shape, pitch_m, oversample=1):
+    def view_weights(self, grid_shape: tuple[int, int], pitch_m: float, oversample: int = 1) -> np.ndarray:
         """Amplitude of each pupil sample for the coded and the uncoded view.
 
         Returns a (2, rows*oversample, cols*oversample) array holding the fraction of each

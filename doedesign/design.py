@@ -58,7 +58,7 @@ class Design:
     aperture: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.height_m = np.asarray(self.height_m, dtype=np.float64)
         self.pitch_m = float(self.pitch_m)
         self.design_wavelength_m = float(self.design_wavelength_m)
@@ -72,14 +72,14 @@ class Design:
         self.validate()
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, int]:
         return self.height_m.shape
 
     @property
-    def name(self):
+    def name(self) -> str:
         return self.metadata.get("name", "design")
 
-    def validate(self, source="design"):
+    def validate(self, source: str = "design") -> None:
         """Raise :class:`DesignFileError` naming the field when anything is wrong."""
         h = self.height_m
         if h.ndim != 2 or min(h.shape) < 1:
@@ -110,11 +110,11 @@ class Design:
         if self.aperture is not None and self.aperture.dtype != bool:
             raise DesignFileError(f"{source}: aperture must be boolean, got {self.aperture.dtype}")
 
-    def phase(self, wavelength_m):
+    def phase(self, wavelength_m: float) -> np.ndarray:
         """Phase (rad) of the height map at ``wavelength_m``, from the heights themselves."""
         return get_material(self.material).phase(self.height_m, wavelength_m)
 
-    def height_2pi_m(self):
+    def height_2pi_m(self) -> float:
         """2 pi height at the design wavelength."""
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
 
@@ -150,7 +150,7 @@ class Design:
         """
         return level_step_m(self.material, self.design_wavelength_m, n_levels)
 
-    def save(self, path):
+    def save(self, path: str | Path) -> Path:
         """Write the design atomically to ``path`` (``.npz``)."""
         arrays = dict(
             height_m=self.height_m,
@@ -169,7 +169,7 @@ class Design:
         return path
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path: str | Path) -> Design:
         """Read and validate a design file; errors name the file and the field."""
         path = Path(path)
         data = read_npz(path, REQUIRED, "design file", DesignFileError)
@@ -199,7 +199,7 @@ class Design:
         design.check_levels(source=str(path))
         return design
 
-    def check_levels(self, source="design"):
+    def check_levels(self, source: str = "design") -> None:
         """Refuse levels that contradict the heights: each height must round to its stored level
         under the level rule (:func:`doedesign.levels.quantize`: nearest step, 2 pi wrap).
 
@@ -217,7 +217,7 @@ class Design:
                 f"level {int(self.levels[r, c])} means {-self.levels[r, c] * step * 1e9:.1f} nm, height_m is "
                 f"{self.height_m[r, c] * 1e9:.1f} nm (step {step * 1e9:.2f} nm)")
 
-    def summary(self):
+    def summary(self) -> dict:
         """Dictionary for ``doe inspect --json``."""
         h = self.height_m
         out = {

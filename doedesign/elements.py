@@ -22,12 +22,16 @@ import logging
 import time
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import targets
 from .bounds import spot_bound
 from .camera import Camera
 from .materials import get_material
 from .optimize import N_LEVELS, OptimizerSettings, design_doe
+
+__all__ = ["AXIS", "PITCH_M", "WINDOW", "depth_element", "design_seed_elements", "hyperspectral_element",
+           "ring_radius_px", "staircase_first_order", "streak_element"]
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +42,8 @@ WINDOW = (192, 192)
 AXIS = (96, 96)
 
 
-def staircase_first_order(wavelengths_m, material="fused_silica", design_wavelength_m=550e-9, n_levels=N_LEVELS):
+def staircase_first_order(wavelengths_m: ArrayLike, material: str = "fused_silica",
+                          design_wavelength_m: float = 550e-9, n_levels: int = N_LEVELS) -> np.ndarray:
     """First-order efficiency of an ``n_levels`` blazed staircase of one 2 pi period at the design wavelength."""
     mat = get_material(material)
     wl = np.asarray(wavelengths_m, dtype=float)
@@ -48,7 +53,7 @@ def staircase_first_order(wavelengths_m, material="fused_silica", design_wavelen
     return np.sinc(1.0 / n_levels) ** 2 * ratio ** 2
 
 
-def ring_radius_px(psf, axis_pixel):
+def ring_radius_px(psf: np.ndarray, axis_pixel: tuple[int, int]) -> int:
     """Radius (px) of the brightest ring about the axis: the 1-px radial bin holding most light."""
     rows, cols = psf.shape
     rr, cc = np.meshgrid(np.arange(rows) - axis_pixel[0], np.arange(cols) - axis_pixel[1], indexing="ij")
@@ -61,7 +66,7 @@ def _run(target, camera, size_px, settings):
     return design_doe(target, camera, PITCH_M, (size_px, size_px), settings=settings)
 
 
-def streak_element(size_px=160, iterations=30):
+def streak_element(size_px: int = 160, iterations: int = 30) -> dict:
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
     target = targets.hdr_streak(cam)
     run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="streak"))
@@ -72,7 +77,8 @@ def streak_element(size_px=160, iterations=30):
             "run_time_s": run.report["run_time_s"]}
 
 
-def hyperspectral_element(size_px=160, iterations=30, wavelengths_m=(450e-9, 550e-9, 650e-9)):
+def hyperspectral_element(size_px: int = 160, iterations: int = 30,
+                          wavelengths_m: ArrayLike = (450e-9, 550e-9, 650e-9)) -> dict:
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
     target = targets.hyperspectral(cam, wavelengths_m=wavelengths_m)
     run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="grating"))
@@ -86,7 +92,7 @@ def hyperspectral_element(size_px=160, iterations=30, wavelengths_m=(450e-9, 550
             "fraction_of_bound": (on / bound).tolist(), "run_time_s": run.report["run_time_s"]}
 
 
-def depth_element(size_px=160, iterations=30, depths_m=(1.0, 2.0, 3.0, 4.0)):
+def depth_element(size_px: int = 160, iterations: int = 30, depths_m: ArrayLike = (1.0, 2.0, 3.0, 4.0)) -> dict:
     from .psf import PSFEngine
 
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, focus_distance_m=3.5, window_shape=WINDOW, axis_pixel=AXIS)
@@ -102,7 +108,7 @@ def depth_element(size_px=160, iterations=30, depths_m=(1.0, 2.0, 3.0, 4.0)):
             "run_time_s": run.report["run_time_s"]}
 
 
-def design_seed_elements(size_px=160, iterations=30):
+def design_seed_elements(size_px: int = 160, iterations: int = 30) -> dict:
     """Design the HDR streak, hyperspectral and depth elements; their figures of merit and bounds."""
     t0 = time.perf_counter()
     out = [streak_element(size_px, iterations), hyperspectral_element(size_px, iterations),

@@ -1,5 +1,7 @@
 """Errors a user can cause, reported by the CLI as one clear line (no traceback)."""
 
+__all__ = ["DesignFileError", "DoeError", "MaterialError", "SamplingError"]
+
 
 class DoeError(Exception):
     """Base class of every user-facing error of the tool (bad file, bad input, bad option)."""

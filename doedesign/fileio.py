@@ -20,11 +20,17 @@ import os
 import re
 import stat
 import tempfile
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import DoeError
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
            "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run"]
@@ -48,7 +54,7 @@ def _pid_alive(pid):
     return True
 
 
-def remove_stale_temporaries(folder):
+def remove_stale_temporaries(folder: str | Path) -> list[str]:
     """Delete the temporaries of killed writers in ``folder``; returns the names removed.
 
     Only files named like :func:`atomic_path`'s temporaries whose writing process no longer
@@ -68,7 +74,7 @@ def remove_stale_temporaries(folder):
     return removed
 
 
-def ensure_output_dir(path, what="--out", create=False):
+def ensure_output_dir(path: str | Path, what: str = "--out", create: bool = False) -> Path:
     """Check that the output folder ``path`` can be written (created when ``create``).
 
     Called before long work, so a bad ``--out`` costs nothing. Without ``create`` a missing
@@ -106,7 +112,7 @@ def _read_only_mount(path):
         return False
 
 
-def ensure_output_file(path, what="--out"):
+def ensure_output_file(path: str | Path, what: str = "--out") -> Path:
     """Check before long work that the file ``path`` can be written (its folder is created).
 
     Raises
@@ -122,7 +128,7 @@ def ensure_output_file(path, what="--out"):
 
 
 @contextlib.contextmanager
-def output_run(folder, command):
+def output_run(folder: str | Path, command: str) -> Iterator[Path]:
     """Mark ``folder`` incomplete while ``command`` writes its outputs there.
 
     The marker file :data:`INCOMPLETE_MARKER` is written first and removed only when the
@@ -163,7 +169,7 @@ def _snapshot(folder):
 
 
 @contextlib.contextmanager
-def atomic_path(path):
+def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
 
     The temporary is ``.NAME.<pid>-<random>.part`` (never the final extension; writers that
@@ -218,7 +224,7 @@ def atomic_path(path):
 MAX_INPUT_ARRAY_BYTES = 512 * 1024**2
 
 
-def check_input_file(path, error=None):
+def check_input_file(path: str | Path, error: type[Exception] | None = None) -> Path:
     """``path`` as a Path after checking it is an existing regular file.
 
     Named pipes, devices and folders are refused (reading a pipe would wait forever).
@@ -237,7 +243,8 @@ def check_input_file(path, error=None):
     return path
 
 
-def check_npy_header(fh, available_bytes, where, error=None):
+def check_npy_header(fh: BinaryIO, available_bytes: int, where: str,
+                     error: type[Exception] | None = None) -> tuple[tuple[int, ...], np.dtype]:
     """Read an ``.npy`` header from ``fh`` and check its claimed size before anything is allocated.
 
     Parameters
@@ -294,7 +301,7 @@ def _check_npz_members(path, error):
                 check_npy_header(fh, info.file_size, where, error)
 
 
-def load_npy(path, error=None):
+def load_npy(path: str | Path, error: type[Exception] | None = None) -> np.ndarray:
     """A bare ``.npy`` array after checking the file and its claimed size (never unpickles)."""
     error = error or DoeError
     path = check_input_file(path, error)
@@ -307,7 +314,8 @@ def load_npy(path, error=None):
         raise error(f"{path}: not a readable .npy array: {exc}") from None
 
 
-def read_npz(path, required, what, error=None):
+def read_npz(path: str | Path, required: Iterable[str], what: str,
+             error: type[Exception] | None = None) -> dict[str, np.ndarray]:
     """All arrays of an ``.npz`` after checking the ``required`` fields.
 
     Claimed array sizes are checked against the data present and
@@ -331,7 +339,7 @@ def read_npz(path, required, what, error=None):
     return data
 
 
-def json_ready(obj):
+def json_ready(obj: Any) -> Any:
     """``obj`` as plain JSON values, the one rule for every report and JSON string we write.
 
     numpy scalars and arrays become Python numbers and lists, tuples lists, paths strings,
@@ -360,26 +368,26 @@ def json_ready(obj):
     raise TypeError(f"not JSON serializable: {type(obj).__name__}")
 
 
-def dumps_json(obj, indent: int | None = 2) -> str:
+def dumps_json(obj: Any, indent: int | None = 2) -> str:
     """Strict JSON text of ``obj`` (see :func:`json_ready`)."""
     return json.dumps(json_ready(obj), indent=indent, allow_nan=False)
 
 
-def write_json(path, obj) -> Path:
+def write_json(path: str | Path, obj: Any) -> Path:
     """Write ``obj`` as indented strict JSON (:func:`dumps_json`), atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(dumps_json(obj) + "\n")
     return Path(path)
 
 
-def write_npz(path, **arrays):
+def write_npz(path: str | Path, **arrays: ArrayLike) -> Path:
     """Write an uncompressed ``.npz`` atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
     return Path(path)
 
 
-def save_figure(fig, path, dpi=110):
+def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
     """Save a matplotlib figure atomically as PNG and close it."""
     import matplotlib.pyplot as plt
 

@@ -27,11 +27,16 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import DoeError
-from .materials import get_material
+from .materials import Material, get_material
+
+if TYPE_CHECKING:
+    from .design import Design
 
 __all__ = ["N_LEVELS", "QuantizeResult", "design_levels", "level_step_m", "quantize", "quantize_design",
            "wrap_height_m"]
@@ -42,7 +47,7 @@ log = logging.getLogger(__name__)
 N_LEVELS = 16
 
 
-def level_step_m(material, design_wavelength_m: float, n_levels: int = N_LEVELS) -> float:
+def level_step_m(material: str | Material, design_wavelength_m: float, n_levels: int = N_LEVELS) -> float:
     """Depth of one level: the 2 pi height at the design wavelength divided by ``n_levels``.
 
     Parameters
@@ -106,7 +111,7 @@ class QuantizeResult:
                 "wrapped_pixels": self.wrapped_pixels}
 
 
-def quantize(height_m, step_m: float, n_levels: int = N_LEVELS) -> QuantizeResult:
+def quantize(height_m: ArrayLike, step_m: float, n_levels: int = N_LEVELS) -> QuantizeResult:
     """Round a height map to the nearest etch level, wrapping by 2 pi heights where needed.
 
     The module's rule: level ``k = floor(-h / step_m + 1/2)`` (half a step rounds deeper,
@@ -157,7 +162,7 @@ def quantize(height_m, step_m: float, n_levels: int = N_LEVELS) -> QuantizeResul
         wrapped_pixels=wrapped, step_m=step_m, n_levels=n_levels)
 
 
-def wrap_height_m(height_m, step_m: float, n_levels: int = N_LEVELS) -> np.ndarray:
+def wrap_height_m(height_m: ArrayLike, step_m: float, n_levels: int = N_LEVELS) -> np.ndarray:
     """Heights brought into ``(-n_levels * step_m, 0]`` by whole 2 pi heights.
 
     The continuous counterpart of the wrap in :func:`quantize`: the same phase at the design
@@ -167,8 +172,8 @@ def wrap_height_m(height_m, step_m: float, n_levels: int = N_LEVELS) -> np.ndarr
     return -np.mod(-np.asarray(height_m, dtype=np.float64), period)
 
 
-def quantize_design(design, n_levels: int = N_LEVELS, source: str | None = None
-                    ) -> tuple[np.ndarray, QuantizeResult | None]:
+def quantize_design(design: Design, n_levels: int = N_LEVELS,
+                    source: str | None = None) -> tuple[np.ndarray, QuantizeResult | None]:
     """Level map of a design and, when it had to be quantized, the quantization.
 
     Parameters
@@ -206,6 +211,6 @@ def quantize_design(design, n_levels: int = N_LEVELS, source: str | None = None
     return q.levels, q
 
 
-def design_levels(design, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
+def design_levels(design: Design, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
     """Level map (int16, 0 .. n_levels-1) of a design: see :func:`quantize_design`."""
     return quantize_design(design, n_levels, source)[0]

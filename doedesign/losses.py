@@ -40,10 +40,14 @@ Bayer, spot and similar targets never build the whole window. ``reads`` is None 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import DoeError
+
+if TYPE_CHECKING:
+    from .targets import Target
 
 __all__ = ["DEFAULT_EPS", "Loss", "LossSpec", "MAX_READ_LINES", "PEAK_POWER", "PixelReads", "TERMS",
            "energy_loss", "l2_loss", "make_loss", "peak_loss", "reweight_target", "smooth_l1", "target_metrics",
@@ -59,7 +63,7 @@ def _plane_weights(target):
     return cw / cw.sum()
 
 
-def smooth_l1(psf, target, eps=DEFAULT_EPS):
+def smooth_l1(psf: np.ndarray, target: Target, eps: float = DEFAULT_EPS) -> tuple[float, np.ndarray]:
     """L1 distance, channel-weighted: ``w (sqrt(r^2 + eps^2) - eps)`` on the target, ``w psf`` off it."""
     r = psf - target.intensity
     s = np.sqrt(r * r + eps * eps)
@@ -68,7 +72,7 @@ def smooth_l1(psf, target, eps=DEFAULT_EPS):
     return float(np.sum(np.where(m, w * (s - eps), w * psf))), np.where(m, w * r / s, w)
 
 
-def energy_loss(psf, target):
+def energy_loss(psf: np.ndarray, target: Target) -> tuple[float, np.ndarray]:
     """Fraction of the wanted light that misses the target pixels."""
     pw = _plane_weights(target)[..., None, None]
     mask = target.mask * target.pixel_weight
@@ -77,7 +81,7 @@ def energy_loss(psf, target):
     return float(np.sum(pw[..., 0, 0]) + np.sum(grad * psf)), grad
 
 
-def l2_loss(psf, target):
+def l2_loss(psf: np.ndarray, target: Target) -> tuple[float, np.ndarray]:
     """Squared error relative to the target's own squared norm."""
     r = psf - target.intensity
     norm = np.sum(target.intensity ** 2, axis=(-2, -1), keepdims=True)
@@ -85,7 +89,7 @@ def l2_loss(psf, target):
     return float(np.sum(w * r * r)), 2 * w * r
 
 
-def peak_loss(psf, target, power=PEAK_POWER):
+def peak_loss(psf: np.ndarray, target: Target, power: float = PEAK_POWER) -> tuple[float, np.ndarray]:
     """Soft maximum ``(sum psf^p)^(1/p)`` of each plane over the target's mean value there."""
     mean_target = target.energy / target.mask.sum(axis=(-2, -1))
     x = np.maximum(psf, 0.0)
@@ -107,7 +111,7 @@ def _delivered_ratio(psf, target):
     return a, m, m.sum(axis=(-2, -1), keepdims=True)
 
 
-def uniformity_loss(psf, target):
+def uniformity_loss(psf: np.ndarray, target: Target) -> tuple[float, np.ndarray]:
     """Squared coefficient of variation of ``psf / target`` over each plane's target pixels.
 
     With ``a_i`` the ratios, ``mu`` their mean and ``V`` their variance over the ``M`` target
@@ -131,7 +135,7 @@ def _uniformity(values, intensity, m, plane_weight, axis):
     return value, grad
 
 
-def reweight_target(target, psf, alpha=1.0, floor=1e-3):
+def reweight_target(target: Target, psf: np.ndarray, alpha: float = 1.0, floor: float = 1e-3) -> Target:
     """A copy of ``target`` whose pixel weights favour the target pixels that got too little light.
 
     The weight of each target pixel is multiplied by ``(mean(a) / a_i)^alpha`` with
@@ -178,7 +182,7 @@ class LossSpec:
             raise DoeError("loss eps must be positive")
 
     @classmethod
-    def parse(cls, text):
+    def parse(cls, text: str) -> LossSpec:
         """From ``"l1"`` or ``"l1=1,energy=0.5,peak=0.1"`` (weights default to 1 when given bare)."""
         weights = {"l1": 0.0, "energy": 0.0, "l2": 0.0, "uniformity": 0.0}
         peak = None
@@ -231,7 +235,7 @@ class Loss:
         :meth:`sparse` gives the same value from those alone.
     """
 
-    def __init__(self, target, spec=None):
+    def __init__(self, target: Target, spec: LossSpec | None = None) -> None:
         self.target = target
         self.spec = spec or LossSpec()
         self.peak_weight = target.peak_penalty if self.spec.peak is None else self.spec.peak
@@ -274,7 +278,7 @@ class Loss:
         self._weight = np.broadcast_to(target.pixel_weight, mask.shape)[..., rows, cols]
         return PixelReads(rows=rows, cols=cols, energy=bool(spec.l1))
 
-    def sparse(self, values, energy):
+    def sparse(self, values: np.ndarray, energy: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         """The loss from the pixels in :attr:`reads` and the window energies.
 
         Parameters
@@ -314,12 +318,12 @@ class Loss:
         return total, dval, den
 
 
-def make_loss(target, spec=None):
+def make_loss(target: Target, spec: LossSpec | None = None) -> Loss:
     """The loss ``psf -> (value, dvalue_dpsf)`` of ``target`` under the weights ``spec`` (a :class:`Loss`)."""
     return Loss(target, spec)
 
 
-def target_metrics(psf, target):
+def target_metrics(psf: np.ndarray, target: Target) -> dict:
     """Figures of a PSF against a target (all fractions of the coded view's light).
 
     Returns

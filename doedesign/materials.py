@@ -7,8 +7,10 @@ The phase at every wavelength is computed from the one physical height map,
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import MaterialError
 
@@ -38,7 +40,7 @@ class Material:
     max_wavelength_m: float
     reference: str = ""
 
-    def n(self, wavelength_m):
+    def n(self, wavelength_m: ArrayLike) -> np.ndarray | float:
         """Refractive index at ``wavelength_m`` (scalar or array, metres)."""
         wl = np.asarray(wavelength_m, dtype=float)
         if not np.all(np.isfinite(wl)) or np.any(wl <= 0):
@@ -61,11 +63,11 @@ class Material:
             return np.interp(wl, wls, ns)
         raise MaterialError(f"{self.name}: unknown dispersion kind {self.kind!r}")
 
-    def height_2pi_m(self, wavelength_m):
+    def height_2pi_m(self, wavelength_m: ArrayLike) -> np.ndarray | float:
         """Height step that delays the phase by exactly 2 pi at ``wavelength_m``."""
         return np.asarray(wavelength_m) / (self.n(wavelength_m) - 1.0)
 
-    def phase(self, height_m, wavelength_m):
+    def phase(self, height_m: ArrayLike, wavelength_m: float) -> np.ndarray:
         """Transmitted phase (radians) of ``height_m`` at one wavelength, relative to air.
 
         Positive height (more glass) means more optical path and positive phase.
@@ -76,7 +78,7 @@ class Material:
 _REGISTRY: dict[str, Material] = {}
 
 
-def register_material(material: Material, overwrite=False) -> Material:
+def register_material(material: Material, overwrite: bool = False) -> Material:
     """Add a material to the registry so designs can name it."""
     if material.kind not in ("sellmeier", "cauchy", "table"):
         raise MaterialError(f"{material.name}: kind must be sellmeier, cauchy or table")
@@ -92,26 +94,28 @@ def register_material(material: Material, overwrite=False) -> Material:
     return material
 
 
-def sellmeier(name, B, C_um, min_wavelength_m, max_wavelength_m, reference=""):
+def sellmeier(name: str, B: Sequence[float], C_um: Sequence[float], min_wavelength_m: float, max_wavelength_m: float,
+              reference: str = "") -> Material:
     """Build and register a Sellmeier material (C in micrometres)."""
     return register_material(Material(name, "sellmeier", (tuple(B), tuple(C_um)),
                                       min_wavelength_m, max_wavelength_m, reference))
 
 
-def cauchy(name, coefficients, min_wavelength_m, max_wavelength_m, reference=""):
+def cauchy(name: str, coefficients: Sequence[float], min_wavelength_m: float, max_wavelength_m: float,
+           reference: str = "") -> Material:
     """Build and register a Cauchy material ``n = A + B/L^2 + ...`` (L in micrometres)."""
     return register_material(Material(name, "cauchy", tuple(coefficients),
                                       min_wavelength_m, max_wavelength_m, reference))
 
 
-def table(name, wavelengths_m, n, reference=""):
+def table(name: str, wavelengths_m: ArrayLike, n: ArrayLike, reference: str = "") -> Material:
     """Build and register a tabulated material, linear interpolation between entries."""
     wls = tuple(float(w) for w in wavelengths_m)
     return register_material(Material(name, "table", (wls, tuple(float(v) for v in n)),
                                       min(wls), max(wls), reference))
 
 
-def get_material(name) -> Material:
+def get_material(name: str | Material) -> Material:
     """Look a material up by name (or pass a :class:`Material` through)."""
     if isinstance(name, Material):
         return name

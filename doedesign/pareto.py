@@ -10,19 +10,26 @@ what the engine sees, not what the model predicts.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .levels import level_step_m, quantize
 from .optimize import height_bounds
 from .progress import Progress
 from .psf import PSFEngine
 from .router import pupil_model, router_heights, to_design_grid
+from .camera import Camera
+from .targets import Target
+
+__all__ = ["front_figure", "pareto_front", "sweep_weights"]
 
 log = logging.getLogger(__name__)
 
 
-def sweep_weights(n_colours=3, factors=(0.6, 1.6)):
+def sweep_weights(n_colours: int = 3, factors: Sequence[float] = (0.6, 1.6)) -> list[np.ndarray]:
     """Equal weights, then each colour in turn favoured and disfavoured by ``factors``."""
     out = [np.ones(n_colours)]
     for c in range(n_colours):
@@ -33,8 +40,9 @@ def sweep_weights(n_colours=3, factors=(0.6, 1.6)):
     return out
 
 
-def pareto_front(camera, target, pitch_m, shape, material="fused_silica", design_wavelength_m=550e-9,
-                 weights=None, grid_px=64, iterations=100):
+def pareto_front(camera: Camera, target: Target, pitch_m: float, shape: tuple[int, int],
+                 material: str = "fused_silica", design_wavelength_m: float = 550e-9,
+                 weights: Sequence[ArrayLike] | None = None, grid_px: int = 64, iterations: int = 100) -> list[dict]:
     """Front points: per weight vector the model, continuous and quantized energies on target.
 
     Returns
@@ -61,7 +69,8 @@ def pareto_front(camera, target, pitch_m, shape, material="fused_silica", design
     return points
 
 
-def front_figure(points, bound, chosen, path, labels=("R", "G", "B"), chosen_label="chosen design"):
+def front_figure(points: list[dict], bound: Sequence[float], chosen: Sequence[float], path: str | Path,
+                 labels: Sequence[str] = ("R", "G", "B"), chosen_label: str = "chosen design") -> Path:
     """Pairwise projections of the front (quantized and continuous) with the bounds and the chosen design."""
     import matplotlib.pyplot as plt
 

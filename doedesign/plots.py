@@ -5,15 +5,21 @@ The backend is left to the caller (the ``doe`` CLI selects Agg; a notebook keeps
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from .fileio import save_figure
+from .psf import PSFResult
 
 __all__ = ["height_map_figure", "psf_figure", "save"]
 
 
-def height_map_figure(height_m, pitch_m, title="height map", ax=None):
+def height_map_figure(height_m: np.ndarray, pitch_m: float, title: str = "height map",
+                      ax: Axes | None = None) -> Figure | None:
     """Height map in nm with a micrometre scale (row 0 at the top)."""
     own = ax is None
     if own:
@@ -28,7 +34,7 @@ def height_map_figure(height_m, pitch_m, title="height map", ax=None):
     return ax.figure if own else None
 
 
-def psf_figure(result, crop=64, log=True, title=""):
+def psf_figure(result: PSFResult, crop: int = 64, log: bool = True, title: str = "") -> Figure:
     """Montage of coded/uncoded PSFs per wavelength around the axis (first depth)."""
     views = list(result.views)
     nw = len(result.wavelengths_m)
@@ -54,6 +60,6 @@ def psf_figure(result, crop=64, log=True, title=""):
     return fig
 
 
-def save(fig, path):
+def save(fig: Figure, path: str | Path) -> Path:
     """Save ``fig`` atomically as PNG."""
     return save_figure(fig, path)

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import TextIO
 
 from tqdm import tqdm
 
 __all__ = ["Progress", "progress_enabled"]
 
 
-def progress_enabled(stream=None, enabled: bool | None = None) -> bool:
+def progress_enabled(stream: TextIO | None = None, enabled: bool | None = None) -> bool:
     """Whether to draw: ``enabled`` if given, else ``DOE_PROGRESS`` (``1``/``0``), else a terminal."""
     if enabled is not None:
         return bool(enabled)
@@ -31,7 +32,7 @@ class Progress:
     Use as a context manager; call :meth:`update` once per step.
     """
 
-    def __init__(self, total: int, desc: str = "", stream=None, enabled: bool | None = None):
+    def __init__(self, total: int, desc: str = "", stream: TextIO | None = None, enabled: bool | None = None) -> None:
         self.total = max(int(total), 1)
         self.desc = desc
         self.stream = stream if stream is not None else sys.stderr

@@ -9,6 +9,7 @@ knows about a particular report; the pages are assembled by the commands.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from .fileio import atomic_path
@@ -18,7 +19,7 @@ __all__ = ["fmt", "fmt_pm", "table", "figure", "verdict", "json_link", "join", "
 MISSING = "n/a"
 
 
-def fmt(value, digits=3, unit=""):
+def fmt(value: object, digits: int = 3, unit: str = "") -> str:
     """``value`` with ``digits`` significant digits (and a unit); ``n/a`` for None / NaN / text."""
     if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or \
             (isinstance(value, float) and not math.isfinite(value)):
@@ -27,7 +28,7 @@ def fmt(value, digits=3, unit=""):
     return f"{text} {unit}".rstrip()
 
 
-def fmt_pm(value, err, digits=3, unit=""):
+def fmt_pm(value: float | None, err: float | None, digits: int = 3, unit: str | None = "") -> str:
     """``value ± err`` (``n/a`` parts stay visible); the unit once at the end."""
     unit = "" if unit in (None, "1") else unit
     if err is None or (isinstance(err, float) and not math.isfinite(err)):
@@ -40,33 +41,33 @@ def _cell(value):
     return text.replace("|", "\\|").replace("\n", " ")
 
 
-def table(rows, header):
+def table(rows: Iterable[Sequence[object]], header: Sequence[str]) -> str:
     """A Markdown table; put units in the header names (``"depth (nm)"``)."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
 
 
-def figure(folder, rel, caption):
+def figure(folder: str | Path, rel: str, caption: str) -> str:
     """An inline figure if ``folder/rel`` exists, else a line saying it was not produced."""
     if (Path(folder) / rel).exists():
         return f"![{caption}]({rel})\n\n*{caption}*\n"
     return f"*({caption}: not produced)*\n"
 
 
-def verdict(ok, good, bad):
+def verdict(ok: bool | None, good: str, bad: str) -> str:
     """A verdict in words: ``**OK**: good`` or ``**CHECK**: bad`` (``ok`` None: not judged)."""
     if ok is None:
         return f"**NOT JUDGED**: {bad}"
     return f"**OK**: {good}" if ok else f"**CHECK**: {bad}"
 
 
-def json_link(name="report.json"):
+def json_link(name: str = "report.json") -> str:
     """The closing line that points to the machine-readable report beside the page."""
     return f"All numbers above, and more, are in [{name}]({name}) beside this page.\n"
 
 
-def join(parts):
+def join(parts: Iterable[str | None]) -> str:
     """One page from ``parts``: consecutive lines stay together (lists), headings, tables and
     figures get a blank line around them."""
     lines = []
@@ -85,7 +86,7 @@ def join(parts):
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def write_markdown(path, parts):
+def write_markdown(path: str | Path, parts: Iterable[str | None]) -> Path:
     """Join ``parts`` (see :func:`join`) and write them atomically to ``path``."""
     text = join(parts)
     with atomic_path(path) as tmp:

@@ -9,6 +9,7 @@ pass measured curves with :func:`tabulated` when you have them.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import DoeError
 
@@ -25,7 +26,7 @@ def _grid(wavelengths_m):
     return wl
 
 
-def gaussian_band(wavelengths_m, centre_m, fwhm_m):
+def gaussian_band(wavelengths_m: ArrayLike, centre_m: float, fwhm_m: float) -> np.ndarray:
     """Gaussian spectrum (an LED or a narrowband filter) sampled on ``wavelengths_m``."""
     wl = _grid(wavelengths_m)
     if fwhm_m <= 0:
@@ -34,7 +35,7 @@ def gaussian_band(wavelengths_m, centre_m, fwhm_m):
     return np.exp(-0.5 * ((wl - centre_m) / sigma) ** 2)
 
 
-def bandpass(wavelengths_m, low_m, high_m):
+def bandpass(wavelengths_m: ArrayLike, low_m: float, high_m: float) -> np.ndarray:
     """Flat-top band between ``low_m`` and ``high_m`` (inclusive)."""
     wl = _grid(wavelengths_m)
     if high_m <= low_m:
@@ -42,12 +43,12 @@ def bandpass(wavelengths_m, low_m, high_m):
     return ((wl >= low_m) & (wl <= high_m)).astype(float)
 
 
-def rgb_response(wavelengths_m):
+def rgb_response(wavelengths_m: ArrayLike) -> np.ndarray:
     """Approximate R, G, B channel responses, shape (3, wavelengths)."""
     return np.stack([gaussian_band(wavelengths_m, *RGB_BANDS_M[c]) for c in "RGB"])
 
 
-def tabulated(wavelengths_m, table_wavelengths_m, values):
+def tabulated(wavelengths_m: ArrayLike, table_wavelengths_m: ArrayLike, values: ArrayLike) -> np.ndarray:
     """A measured curve interpolated onto ``wavelengths_m`` (zero outside the table)."""
     wl = _grid(wavelengths_m)
     tw = np.asarray(table_wavelengths_m, dtype=float)

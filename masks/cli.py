@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 import numpy as np
@@ -10,10 +11,13 @@ from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 from doedesign.fileio import ensure_output_dir
 
+__all__ = ["register", "run_masks"]
+
 log = logging.getLogger(__name__)
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe masks`` to the root command's subparsers."""
     p = subparsers.add_parser("masks", help="quantize, decompose into binary masks, write verified GDSII",
                               description="Write DIR/<name>.gds (one layer per mask), DIR/masks.png and "
                                           "DIR/report.json; the GDS is read back and verified pixel by pixel.")
@@ -29,6 +33,9 @@ def register(subparsers):
     p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
     p.add_argument("--oasis", action="store_true", help="also write <name>.oas")
+    p.add_argument("--plate", action="store_true",
+                   help="also write <name>_plate.gds: a full 4-inch wafer of this die by array references, "
+                        "with global alignment marks")
     p.set_defaults(func=run_masks)
 
 
@@ -49,7 +56,8 @@ def _float_list(text, what):
     return vals
 
 
-def run_masks(args):
+def run_masks(args: argparse.Namespace) -> int:
+    """Run ``doe masks``: write the verified GDS (and plate), preview and report."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
 
@@ -61,6 +69,10 @@ def run_masks(args):
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=_int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
-        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, oasis=args.oasis)
-    print_json({k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")})
+        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, oasis=args.oasis,
+        plate=args.plate)
+    summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")}
+    if args.plate:
+        summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "dies", "seconds")}
+    print_json(summary)
     return 0

@@ -9,7 +9,10 @@ not change the ideal surface, only the real one (see ``masks.process``).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from doedesign.errors import DoeError
 
@@ -24,12 +27,12 @@ DEFAULT_DEPTHS_M = (75e-9, 150e-9, 300e-9, 600e-9)
 DEFAULT_ETCH_ORDER = (0, 1, 2, 3)
 
 
-def binary_depths_m(step_m, n_masks=4):
+def binary_depths_m(step_m: float, n_masks: int = 4) -> tuple[float, ...]:
     """Ideal etch depth of each mask, ``2**j * step_m`` (m)."""
     return tuple(float(step_m) * 2 ** j for j in range(int(n_masks)))
 
 
-def check_etch_order(etch_order, n_masks=4):
+def check_etch_order(etch_order: Sequence[int] | None, n_masks: int = 4) -> tuple[int, ...]:
     """Validate an etch order (a permutation of mask indices) and return it as a tuple.
 
     ``etch_order[i]`` is the mask etched in process step ``i``.
@@ -40,7 +43,7 @@ def check_etch_order(etch_order, n_masks=4):
     return order
 
 
-def levels_to_masks(levels, n_masks=4):
+def levels_to_masks(levels: np.ndarray, n_masks: int = 4) -> np.ndarray:
     """Split a level map into binary masks.
 
     Parameters
@@ -75,7 +78,7 @@ def levels_to_masks(levels, n_masks=4):
     return (levels[None] & bits) != 0
 
 
-def masks_to_levels(masks):
+def masks_to_levels(masks: np.ndarray) -> np.ndarray:
     """Recompose levels from binary masks (exact inverse of :func:`levels_to_masks`).
 
     Parameters
@@ -91,7 +94,7 @@ def masks_to_levels(masks):
     return np.sum(masks * weights, axis=0, dtype=np.int16)
 
 
-def masks_to_height(masks, depths_m):
+def masks_to_height(masks: np.ndarray, depths_m: ArrayLike) -> np.ndarray:
     """Etched height ``-sum_j masks[j] * depths_m[j]`` (m) for any etch depths.
 
     Parameters

@@ -99,7 +99,7 @@ PROCESS_EFFECTS = (
 EFFECTS = tuple(e.name for e in PROCESS_EFFECTS)
 
 
-def effect_spec(name):
+def effect_spec(name: str) -> ProcessEffect:
     """The :class:`ProcessEffect` called ``name`` (KeyError if there is none)."""
     for effect in PROCESS_EFFECTS:
         if effect.name == name:

@@ -8,18 +8,20 @@ GDS coordinates follow :mod:`masks.gds` (element centred on the die, rows toward
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from doedesign.design import Design
-from doedesign.fileio import output_run, save_figure, write_json
+from doedesign.fileio import atomic_path, output_run, write_json
 from doedesign.levels import N_LEVELS, quantize_design
 
 from .decompose import binary_depths_m, levels_to_masks
 from .gds import export_masks
+from .plate import PlateDesign, export_plate
 
-__all__ = ["DIE_SIZE_M", "clear_aperture_m", "preview", "write_element"]
+__all__ = ["DIE_SIZE_M", "LEVEL_COLOURS", "PREVIEW_PX", "clear_aperture_m", "preview", "write_element"]
 
 log = logging.getLogger(__name__)
 
@@ -39,28 +41,59 @@ def clear_aperture_m(design: Design) -> float | None:
     return None
 
 
-def preview(levels, masks, path, title: str) -> None:
-    """Figure of the level map and every mask (row 0 at the top, white = open/etched)."""
-    import matplotlib.pyplot as plt
+#: viridis at the 16 levels (matplotlib's colormap sampled at k / 15), so the preview draws
+#: without importing matplotlib: Pillow writes it in milliseconds, matplotlib costs a second.
+LEVEL_COLOURS = np.array([[68, 1, 84], [72, 26, 108], [71, 47, 125], [65, 68, 135], [57, 86, 140], [49, 104, 142],
+                          [42, 120, 142], [35, 136, 142], [31, 152, 139], [34, 168, 132], [53, 183, 121],
+                          [84, 197, 104], [122, 209, 81], [165, 219, 54], [210, 226, 27], [253, 231, 37]], np.uint8)
+PREVIEW_PX = 360  # longest side of each panel
+
+
+def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str) -> None:
+    """PNG of the level map and every mask (row 0 at the top, white = open/etched).
+
+    Panels are scaled to at most :data:`PREVIEW_PX` pixels a side: the levels by nearest
+    pixel, the masks by area (features finer than a preview pixel show as grey, not as
+    moire); the level panel has a colour key of the 2**n levels underneath.
+    """
+    from PIL import Image, ImageDraw, ImageFont
 
     n = masks.shape[0]
-    fig, axes = plt.subplots(1, n + 1, figsize=(3 * (n + 1), 3.2))
-    im = axes[0].imshow(levels, cmap="viridis", interpolation="nearest", vmin=0, vmax=2 ** n - 1)
-    axes[0].set_title(f"{title}: levels")
-    fig.colorbar(im, ax=axes[0], fraction=0.046)
-    for j in range(n):
-        axes[j + 1].imshow(masks[j], cmap="gray", interpolation="nearest", vmin=0, vmax=1)
-        axes[j + 1].set_title(f"mask {j + 1} (bit {j}, open = white)")
-    for ax in axes:
-        ax.set_xticks([])
-        ax.set_yticks([])
-    save_figure(fig, path)
+    rows, cols = levels.shape
+    scale = min(1.0, PREVIEW_PX / max(rows, cols))
+    size = (max(1, round(cols * scale)), max(1, round(rows * scale)))
+    colours = LEVEL_COLOURS[np.round(np.linspace(0, 15, 2 ** n)).astype(int)]
+    panels = [Image.fromarray(colours[np.clip(levels, 0, 2 ** n - 1)]).resize(size, Image.Resampling.NEAREST)]
+    panels += [Image.fromarray(masks[j].astype(np.uint8) * np.uint8(255)).resize(size, Image.Resampling.BOX)
+               for j in range(n)]
+    titles = [f"{title}: levels"] + [f"mask {j + 1} (bit {j}, open = white)" for j in range(n)]
+    w, h = size
+    gap, head, key = 16, 22, 28
+    sheet = Image.new("RGB", (len(panels) * (w + gap) + gap, head + h + key + gap), "white")
+    draw = ImageDraw.Draw(sheet)
+    font = ImageFont.load_default(size=12)
+    for k, (panel, text) in enumerate(zip(panels, titles)):
+        x = gap + k * (w + gap)
+        sheet.paste(panel, (x, head))
+        draw.text((x, 4), text, fill="black", font=font)
+    cell = w / len(colours)
+    for k, colour in enumerate(colours):
+        draw.rectangle([gap + k * cell, head + h + 6, gap + (k + 1) * cell, head + h + 16],
+                       fill=tuple(int(c) for c in colour))
+    draw.text((gap, head + h + 16), "0", fill="black", font=font)
+    draw.text((gap + w - 14, head + h + 16), str(len(colours) - 1), fill="black", font=font)
+    with atomic_path(path) as tmp:
+        sheet.save(tmp, format="PNG")
 
 
-def write_element(design: Design, out, *, source: str | None = None, tone: str = "dark", mirrored: bool = False,
-                  depths_m=None, layers=(1, 2, 3, 4), etch_order=None, clear_aperture=None,
-                  oasis: bool = False) -> dict:
+def write_element(design: Design, out: str | Path, *, source: str | None = None, tone: str = "dark",
+                  mirrored: bool = False, depths_m: Sequence[float] | None = None,
+                  layers: Sequence[int] = (1, 2, 3, 4), etch_order: Sequence[int] | None = None,
+                  clear_aperture: float | None = None, oasis: bool = False, plate: bool = False) -> dict:
     """Write ``OUT/<name>.gds`` (read back and verified), ``OUT/masks.png`` and ``OUT/report.json``.
+
+    With ``plate``, also ``OUT/<name>_plate.gds``: a full 4-inch wafer of this die placed by
+    array references, with global alignment marks (:func:`masks.plate.export_plate`).
 
     Parameters
     ----------
@@ -72,6 +105,8 @@ def write_element(design: Design, out, *, source: str | None = None, tone: str =
         The design's file name (reports and messages).
     tone, mirrored, layers, etch_order, oasis
         See :func:`masks.gds.export_masks`.
+    plate : bool
+        Also write the full-wafer plate (see above).
     depths_m : sequence of float, optional
         Etch depth per mask (default ``2**j`` level steps).
     clear_aperture : float, optional
@@ -99,6 +134,11 @@ def write_element(design: Design, out, *, source: str | None = None, tone: str =
         report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
                               tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
                               clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, oasis=oasis)
+        if plate:
+            report["plate"] = export_plate(
+                out / f"{Path(name).name or 'design'}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
+                layers=layers, tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order,
+                die_size_m=DIE_SIZE_M)
         report["design"] = source
         report["level_step_nm"] = step * 1e9
         report["quantization"] = None if quantization is None else quantization.summary()

@@ -20,13 +20,16 @@ import numpy as np
 from doedesign.errors import DoeError
 
 from .process import simulate_surface
+from .process_params import ProcessParams
+
+__all__ = ["DEFAULT_TARGET_FRACTION", "fabricated_height", "target_from_psf"]
 
 # The "target" when the design carries none: the design PSF's brightest pixels that hold this
 # share of its in-window light.
 DEFAULT_TARGET_FRACTION = 0.9
 
 
-def target_from_psf(psf, fraction=DEFAULT_TARGET_FRACTION):
+def target_from_psf(psf: np.ndarray, fraction: float = DEFAULT_TARGET_FRACTION) -> np.ndarray:
     """Brightest pixels of each PSF (..., rows, cols) that hold ``fraction`` of its window light."""
     psf = np.asarray(psf)
     flat_psf = psf.reshape(-1, *psf.shape[-2:])
@@ -40,7 +43,8 @@ def target_from_psf(psf, fraction=DEFAULT_TARGET_FRACTION):
     return out.reshape(psf.shape)
 
 
-def fabricated_height(levels, pitch_m, params, oversample=2, process_upsample=None):
+def fabricated_height(levels: np.ndarray, pitch_m: float, params: ProcessParams, oversample: int = 2,
+                      process_upsample: int | None = None) -> np.ndarray:
     """Height map (m) of the whole element made with ``params``, ``oversample`` samples per pixel.
 
     Parameters

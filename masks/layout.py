@@ -1,5 +1,5 @@
-"""Everything on the plate besides the element: Cr aperture, die outline, labels, alignment
-marks with verniers, etch test structures, and multi-die plate layouts.
+"""Everything on a die besides the element: Cr aperture, die outline, labels, alignment
+marks with verniers, etch test structures and printed labels (plates of dies: :mod:`masks.plate`).
 
 Geometry is built in die coordinates (um, y up, die centre at 0, 0) and mirrored as a whole
 (x -> -x) when the masks are printed face down. Marks and test structures live in their
@@ -15,22 +15,20 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-from . import gds
+from .grid import APERTURE_LAYER, DEFAULT_LAYERS, DIE_LAYER, TEXT_LAYER, UNIT_M, PixelGrid
+from .gds_records import gds_name
 
-__all__ = ["APERTURE_SEGMENTS", "DieSettings", "EDGE_EXCLUSION_M", "PLATE_LAYER", "PLATE_SIZE_M",
-           "PlateDesign", "VERNIER_BARS", "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "WAFER_DIAMETER_M",
-           "WAFER_LAYER", "aperture_polygons", "die_cells", "mark_site", "marks_cell", "plate_layout",
-           "test_structures_cell", "write_plate"]
+__all__ = ["APERTURE_SEGMENTS", "DieSettings", "LABEL_GAP_UM", "LABEL_LINE_UM", "LABEL_SIZE_UM", "VERNIER_BARS",
+           "VERNIER_PITCH_UM", "VERNIER_STEP_UM", "aperture_polygons", "die_cells", "die_labels", "mark_site",
+           "marks_cell", "test_structures_cell"]
 
 APERTURE_SEGMENTS = 720  # chord sag 0.04 um on a 4.32 mm radius
 VERNIER_PITCH_UM = 10.0
 VERNIER_STEP_UM = 0.25  # reading resolution: main pitch minus vernier pitch
 VERNIER_BARS = 21
-WAFER_DIAMETER_M = 100e-3
-PLATE_SIZE_M = 127e-3
-EDGE_EXCLUSION_M = 5e-3
-PLATE_LAYER = 30
-WAFER_LAYER = 31
+LABEL_SIZE_UM = 80.0  # text height: readable by eye on the wafer
+LABEL_LINE_UM = 1.6 * LABEL_SIZE_UM  # baseline to baseline; the font's descenders stay inside
+LABEL_GAP_UM = 150.0  # from the die's top edge to the first line's baseline
 
 
 @dataclass
@@ -38,7 +36,7 @@ class DieSettings:
     """How one die is drawn (see :func:`masks.gds.export_masks`)."""
 
     name: str = "design"
-    layers: tuple = gds.DEFAULT_LAYERS
+    layers: tuple = DEFAULT_LAYERS
     datatype: int = 0
     tone: str = "dark"
     mirrored: bool = False
@@ -51,14 +49,15 @@ class DieSettings:
     extra: dict = field(default_factory=dict)
 
 
-def aperture_polygons(diameter_m, die_size_m, layer=gds.APERTURE_LAYER, segments=APERTURE_SEGMENTS):
+def aperture_polygons(diameter_m: float, die_size_m: float, layer: int = APERTURE_LAYER,
+                      segments: int = APERTURE_SEGMENTS) -> list[gdstk.Polygon]:
     """Die square minus the clear circle, as 8 octant pieces of <= 199 vertices.
 
     The circle is the inscribed polygon of ``segments`` chords (vertices on the circle), so
     the clear area is at most ``r (1 - cos(pi / segments))`` smaller in radius.
     """
-    r = diameter_m / 2 / gds.UNIT_M
-    h = die_size_m / 2 / gds.UNIT_M
+    r = diameter_m / 2 / UNIT_M
+    h = die_size_m / 2 / UNIT_M
     if not 0 < r < h:
         raise DoeError(f"clear aperture {diameter_m * 1e3:.3f} mm must be positive and smaller "
                        f"than the {die_size_m * 1e3:.3f} mm die")
@@ -81,7 +80,8 @@ def _stripes(x0, x1, y0, y1, open_intervals, layer, datatype, tone):
     return [gdstk.rectangle((a, y0), (b, y1), layer, datatype) for a, b in iv]
 
 
-def test_structures_cell(settings, origin_um=(0.0, 0.0), name="TEST"):
+def test_structures_cell(settings: DieSettings, origin_um: tuple[float, float] = (0.0, 0.0),
+                         name: str = "TEST") -> gdstk.Cell:
     """Per-mask binary gratings (4 periods x 2 duty cycles) and a 16-level linear grating.
 
     The binary gratings of mask j exist on mask j only: a profilometer reads d_j directly
@@ -112,7 +112,7 @@ def test_structures_cell(settings, origin_um=(0.0, 0.0), name="TEST"):
                            [(x0 + a * pitch, x0 + b * pitch) for a, b in runs], layer,
                            settings.datatype, settings.tone))
     cell.add(gdstk.Label(f"{settings.name}: gratings periods 2,4,8,16 px duty 0.5,0.25; "
-                         f"{2 ** n}-level grating period {period:g} um", (ox, oy + 30), layer=gds.TEXT_LAYER))
+                         f"{2 ** n}-level grating period {period:g} um", (ox, oy + 30), layer=TEXT_LAYER))
     return cell
 
 
@@ -126,7 +126,7 @@ def _runs(cols):
     return runs
 
 
-def mark_site(cell, centre, first_layer, layer, datatype=0):
+def mark_site(cell: gdstk.Cell, centre: tuple[float, float], first_layer: int, layer: int, datatype: int = 0) -> None:
     """Cross (first mask) in a box frame (mask ``layer``) plus X and Y verniers.
 
     The vernier main scale (first mask) has pitch 10 um, the one of the later mask
@@ -152,11 +152,11 @@ def mark_site(cell, centre, first_layer, layer, datatype=0):
                  gdstk.rectangle((cx - 120, yv - 2), (cx - 80 + long, yv + 2), layer, datatype))
 
 
-def marks_cell(settings, name="MARKS"):
+def marks_cell(settings: DieSettings, name: str = "MARKS") -> gdstk.Cell:
     """Alignment marks of every later mask to the first, on both sides of the die (for
     rotation), in the street outside the die square, with each mask's number as text."""
     cell = gdstk.Cell(name)
-    h = settings.die_size_m / 2 / gds.UNIT_M
+    h = settings.die_size_m / 2 / UNIT_M
     first = settings.layers[0]
     for j, layer in enumerate(settings.layers[1:], start=1):
         y = h - 400 * j
@@ -168,7 +168,30 @@ def marks_cell(settings, name="MARKS"):
     return cell
 
 
-def die_cells(lib, element, grid, settings):
+def die_labels(settings: DieSettings, grid: PixelGrid) -> list[gdstk.Polygon]:
+    """The die's labels as polygon text that a mask writer prints, above the die square.
+
+    One line per mask, on that mask's layer (the first mask also carries the summary line),
+    each line on its own row, so no two labels overlap on the wafer and none reaches the
+    element or the die square (the element may overhang the die by up to a pixel).
+    """
+    lines = [(f"{settings.name}: {len(settings.layers)} masks, tone {settings.tone}, mirrored "
+              f"{'yes' if settings.mirrored else 'no'}, pixel {grid.pitch_um:g} um", settings.layers[0])]
+    for j, layer in enumerate(settings.layers):
+        lines.append((f"mask {j + 1}: layer {layer}/{settings.datatype} etch {settings.depths_m[j] * 1e9:.1f} nm, "
+                      f"step {settings.etch_order.index(j) + 1}", layer))
+    h = settings.die_size_m / 2 / UNIT_M
+    bottom = max(h, grid.bbox_um()[1][1]) + LABEL_GAP_UM
+    polygons = []
+    for i, (text, layer) in enumerate(lines):
+        # gdstk's font draws printable ASCII only; anything else would vanish silently
+        text = "".join(ch if " " <= ch <= "~" else "?" for ch in text)
+        polygons += gdstk.text(text, LABEL_SIZE_UM, (-h, bottom + i * LABEL_LINE_UM), layer=layer,
+                               datatype=settings.datatype)
+    return polygons
+
+
+def die_cells(lib: gdstk.Library, element: gdstk.Cell, grid: PixelGrid, settings: DieSettings) -> gdstk.Cell:
     """Add aperture/outline/labels/marks cells for one die to ``lib``; return the top cell.
 
     The element cell is referenced at the die centre; all other cells are placed at the
@@ -176,27 +199,21 @@ def die_cells(lib, element, grid, settings):
     polygons were built mirrored already).
     """
     suffix = "" if settings.name in ("", None) else ""
-    top = gdstk.Cell(gds._gds_name(f"DIE_{settings.name}{suffix}"))
-    h = settings.die_size_m / 2 / gds.UNIT_M
+    top = gdstk.Cell(gds_name(f"DIE_{settings.name}{suffix}"))
+    h = settings.die_size_m / 2 / UNIT_M
     (gx0, gy0), (gx1, gy1) = grid.bbox_um()
     if gx1 - gx0 > 2 * h + 2 * grid.pitch_um or gy1 - gy0 > 2 * h + 2 * grid.pitch_um:
         raise DoeError(f"{settings.name}: element {gx1 - gx0:.1f} x {gy1 - gy0:.1f} um does not fit "
                        f"the {2 * h:.0f} um die")
     top.add(gdstk.Reference(element))
-    top.add(gdstk.rectangle((-h, -h), (h, h), gds.DIE_LAYER))
+    top.add(gdstk.rectangle((-h, -h), (h, h), DIE_LAYER))
     if settings.clear_aperture_m:
         top.add(*aperture_polygons(settings.clear_aperture_m, settings.die_size_m))
-    texts = [f"{settings.name}: {len(settings.layers)} masks, tone {settings.tone}, "
-             f"mirrored {'yes' if settings.mirrored else 'no'}, pixel {grid.pitch_um:g} um"]
-    for j, layer in enumerate(settings.layers):
-        texts.append(f"mask {j + 1}: layer {layer}/{settings.datatype} etch "
-                     f"{settings.depths_m[j] * 1e9:.1f} nm, step {settings.etch_order.index(j) + 1}")
-    for i, t in enumerate(texts):
-        top.add(gdstk.Label(t, (-h + 50, h - 50 - 60 * i), layer=gds.TEXT_LAYER))
+    top.add(*die_labels(settings, grid))
     extra = []
     if settings.marks:
-        extra = [marks_cell(settings, gds._gds_name(f"MARKS_{settings.name}")),
-                 test_structures_cell(settings, (-h, -h - 300), gds._gds_name(f"TEST_{settings.name}"))]
+        extra = [marks_cell(settings, gds_name(f"MARKS_{settings.name}")),
+                 test_structures_cell(settings, (-h, -h - 300), gds_name(f"TEST_{settings.name}"))]
     for c in extra:
         lib.add(c)
         top.add(gdstk.Reference(c))
@@ -214,96 +231,3 @@ def _mirror_own(cell):
         lab.origin = (-lab.origin[0], lab.origin[1])
         lab.x_reflection = not lab.x_reflection
         lab.rotation = lab.rotation + np.pi
-
-
-@dataclass
-class PlateDesign:
-    """One die of a plate: its masks (n_masks, rows, cols), pitch and clear aperture."""
-
-    name: str
-    masks: np.ndarray
-    pitch_m: float
-    clear_aperture_m: float | None = None
-
-
-def plate_layout(designs, *, layers=gds.DEFAULT_LAYERS, datatype=0, tone="dark", mirrored=False,
-                 depths_m=(75e-9, 150e-9, 300e-9, 600e-9), die_size_m=10e-3, die_pitch_m=16e-3,
-                 wafer_diameter_m=WAFER_DIAMETER_M, plate_size_m=PLATE_SIZE_M):
-    """Several dies on one 4-inch wafer inside a 5-inch plate frame, one layer per mask.
-
-    Each mask plate is written from its own layer of the one library. Dies sit on a square
-    grid of ``die_pitch_m`` centred on the wafer; each die (with its marks and test
-    structures) must lie inside the wafer minus a 5 mm edge exclusion.
-
-    Returns
-    -------
-    lib : gdstk.Library
-    dies : list of dict
-        Per die: name, element cell name, centre_um, PixelGrid (for verification).
-    """
-    if not designs:
-        raise DoeError("plate_layout: no designs given")
-    names = [d.name for d in designs]
-    if len(set(names)) != len(names):
-        raise DoeError(f"plate_layout: design names must be distinct, got {names}")
-    lib = gdstk.Library(name="PLATE", unit=gds.UNIT_M, precision=gds.PRECISION_M)
-    plate = gdstk.Cell("PLATE")
-    n = len(designs)
-    ncol = int(np.ceil(np.sqrt(n)))
-    nrow = int(np.ceil(n / ncol))
-    pitch_um = die_pitch_m / gds.UNIT_M
-    usable_um = (wafer_diameter_m / 2 - EDGE_EXCLUSION_M) / gds.UNIT_M
-    dies = []
-    for i, d in enumerate(designs):
-        masks = np.asarray(d.masks, dtype=bool)
-        row, col = divmod(i, ncol)
-        centre = ((col - (ncol - 1) / 2) * pitch_um, ((nrow - 1) / 2 - row) * pitch_um)
-        reach = die_size_m / 2 / gds.UNIT_M + 4500  # marks and test structures around the die
-        if np.hypot(abs(centre[0]) + reach, abs(centre[1]) + reach) > usable_um:
-            raise DoeError(f"plate_layout: die {d.name!r} at {centre[0] / 1e3:.1f}, {centre[1] / 1e3:.1f} mm "
-                           f"falls outside the wafer's usable {2 * usable_um / 1e3:.0f} mm circle; "
-                           "use fewer designs or a smaller die pitch")
-        grid = gds.PixelGrid.centred(masks.shape[1:], d.pitch_m, mirrored)
-        elem_name = gds._gds_name(f"ELEMENT_{d.name}")
-        elem, stats = gds.element_cell(masks, grid, layers, datatype, tone, name=elem_name)
-        lib.add(elem)
-        settings = DieSettings(name=d.name, layers=tuple(layers), datatype=datatype, tone=tone,
-                               mirrored=mirrored, depths_m=tuple(depths_m),
-                               etch_order=tuple(range(len(layers))), die_size_m=die_size_m,
-                               clear_aperture_m=d.clear_aperture_m, pitch_um=grid.pitch_um)
-        top = die_cells(lib, elem, grid, settings)
-        lib.add(top)
-        placed = (-centre[0] if mirrored else centre[0], centre[1])
-        plate.add(gdstk.Reference(top, placed))
-        dies.append({"name": d.name, "cell": elem_name, "centre_um": placed, "grid": grid,
-                     "masks": masks, "layers": stats})
-    half = plate_size_m / 2 / gds.UNIT_M
-    frame = 1000.0
-    plate.add(gdstk.rectangle((-half, -half), (half, -half + frame), PLATE_LAYER),
-              gdstk.rectangle((-half, half - frame), (half, half), PLATE_LAYER),
-              gdstk.rectangle((-half, -half + frame), (-half + frame, half - frame), PLATE_LAYER),
-              gdstk.rectangle((half - frame, -half + frame), (half, half - frame), PLATE_LAYER))
-    r = wafer_diameter_m / 2 / gds.UNIT_M
-    for k in range(4):
-        th = np.linspace(k * np.pi / 2, (k + 1) * np.pi / 2, 91)
-        ring = np.vstack([np.stack([r * np.cos(th), r * np.sin(th)], 1),
-                          np.stack([(r - 200) * np.cos(th[::-1]), (r - 200) * np.sin(th[::-1])], 1)])
-        plate.add(gdstk.Polygon(ring, WAFER_LAYER))
-    lib.add(plate)
-    return lib, dies
-
-
-def write_plate(path, lib, dies, layers=gds.DEFAULT_LAYERS, datatype=0, tone="dark"):
-    """Write a plate library and verify every die's element; DoeError and no file on mismatch."""
-    from doedesign.fileio import atomic_path
-
-    with atomic_path(path) as tmp:
-        lib.write_gds(str(tmp), max_points=gds.MAX_VERTICES)
-        results = {}
-        for d in dies:
-            res = gds.verify_file(tmp, d["masks"], d["grid"], layers, datatype, tone, cell_name=d["cell"])
-            if not res["passed"]:
-                raise DoeError(f"{path}: die {d['name']} failed verification: "
-                               f"{res['mismatched_pixels']} mismatched pixels; " + "; ".join(res["problems"][:5]))
-            results[d["name"]] = {"mismatched_pixels": res["mismatched_pixels"], "passed": True}
-    return results

@@ -16,7 +16,7 @@ __all__ = ["blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_
            "upsample_mask"]
 
 
-def upsample_mask(mask, upsample):
+def upsample_mask(mask: np.ndarray, upsample: int) -> np.ndarray:
     """Nearest-neighbour upsampling of a binary design mask to float32 coverage.
 
     Parameters
@@ -36,7 +36,7 @@ def upsample_mask(mask, upsample):
     return fine.reshape(rows * upsample, cols * upsample)
 
 
-def grow(coverage, bias_px):
+def grow(coverage: np.ndarray, bias_px: float) -> np.ndarray:
     """Grow (bias > 0) or shrink (bias < 0) openings by ``bias_px`` fine pixels on every edge.
 
     The growth uses a square structuring element, so a square opening of side L becomes a
@@ -73,7 +73,8 @@ def grow(coverage, bias_px):
     return out
 
 
-def move(coverage, shift_rc, rotation_rad, centre_rc):
+def move(coverage: np.ndarray, shift_rc: tuple[float, float], rotation_rad: float,
+         centre_rc: tuple[float, float]) -> np.ndarray:
     """Move a coverage image by a translation and a counter-clockwise rotation.
 
     Linear interpolation of a box-sampled image is its exact area coverage after a
@@ -133,7 +134,7 @@ def _translate_axis(image, shift, axis):
     return out
 
 
-def expose(coverage, blur_px, threshold, upsample=1):
+def expose(coverage: np.ndarray, blur_px: float, threshold: float, upsample: int = 1) -> np.ndarray:
     """Print a mask through a Gaussian aerial-image blur and a resist threshold.
 
     The aerial image is the coverage blurred by a Gaussian of ``blur_px`` fine pixels; the
@@ -175,7 +176,7 @@ def expose(coverage, blur_px, threshold, upsample=1):
     return np.clip(aerial, 0.0, 1.0, out=aerial)
 
 
-def blurred(image, sigma_px, block=1):
+def blurred(image: np.ndarray, sigma_px: float, block: int = 1) -> np.ndarray:
     """Gaussian blur with zero outside the array, cheap for wide kernels.
 
     With ``block = k > 1`` the image is first block-averaged by a factor ``k``, blurred
@@ -214,7 +215,7 @@ def blurred(image, sigma_px, block=1):
                                  (np.arange(cols) - (k - 1) / 2) / k + 2)
 
 
-def interpolate_separable(coarse, row_coords, col_coords):
+def interpolate_separable(coarse: np.ndarray, row_coords: np.ndarray, col_coords: np.ndarray) -> np.ndarray:
     """Bilinear interpolation of ``coarse`` at the grid ``row_coords x col_coords``.
 
     Coordinates are in coarse-sample index units; outside the array the edge value is
@@ -242,7 +243,7 @@ def interpolate_separable(coarse, row_coords, col_coords):
     return out
 
 
-def edge_foot(coverage, width_px):
+def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
     """Profile of a microtrench: ``exp(-s / w)`` at distance ``s`` inside an opening's edge.
 
     The closed fraction around each pixel is averaged with a separable two-sided exponential
@@ -279,7 +280,7 @@ def edge_foot(coverage, width_px):
     return 2.0 * (1.0 - out)
 
 
-def box_kernel(width_px):
+def box_kernel(width_px: float) -> np.ndarray:
     """1-D box of a continuous width ``width_px`` (fine pixels), normalized to sum 1.
 
     Tap t is the overlap of pixel ``[t - 0.5, t + 0.5]`` with ``[-width/2, width/2]``

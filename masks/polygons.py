@@ -42,24 +42,24 @@ class PolygonSet:
     offsets: np.ndarray
 
     @property
-    def n_polygons(self):
+    def n_polygons(self) -> int:
         return len(self.offsets) - 1
 
     @property
-    def n_vertices(self):
+    def n_vertices(self) -> int:
         return len(self.vertices)
 
     @property
-    def max_vertices(self):
+    def max_vertices(self) -> int:
         return int(np.diff(self.offsets).max()) if self.n_polygons else 0
 
-    def split(self):
+    def split(self) -> list[np.ndarray]:
         """List of ``(k, 2)`` vertex arrays, one per polygon."""
         off = self.offsets.tolist()
         return [self.vertices[a:b] for a, b in zip(off[:-1], off[1:])]
 
 
-def mask_polygons(mask, max_vertices=199):
+def mask_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     """Fully merged Manhattan polygons covering exactly the True pixels of ``mask``.
 
     Each 4-connected component whose outline (holes joined by keyhole cuts) has at most
@@ -105,7 +105,7 @@ _LAST_LEAF = (3 - np.argmax(_LEAVES[:, ::-1], axis=1)).astype(np.int8)
 _RIGHT_PIXEL = np.array([[0, 0], [0, -1], [-1, -1], [-1, 0]])  # (dy, dx) of the set pixel
 
 
-def traced_outlines(mask, max_vertices=199):
+def traced_outlines(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     """Traced outlines, holes keyholed in, of the 4-connected components with few corners.
 
     Parameters
@@ -283,7 +283,7 @@ def _join_holes(mask, number, col_order, entry_start, direction, x, y, succ, com
     return x, y, succ, added
 
 
-def run_chain_polygons(mask, max_vertices=199):
+def run_chain_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     """Stacks of overlapping row runs as polygons of at most ``max_vertices`` corners.
 
     Every row of the mask is cut into runs of set pixels; a run is joined to its first

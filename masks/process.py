@@ -37,10 +37,9 @@ Approximations, in words:
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -48,8 +47,9 @@ from scipy import ndimage as ndi
 from doedesign.errors import DoeError
 
 from . import litho
-from .decompose import DEFAULT_DEPTHS_M, levels_to_masks
+from .decompose import levels_to_masks
 from .effects import EFFECTS
+from .process_params import ProcessParams
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "fine_upsample", "simulate_surface"]
 
@@ -61,207 +61,6 @@ _MARGIN_PX = 2
 _TRUNCATE = 4.0
 # Microtrench feet reach this many decay widths (exp(-12) ~ 6e-6) into the margin.
 _TRENCH_REACH = 12.0
-# Array-valued fields (copied, never shared) and those holding one row per mask.
-_ARRAY_FIELDS = ("etch_depth", "mask_overlay", "linewidth_bias", "mask_rotation", "microtrenching",
-                 "etch_gradient")
-_PER_MASK_FIELDS = ("mask_overlay", "linewidth_bias", "mask_rotation", "microtrenching")
-
-
-@dataclass
-class ProcessParams:
-    """Fabrication parameters of one wafer run, in SI units.
-
-    Attributes
-    ----------
-    etch_depth : ndarray, shape (n_masks,)
-        Actual depth of each mask's etch (m), mask order.
-    mask_overlay : ndarray, shape (n_masks, 3)
-        Per mask ``[dx_m, dy_m, rotation_rad]`` relative to mask 0 (row 0 is normally
-        zeros); x toward increasing column, y up (toward decreasing row), rotation
-        counter-clockwise about the centre of the design grid. None = no overlay error.
-    linewidth_bias : ndarray, shape (n_masks,)
-        Growth of every opening edge per mask (m); positive = openings wider. None = 0.
-    proximity_blur : float
-        Sigma of the Gaussian aerial-image blur through the contact gap (m); 0 = sharp.
-    resist_threshold : float
-        Aerial-image level at which the resist clears, in (0, 1); used only with blur.
-    sidewall_slope : float
-        Width of the etched step transition (m): a linear ramp ``d cot(theta)`` wide.
-    etch_loading : float
-        Fractional depth loss per unit local open fraction:
-        ``depth_j(x) = d_j * (1 - etch_loading * rho_j(x))``.
-    loading_radius : float
-        Gaussian sigma (m) over which the local open fraction ``rho_j`` is averaged.
-    roughness : float
-        Rms random height noise (m), white on the fine grid.
-    seed : int or None
-        Seed of the roughness noise (None = fresh noise each call).
-    mask_rotation : ndarray, shape (n_masks,)
-        Rotation of each printed mask about the field centre (the centre of the design
-        grid), in degrees as aligners quote it, counter-clockwise; adds to the rotation in
-        ``mask_overlay``. None = 0.
-    microtrenching : ndarray, shape (n_masks, 2)
-        Per mask ``[depth_m, width_m]``: extra etch depth at the foot of the mask's etched
-        edges inside the opening, ``depth_m * exp(-s / width_m)`` at distance ``s`` from a
-        straight edge, at the mask's etch depth (it scales with the local etch depth, so
-        with loading and gradient). None = no trenches.
-    etch_gradient : ndarray, shape (2,)
-        ``[x_per_m, y_per_m]``: relative etch-depth change per metre along x and y from the
-        field centre, the same for every mask: ``depth_j(r) = d_j (1 + g . r)``
-        (10 /m = 1 % per mm). None = uniform etch.
-    """
-
-    etch_depth: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_DEPTHS_M, dtype=float))
-    mask_overlay: np.ndarray | None = None
-    linewidth_bias: np.ndarray | None = None
-    proximity_blur: float = 0.0
-    resist_threshold: float = 0.5
-    sidewall_slope: float = 0.0
-    etch_loading: float = 0.0
-    loading_radius: float = 50e-6
-    roughness: float = 0.0
-    seed: int | None = None
-    mask_rotation: np.ndarray | None = None
-    microtrenching: np.ndarray | None = None
-    etch_gradient: np.ndarray | None = None
-
-    def __post_init__(self):
-        self.etch_depth = _float_array(self.etch_depth, "etch_depth")
-        if self.etch_depth.ndim != 1 or not 1 <= self.etch_depth.size <= 15:
-            raise DoeError(f"process parameter etch_depth must be a list of 1..15 depths (m), "
-                           f"got shape {self.etch_depth.shape}")
-        n = self.etch_depth.size
-        if self.mask_overlay is None:
-            self.mask_overlay = np.zeros((n, 3))
-        if self.linewidth_bias is None:
-            self.linewidth_bias = np.zeros(n)
-        if self.mask_rotation is None:
-            self.mask_rotation = np.zeros(n)
-        if self.microtrenching is None:
-            self.microtrenching = np.zeros((n, 2))
-        if self.etch_gradient is None:
-            self.etch_gradient = np.zeros(2)
-        for name in _ARRAY_FIELDS[1:]:
-            setattr(self, name, _float_array(getattr(self, name), name))
-        if self.mask_overlay.shape != (n, 3):
-            raise DoeError(f"process parameter mask_overlay must be shaped ({n}, 3) "
-                           f"[dx_m, dy_m, rotation_rad] per mask, got {self.mask_overlay.shape}")
-        if self.linewidth_bias.shape != (n,):
-            raise DoeError(f"process parameter linewidth_bias must hold {n} values (m), "
-                           f"got shape {self.linewidth_bias.shape}")
-        if self.mask_rotation.shape != (n,):
-            raise DoeError(f"process parameter mask_rotation must hold {n} angles (degrees), "
-                           f"got shape {self.mask_rotation.shape}")
-        if abs(self.mask_rotation).max() > 45:
-            raise DoeError(f"process parameter mask_rotation must lie within +-45 degrees, "
-                           f"got {self.mask_rotation.tolist()}")
-        if self.microtrenching.shape != (n, 2):
-            raise DoeError(f"process parameter microtrenching must be shaped ({n}, 2) "
-                           f"[depth_m, width_m] per mask, got {self.microtrenching.shape}")
-        depth, width = self.microtrenching.T
-        if np.any(depth < 0) or np.any(width < 0) or np.any((depth > 0) & (width == 0)):
-            raise DoeError(f"process parameter microtrenching needs depth_m >= 0 and width_m >= 0 "
-                           f"(> 0 where depth_m > 0), got {self.microtrenching.tolist()}")
-        if self.etch_gradient.shape != (2,):
-            raise DoeError(f"process parameter etch_gradient must be [x_per_m, y_per_m], "
-                           f"got shape {self.etch_gradient.shape}")
-        for name in ("proximity_blur", "resist_threshold", "sidewall_slope", "etch_loading",
-                     "loading_radius", "roughness"):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise DoeError(f"process parameter {name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise DoeError(f"process parameter {name} must be finite, got {value}")
-            setattr(self, name, value)
-        if np.any(self.etch_depth < 0):
-            raise DoeError(f"process parameter etch_depth must be >= 0 m, got {self.etch_depth.tolist()}")
-        for name in ("proximity_blur", "sidewall_slope", "roughness"):
-            if getattr(self, name) < 0:
-                raise DoeError(f"process parameter {name} must be >= 0 m, got {getattr(self, name)}")
-        if not 0 < self.resist_threshold < 1:
-            raise DoeError(f"process parameter resist_threshold must lie in (0, 1), got {self.resist_threshold}")
-        if self.loading_radius <= 0:
-            raise DoeError(f"process parameter loading_radius must be > 0 m, got {self.loading_radius}")
-        if self.seed is not None:
-            if isinstance(self.seed, bool) or not float(self.seed).is_integer():
-                raise DoeError(f"process parameter seed must be an integer or None, got {self.seed!r}")
-            self.seed = int(self.seed)
-
-    @property
-    def n_masks(self):
-        """Number of binary masks (length of ``etch_depth``)."""
-        return self.etch_depth.size
-
-    @classmethod
-    def ideal(cls, n_masks=4, depths_m=None):
-        """Perfect process: nominal depths, every effect off.
-
-        Parameters
-        ----------
-        n_masks : int
-            Number of masks; the default depths are ``DEFAULT_DEPTHS_M`` (4 masks) or
-            ``75 nm * 2**j`` for another count.
-        depths_m : sequence of float, optional
-            Etch depth of each mask (m); overrides ``n_masks``.
-        """
-        if depths_m is None:
-            n_masks = int(n_masks)
-            if n_masks == len(DEFAULT_DEPTHS_M):
-                depths_m = DEFAULT_DEPTHS_M
-            else:
-                depths_m = [DEFAULT_DEPTHS_M[0] * 2 ** j for j in range(max(n_masks, 0))]
-        return cls(etch_depth=np.array(depths_m, dtype=float))
-
-    def copy(self, **changes):
-        """A copy with some fields replaced (arrays are copied, never shared)."""
-        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        values.update(changes)
-        for name in _ARRAY_FIELDS:
-            if values[name] is not None:
-                values[name] = np.array(values[name], dtype=float)
-        if "etch_depth" in changes and len(np.atleast_1d(changes["etch_depth"])) != self.n_masks:
-            # A new mask count invalidates the per-mask arrays not given explicitly.
-            for name in _PER_MASK_FIELDS:
-                if name not in changes:
-                    values[name] = None
-        return type(self)(**values)
-
-    def to_dict(self):
-        """JSON-friendly dict keyed by field name; lengths in m, angles in rad."""
-        return {
-            "etch_depth": self.etch_depth.tolist(),
-            "mask_overlay": self.mask_overlay.tolist(),
-            "linewidth_bias": self.linewidth_bias.tolist(),
-            "proximity_blur": self.proximity_blur,
-            "resist_threshold": self.resist_threshold,
-            "sidewall_slope": self.sidewall_slope,
-            "etch_loading": self.etch_loading,
-            "loading_radius": self.loading_radius,
-            "roughness": self.roughness,
-            "seed": self.seed,
-            "mask_rotation": self.mask_rotation.tolist(),
-            "microtrenching": self.microtrenching.tolist(),
-            "etch_gradient": self.etch_gradient.tolist(),
-        }
-
-    @classmethod
-    def from_dict(cls, d):
-        """Inverse of :meth:`to_dict`; missing keys take their defaults.
-
-        Raises
-        ------
-        DoeError
-            ``d`` is not a dict or has unknown keys.
-        """
-        if not isinstance(d, dict):
-            raise DoeError(f"process parameters must be a JSON object, got {type(d).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise DoeError(f"unknown process parameter(s) {unknown}; known: {sorted(known)}")
-        return cls(**d)
 
 
 @dataclass
@@ -289,7 +88,7 @@ class SimulatedSurface:
     region: tuple
     masks_printed: np.ndarray
 
-    def design_coords(self):
+    def design_coords(self) -> tuple[np.ndarray, np.ndarray]:
         """Fine-pixel centres in design-pixel units.
 
         Returns
@@ -305,12 +104,14 @@ class SimulatedSurface:
         return rows, cols
 
 
-def fine_upsample(pitch_m, step_m):
+def fine_upsample(pitch_m: float, step_m: float) -> int:
     """Fine samples per design pixel per axis, ``ceil(pitch_m / step_m)``."""
     return max(int(math.ceil(pitch_m / step_m - 1e-9)), 1)
 
 
-def simulate_surface(levels, pitch_m, params=None, step_m=0.25e-6, region=None):
+def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams | None = None,
+                     step_m: float = 0.25e-6,
+                     region: tuple[int, int, int, int] | None = None) -> SimulatedSurface:
     """Simulate the etched surface of (a region of) a multi-level element.
 
     Parameters
@@ -502,13 +303,3 @@ def _positive(value, name):
     if not (math.isfinite(value) and value > 0):
         raise DoeError(f"{name} must be a positive length in metres, got {value}")
     return value
-
-
-def _float_array(value, name):
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise DoeError(f"process parameter {name} must be numeric, got {value!r}") from None
-    if not np.all(np.isfinite(arr)):
-        raise DoeError(f"process parameter {name} must be finite, got {arr.tolist()}")
-    return arr

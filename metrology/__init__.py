@@ -7,3 +7,5 @@ stacks), :mod:`metrology.diagnosis` (naming the effect the model misses),
 :mod:`metrology.pipeline` (the demo's main job) and :mod:`metrology.cli` (the ``doe``
 subcommands of this package).
 """
+
+__all__: list[str] = []

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -24,10 +26,15 @@ from doedesign.design import Design
 from doedesign.fileio import atomic_path, json_ready, write_json
 from doedesign.psf import compute_psf
 
+if TYPE_CHECKING:
+    from doedesign.optimize import DesignRun
+    from doedesign.psf import PSFResult
+
 __all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
-           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo"]
+           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo", "tolerance_step"]
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 RGB_NM = (656.0, 589.0, 486.0)
 
@@ -59,7 +66,7 @@ class DemoConfig:
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
 
     @classmethod
-    def quick(cls):
+    def quick(cls) -> DemoConfig:
         return cls(doe_px=160, iterations=6, anneal_iterations=2, field_px=48, window=128, objective="loss",
                    tolerance_samples=4)
 
@@ -68,7 +75,7 @@ class DemoConfig:
 class Timings:
     steps: list = field(default_factory=list)
 
-    def run(self, name, fn, *args, **kwargs):
+    def run(self, name: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         log.info("demo: %s ...", name)
         start = time.perf_counter()
         out = fn(*args, **kwargs)
@@ -77,24 +84,23 @@ class Timings:
         return out
 
 
-def demo_camera(cfg):
+def demo_camera(cfg: DemoConfig) -> Camera:
     """Seed camera focused at infinity (the Bayer target is at optical infinity)."""
     w = cfg.window
     return Camera(aperture_diameter_m=cfg.doe_px * 5.4e-6, focus_distance_m=np.inf, window_shape=(w, w),
                   axis_pixel=(w // 2, w // 2), doe_side="left")
 
 
-def design_step(cfg, camera, out):
+def design_step(cfg: DemoConfig, camera: Camera, out: Path) -> DesignRun:
     from doedesign import targets
-    from doedesign.cli.design import DEFAULT_INIT, DEFAULT_LOSS
     from doedesign.losses import LossSpec
     from doedesign.optimize import OptimizerSettings, design_doe
 
     target = targets.bayer(camera)
     settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed,
-                                 init=DEFAULT_INIT["bayer"] if cfg.objective != "loss" else "zeros",
+                                 init=targets.DEFAULT_INIT["bayer"] if cfg.objective != "loss" else "zeros",
                                  objective=cfg.objective)
-    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(DEFAULT_LOSS["bayer"]),
+    run = design_doe(target, camera, 5.4e-6, (cfg.doe_px, cfg.doe_px), loss=LossSpec.parse(targets.DEFAULT_LOSS["bayer"]),
                      settings=settings)
     run.design.metadata["name"] = "bayer_demo"
     run.design.save(out / "design.npz")
@@ -102,7 +108,7 @@ def design_step(cfg, camera, out):
     return run
 
 
-def psf_step(design, camera, out):
+def psf_step(design: Design, camera: Camera, out: Path) -> PSFResult:
     from doedesign.plots import psf_figure, save
 
     result = compute_psf(design, camera, wavelengths_m=np.array(RGB_NM) * 1e-9)
@@ -111,13 +117,13 @@ def psf_step(design, camera, out):
     return result
 
 
-def masks_step(design, design_path, out):
+def masks_step(design: Design, design_path: Path, out: Path) -> dict:
     from masks.element import write_element
 
     return write_element(design, out / "masks", source=str(design_path))
 
 
-def fabricate_and_measure(design, cfg, out):
+def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[Path, dict]:
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
     from metrology.diagnosis.window import busiest_window
@@ -152,7 +158,7 @@ def fabricate_and_measure(design, cfg, out):
     return path, hidden
 
 
-def compare_step(measurement_path, design, design_path, out):
+def compare_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> dict:
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
@@ -160,7 +166,7 @@ def compare_step(measurement_path, design, design_path, out):
                             measurement_source=str(measurement_path), design_source=str(design_path))
 
 
-def diagnose_step(measurement_path, design, design_path, out):
+def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> dict:
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
@@ -168,7 +174,7 @@ def diagnose_step(measurement_path, design, design_path, out):
     return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
 
 
-def tolerance_step(design, design_path, out, cfg):
+def tolerance_step(design: Design, design_path: Path, out: Path, cfg: DemoConfig) -> dict:
     """A short tolerance run of the element under the built-in spec: yield and spread of its figure."""
     from masks.tolerance.analysis import nominal_depths, tolerance_analysis
     from masks.tolerance.spec import default_spec
@@ -181,7 +187,7 @@ def tolerance_step(design, design_path, out, cfg):
             "seconds_per_sample": rep["timing"]["seconds_per_sample"]}
 
 
-def run_demo(out_dir, cfg=None):
+def run_demo(out_dir: str | Path, cfg: DemoConfig | None = None) -> dict:
     """Run the whole chain into ``out_dir`` and return the report dictionary."""
     cfg = cfg or DemoConfig()
     out = Path(out_dir)
@@ -215,7 +221,7 @@ def run_demo(out_dir, cfg=None):
     return report
 
 
-def markdown_report(report, out):
+def markdown_report(report: dict, out: Path) -> str:
     """The demo report as Markdown: a summary to read in two minutes, tables with units, the
     figures inline (paths relative to the report) and a link to report.json beside it."""
     from doedesign import report_md as md
@@ -226,6 +232,7 @@ def markdown_report(report, out):
     cont, quant = d.get("continuous") or {}, d.get("quantized") or {}
     comp, diag, masks = report.get("comparison") or {}, report.get("diagnosis") or {}, report.get("masks") or {}
     on_c, on_q = _per_colour(cont), _per_colour(quant)
+    bound = _per_colour(quant.get("bound") or cont.get("bound") or {}, "bound")
     findings = pages.compare_findings(comp)
     named = [e for e in diag.get("effects_found") or [] if e not in (diag.get("measurement_artefacts") or [])]
     depths = [layer.get("etch_depth_nm") for layer in masks.get("layers") or []]
@@ -236,7 +243,9 @@ def markdown_report(report, out):
         "## Summary",
         f"- **Designed**: a {cfg['doe_px']} x {cfg['doe_px']}-pixel (5.4 um pitch) 16-level Bayer colour-sorting "
         f"element for the left half of the 2-in-1 camera, focused at infinity; light on the R/G/B target pixels "
-        f"{colours} after quantization ({'/'.join(md.fmt(v, 2) for v in on_c)} continuous).",
+        f"{colours} after quantization ({'/'.join(md.fmt(v, 2) for v in on_c)} continuous), "
+        f"{'/'.join(md.fmt(_fraction(q, b), 2) for q, b in zip(on_q, bound))} of each colour's "
+        "single-colour bound.",
         f"- **Made**: four masks ({', '.join(md.fmt(v, 3) for v in depths)} nm) written as GDSII and "
         + ("verified pixel-exact" if verified else "**not** verified")
         + f"; the wafer was simulated with a hidden process error and measured at "
@@ -249,12 +258,17 @@ def markdown_report(report, out):
            if not diag.get("unexplained") else "a structured residual remains unexplained") + ".",
         "",
         "## Light on target per colour",
-        "Fraction of the coded half-aperture's light on each colour's target pixel (the design's figure of "
-        "merit; the design report states no bound for it). The fabricated element's PSF is compared with "
-        "the design's below, under the measurement.", "",
-        md.table([(name, md.fmt(nm, 3), md.fmt(c, 3), md.fmt(q, 3), md.fmt(100 * (q - c) / c if c else None, 2))
-                  for name, nm, c, q in zip("RGB", RGB_NM, on_c, on_q)],
-                 ("colour", "wavelength (nm)", "continuous", "16 levels", "quantization change (%)")),
+        "Energies are fractions of the coded half-aperture's light on each colour's target pixel (the "
+        "design's figure of merit). The bound is what a diffraction-limited spot of that half aperture puts "
+        "on one pixel (`doedesign.bounds`): no phase element beats it for one colour, and a router serving "
+        "three colours at once gets less. The fabricated element's PSF is compared with the design's below, "
+        "under the measurement.", "",
+        md.table([(name, md.fmt(nm, 3), md.fmt(b, 3), md.fmt(c, 3), md.fmt(_fraction(c, b), 3), md.fmt(q, 3),
+                   md.fmt(_fraction(q, b), 3), md.fmt(100 * (q - c) / c if c else None, 2))
+                  for name, nm, c, q, b in zip("RGB", RGB_NM, on_c, on_q, bound)],
+                 ("colour", "wavelength (nm)", "bound (fraction of light)", "continuous (fraction of light)",
+                  "continuous / bound", "16 levels (fraction of light)", "16 levels / bound",
+                  "quantization change (%)")),
         md.figure(out, "psf.png", "coded and uncoded PSFs of the quantized design (log scale)"),
         "## Masks",
         md.table([(f"mask {layer.get('mask')}", layer.get("layer"), md.fmt(layer.get("etch_depth_nm"), 4),
@@ -288,10 +302,17 @@ def markdown_report(report, out):
     return md.join(parts)
 
 
-def _per_colour(result):
-    """Light on the R/G/B target pixels of a design report stage (first source distance)."""
-    values = np.asarray(result.get("energy_on_target") or [[np.nan] * 3], dtype=float)
+def _per_colour(result, key="energy_on_target"):
+    """R/G/B values of ``key`` in a design report stage (first source distance): the light on the
+    target pixels, or with ``key="bound"`` in the stage's bound report, the single-colour bounds."""
+    values = np.asarray(result.get(key) or [[np.nan] * 3], dtype=float)
     return [float(v) for v in values.reshape(-1, values.shape[-1])[0]]
+
+
+def _fraction(value, bound):
+    """``value / bound``, or None when either is missing."""
+    ok = value is not None and bound is not None and np.isfinite(value) and np.isfinite(bound) and bound > 0
+    return value / bound if ok else None
 
 
 def _hidden_table(hidden, comp, diag):

@@ -9,10 +9,13 @@ shared blocks of :mod:`doedesign.report_md`.
 from __future__ import annotations
 
 import math
-
-import numpy as np
+from pathlib import Path
 
 from doedesign import report_md as md
+
+__all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
+           "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
+           "diagnose_page", "diagnose_sections", "match_sentence"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -48,7 +51,7 @@ def _get(seq, i, j=None):
     return v
 
 
-def compare_findings(rep):
+def compare_findings(rep: dict) -> list[tuple[int, str, str]]:
     """Per-mask findings of a comparison report: list of (mask, what, text) for what is off nominal."""
     found = []
     for j, nominal in enumerate(rep.get("etch_depths_nominal_nm") or []):
@@ -67,7 +70,7 @@ def compare_findings(rep):
     return found
 
 
-def match_sentence(rep):
+def match_sentence(rep: dict) -> str:
     """How sure the comparison is that it measured the right design, in words."""
     match = rep.get("match") or {}
     ncc = (rep.get("registration") or {}).get("match_ncc")
@@ -82,7 +85,7 @@ def match_sentence(rep):
     return md.verdict(confident, f"the measurement matches the design: {text}", f"weak match: {text}")
 
 
-def compare_sections(rep, folder, prefix="", level=2):
+def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
     """Markdown parts of a comparison: summary, per-mask table, PSF table, figures."""
     h = "#" * level
     findings = compare_findings(rep)
@@ -126,7 +129,8 @@ def compare_sections(rep, folder, prefix="", level=2):
                  md.fmt(100 * (m - d) / d if d else None, 2))
                 for wl, d, m in zip(psf["wavelengths_nm"], psf.get("design_on_target") or [],
                                     psf.get("measured_on_target") or [])]
-        parts.append(md.table(prow, ("wavelength (nm)", "design", "fabricated", "change (%)")))
+        parts.append(md.table(prow, ("wavelength (nm)", "design (fraction of light)", "fabricated (fraction of light)",
+                                     "change (%)")))
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
     return parts
@@ -139,7 +143,7 @@ def _param_text(name, value, err, unit):
     return f"{name} {md.fmt_pm(value, err, 3, unit)}".rstrip()
 
 
-def diagnose_sections(rep, folder, prefix="", level=2):
+def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
     """Markdown parts of a diagnosis: summary in words, the steps with the shrinking residual, figures."""
     h = "#" * level
     unit_scale, unit = (1e9, "nm") if rep.get("units") == "m" else (1.0, rep.get("units") or "")
@@ -171,7 +175,7 @@ def diagnose_sections(rep, folder, prefix="", level=2):
     if rows:
         parts.append(md.table(rows, ("step", "effect", "kind", "fitted parameters (± 1 s.e.)",
                                      f"residual before ({unit})", f"residual after ({unit})",
-                                     "criterion change")))
+                                     "criterion change (BIC, lower is better)")))
     else:
         parts.append("No effect lowered the criterion: the measurement agrees with the ideal model.\n")
     parts.append(f"{h} Figures")
@@ -179,20 +183,15 @@ def diagnose_sections(rep, folder, prefix="", level=2):
     return parts
 
 
-def compare_page(rep, folder):
+def compare_page(rep: dict, folder: Path) -> Path:
     """The whole ``report.md`` of ``doe compare``."""
     title = f"# Comparison of `{rep.get('measurement')}` with `{rep.get('design')}`"
     return md.write_markdown(folder / "report.md", [title, *compare_sections(rep, folder), md.json_link()])
 
 
-def diagnose_page(rep, folder):
+def diagnose_page(rep: dict, folder: Path) -> Path:
     """The whole ``report.md`` of ``doe diagnose``."""
     inputs = rep.get("inputs") or {}
     source = inputs.get("measured") or inputs.get("measured_psf")
     title = f"# Diagnosis of `{source}` against `{inputs.get('design')}`"
     return md.write_markdown(folder / "report.md", [title, *diagnose_sections(rep, folder), md.json_link()])
-
-
-def mean_or_none(values):
-    vals = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
-    return float(np.mean(vals)) if vals else None

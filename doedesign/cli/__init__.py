@@ -3,18 +3,24 @@
 Each package plugs its own subcommands in through the ``doe.commands`` entry-point group
 (``[project.entry-points."doe.commands"]`` in pyproject.toml): each entry names a
 ``register(subparsers)`` function. This root only discovers and assembles them, so it
-names no package above ``doedesign``. User mistakes (:class:`~doedesign.errors.DoeError`)
-print one line and exit 2.
+names no package above ``doedesign``. Only the named command's entry point is loaded (its
+imports are the start-up cost of every run); ``doe``, ``doe --help`` and a name that is no
+command load them all, so the help lists every command. User mistakes
+(:class:`~doedesign.errors.DoeError`) print one line and exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from importlib.metadata import entry_points
 import logging
+import os
 import sys
 
 from ..errors import DoeError
+
+__all__ = ["ENTRY_POINT_GROUP", "build_parser", "main"]
 
 ENTRY_POINT_GROUP = "doe.commands"
 
@@ -22,23 +28,45 @@ ENTRY_POINT_GROUP = "doe.commands"
 log = logging.getLogger("doe")
 
 
-def build_parser():
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``doe`` parser with every command, or only the one ``argv`` names.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The command line (without the program name). When its first word that is not an
+        option names a command, only that command's entry point is loaded.
+    """
     parser = argparse.ArgumentParser(
         prog="doe",
         description="Design, mask making and metrology of multi-level diffractive optical elements.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for entry in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+    entries = sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)
+    # the root has flag options only, so the first bare word is the command
+    named = next((a for a in (argv or []) if not a.startswith("-")), None)
+    chosen = [e for e in entries if e.name == named] or entries
+    for entry in chosen:
         entry.load()(sub)
     return parser
 
 
-def main(argv=None):
-    import matplotlib
+def _files_only_backend() -> None:
+    """Files only, no windows: the CLI never needs an interactive matplotlib backend.
 
-    # Files only, no windows: the CLI never needs an interactive backend.
-    matplotlib.use("Agg")
-    parser = build_parser()
+    Set through the environment so that a command which draws nothing never imports
+    matplotlib (a second of start-up); a matplotlib already imported is switched directly.
+    """
+    if "matplotlib" in sys.modules:
+        sys.modules["matplotlib"].use("Agg")
+    else:
+        os.environ["MPLBACKEND"] = "Agg"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    _files_only_backend()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse refused an option (one line, status 2) or printed --help

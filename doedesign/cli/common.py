@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from typing import Any
 
 from ..camera import Camera
 from ..fileio import dumps_json
@@ -37,11 +38,12 @@ class Number:
     size is refused by argparse as one line (exit status 2) before any work starts.
     """
 
-    def __init__(self, kind=float, lo=None, hi=None, lo_open=False, allow_inf=False, unit=""):
+    def __init__(self, kind: type = float, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+                 allow_inf: bool = False, unit: str = "") -> None:
         self.kind, self.lo, self.hi, self.lo_open, self.allow_inf, self.unit = kind, lo, hi, lo_open, allow_inf, unit
         self.__name__ = kind.__name__
 
-    def describe(self):
+    def describe(self) -> str:
         parts = []
         if self.lo is not None:
             parts.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
@@ -67,7 +69,7 @@ class Number:
 class NumberList:
     """An argparse ``type``: comma-separated numbers, each checked by ``item`` (a :class:`Number`)."""
 
-    def __init__(self, item, max_len=1000):
+    def __init__(self, item: Number, max_len: int = 1000) -> None:
         self.item, self.max_len = item, max_len
         self.__name__ = "list"
 
@@ -79,12 +81,12 @@ class NumberList:
         return [self.item(v) for v in parts]
 
 
-def print_json(obj) -> None:
+def print_json(obj: Any) -> None:
     """Print ``obj`` as strict JSON on stdout (:func:`doedesign.fileio.dumps_json`)."""
     sys.stdout.write(dumps_json(obj) + "\n")
 
 
-def add_camera_options(parser):
+def add_camera_options(parser: argparse.ArgumentParser) -> None:
     """Camera options shared by the commands that simulate PSFs."""
     g = parser.add_argument_group("camera (defaults: the seed camera)")
     g.add_argument("--side", choices=("left", "right", "full"), default="left",
@@ -94,7 +96,7 @@ def add_camera_options(parser):
     g.add_argument("--window", type=Number(int, 8, MAX_WINDOW_PX, unit="px"), default=512, help="sensor window size in pixels (square, axis at the centre)")
 
 
-def camera_from_args(args):
+def camera_from_args(args: argparse.Namespace) -> Camera:
     window = int(args.window)
     return Camera(aperture_diameter_m=None if args.aperture_mm == 0 else args.aperture_mm * 1e-3,
                   focus_distance_m=float(args.focus_m), window_shape=(window, window),

@@ -15,9 +15,13 @@ from .. import bayer, targets
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
-from ..fileio import ensure_output_dir, ensure_output_file, write_json
+from ..fileio import ensure_output_dir, ensure_output_file, output_run, write_json
 from ..losses import LossSpec
 from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
+from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
+
+__all__ = ["bayer_wavelengths", "cmd_design", "cmd_evaluate_bayer", "quick_bayer_design", "register",
+           "robust_perturbations"]
 
 log = logging.getLogger(__name__)
 
@@ -27,13 +31,6 @@ FULL_APERTURE_PX = 1600
 # The paper's simulation: 1.8 um DOE pixels, 4500 across (8.1 mm); each 5.4 um sensor pixel is the
 # 3 x 3 pooling of 1.8 um samples, which the engine's exact pixel integral already is.
 PAPER_PITCH_M, PAPER_PX = 1.8e-6, 4500
-DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
-                "spots": "random", "image": "random"}
-# L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a
-# real sensor is still stray light; spot targets add the energy-on-target term.
-DEFAULT_LOSS = {"bayer": "l1,energy", "spots": "l1,energy"}
-# Colour sorting is judged by its weakest colour: the max-min of the per-colour energies.
-DEFAULT_OBJECTIVE = {"bayer": "maxmin"}
 
 DESIGN_HELP = """\
 TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a TOML file of
@@ -59,7 +56,7 @@ Heights are written z up, 0 = unetched top, etched pixels negative; arrays row 0
 """
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("design", help="optimize a 16-level DOE for a target PSF",
                               description="Optimize a DOE height map for a target PSF with nlopt and analytic "
                                           "gradients, then quantize it to the 16 process levels.",
@@ -154,7 +151,7 @@ def _floats(text, what):
         raise DoeError(f"{what} {text!r}: give numbers separated by commas") from None
 
 
-def cmd_design(args):
+def cmd_design(args: argparse.Namespace) -> int:
     from ..psf import parse_wavelengths_nm
 
     # Refuse an unwritable result now, not after minutes of optimization.
@@ -235,9 +232,11 @@ def cmd_design(args):
     run = design_doe(target, camera, pitch, (size, size), material, design_wl, loss, settings, init,
                      perturbations=perturbations)
     out = Path(args.out)
-    run.design.save(out)
     report_path = out.parent / "report.json"
-    write_json(report_path, {"design": str(out), **run.report})
+    # The design and its report are one result: the folder says INCOMPLETE until both are written.
+    with output_run(out.parent, f"doe design {args.target}"):
+        run.design.save(out)
+        write_json(report_path, {"design": str(out), **run.report})
     from .common import print_json
 
     summary = {"design": str(out), "report": str(report_path), "target": target.name,
@@ -252,7 +251,8 @@ def cmd_design(args):
     return 0
 
 
-def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavelength_m, n_levels):
+def robust_perturbations(spec: str, n_samples: int, seed: int, pitch_m: float, material: str,
+                         design_wavelength_m: float, n_levels: int) -> list:
     """Height perturbations from the first provider in the ``doe.perturbations`` entry points."""
     from importlib.metadata import entry_points
 
@@ -265,7 +265,7 @@ def robust_perturbations(spec, n_samples, seed, pitch_m, material, design_wavele
                                design_wavelength_m, n_levels)
 
 
-def quick_bayer_design(size_px=128, iterations=60, seed=0):
+def quick_bayer_design(size_px: int = 128, iterations: int = 60, seed: int = 0) -> Design:
     """A small Bayer design for the study when no design file is given (reduced aperture)."""
     camera = Camera(aperture_diameter_m=size_px * DEFAULT_PITCH_M, focus_distance_m=math.inf)
     target = targets.bayer(camera)
@@ -274,9 +274,15 @@ def quick_bayer_design(size_px=128, iterations=60, seed=0):
     return design_doe(target, camera, DEFAULT_PITCH_M, (size_px, size_px), settings=settings).design
 
 
-def cmd_evaluate_bayer(args):
-    t0 = time.perf_counter()
+def cmd_evaluate_bayer(args: argparse.Namespace) -> int:
     out = ensure_output_dir(args.out)
+    # table.json, fig2.png and front.png are one result: INCOMPLETE until all are written.
+    with output_run(out, "doe evaluate-bayer"):
+        return _evaluate_bayer(args, out)
+
+
+def _evaluate_bayer(args, out):
+    t0 = time.perf_counter()
     names = [n.strip() for n in args.images.split(",") if n.strip()]
     if not names:
         raise DoeError("--images: no image names given")
@@ -354,7 +360,7 @@ def _front(design, camera, doe_info, path):
     return points
 
 
-def bayer_wavelengths(design):
+def bayer_wavelengths(design: Design) -> np.ndarray:
     """R, G, B wavelengths of a Bayer design (from its metadata, else 656/589/486 nm)."""
     target = design.metadata.get("target")
     wls = target.get("wavelengths_nm") if isinstance(target, dict) else None

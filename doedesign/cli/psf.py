@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 import numpy as np
@@ -11,10 +12,12 @@ from ..progress import Progress
 from .common import Number, NumberList, add_camera_options, camera_from_args
 from ..psf import PSFEngine, parse_wavelengths_nm
 
+__all__ = ["cmd_psf", "register"]
+
 log = logging.getLogger(__name__)
 
 
-def cmd_psf(args):
+def cmd_psf(args: argparse.Namespace) -> int:
     from ..plots import psf_figure, save
 
     from ..fileio import ensure_output_file
@@ -39,7 +42,7 @@ def cmd_psf(args):
     return 0
 
 
-def register(sub):
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("psf", help="coded and uncoded PSFs of a design",
                        description="Compute the split-aperture PSFs of a design on the sensor window. Writes psf "
                                    "(views, depths, wavelengths, rows, cols): fraction of each view's light per "

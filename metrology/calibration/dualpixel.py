@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import ndimage
 from scipy.interpolate import make_smoothing_spline
 
@@ -56,7 +57,7 @@ MIN_CLIPPED_PIXELS = 4
 
 
 # -- reading -----------------------------------------------------------------------------------
-def load_frame(path):
+def load_frame(path: str | Path) -> np.ndarray:
     """Read one raw frame as a float64 2-D array (row 0 at the top).
 
     Parameters
@@ -111,7 +112,7 @@ def _read_raw(path):
 
 
 # -- splitting -----------------------------------------------------------------------------------
-def saturation_from_data(sum_frame):
+def saturation_from_data(sum_frame: np.ndarray) -> float | None:
     """Saturation level of a frame read from the data, or None when nothing is clipped.
 
     Clipped pixels pile up on the frame maximum; when at least ``MIN_CLIPPED_PIXELS`` pixels
@@ -121,7 +122,8 @@ def saturation_from_data(sum_frame):
     return top if np.count_nonzero(sum_frame >= top) >= MIN_CLIPPED_PIXELS else None
 
 
-def split_views(sum_frame, view_frame, saturation=None, black_level=0.0, name="capture"):
+def split_views(sum_frame: np.ndarray, view_frame: np.ndarray, saturation: float | None = None,
+                black_level: float = 0.0, name: str = "capture") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The two photodiode views from the stored frames.
 
     Parameters
@@ -164,7 +166,7 @@ def split_views(sum_frame, view_frame, saturation=None, black_level=0.0, name="c
 
 
 # -- colour filter array -----------------------------------------------------------------------
-def cfa_channels(shape, pattern="RGGB", origin=(0, 0)):
+def cfa_channels(shape: tuple[int, int], pattern: str = "RGGB", origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Index into :data:`CHANNELS` (R, G1, G2, B) of every pixel of a mosaic.
 
     ``pattern`` lists the colours of the 2x2 cell at the sensor's (0, 0) in row-major order;
@@ -214,17 +216,17 @@ class CrosstalkCalibration:
     metadata: dict = field(default_factory=dict)
 
     @property
-    def width(self):
+    def width(self) -> int:
         return self.ratio.shape[-1]
 
-    def summary(self):
+    def summary(self) -> dict[str, dict[str, float]]:
         """Mean ratio per view and channel (over the columns holding that channel)."""
         out = {}
         for vi, view in enumerate(VIEW_NAMES):
             out[view] = {ch: float(np.nanmean(self.raw_ratio[vi, ci])) for ci, ch in enumerate(CHANNELS)}
         return out
 
-    def save(self, path):
+    def save(self, path: str | Path) -> Path:
         """Write the calibration ``.npz`` (ratios + a JSON metadata string)."""
         meta = dict(self.metadata, cfa_pattern=self.cfa_pattern, stored_view_half=self.stored_view_half,
                     channels=list(CHANNELS), views=list(VIEW_NAMES),
@@ -232,7 +234,7 @@ class CrosstalkCalibration:
         return write_npz(path, ratio=self.ratio, raw_ratio=self.raw_ratio, metadata=np.str_(dumps_json(meta, indent=None)))
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path: str | Path) -> CrosstalkCalibration:
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as npz:
@@ -245,7 +247,7 @@ class CrosstalkCalibration:
                    stored_view_half=meta.get("stored_view_half", "right"), metadata=meta)
 
 
-def column_ratios(leak, total, channels):
+def column_ratios(leak: np.ndarray, total: np.ndarray, channels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Leaked-to-total ratio per channel and column: sum of leak over sum of total down each column.
 
     The ratio of sums is the total-weighted mean of the per-pixel ratios, so dim pixels (whose
@@ -264,7 +266,7 @@ def column_ratios(leak, total, channels):
     return ratio, weight
 
 
-def smooth_columns(ratio, weight, lam=None):
+def smooth_columns(ratio: np.ndarray, weight: np.ndarray, lam: float | None = None) -> np.ndarray:
     """Smoothing spline across columns of each channel's ratios, evaluated at every column.
 
     ``lam`` is the penalty of :func:`scipy.interpolate.make_smoothing_spline` (None: chosen by
@@ -283,8 +285,10 @@ def smooth_columns(ratio, weight, lam=None):
     return out
 
 
-def calibrate_crosstalk(left_blocked, right_blocked, pattern="RGGB", lam=None, saturation=None,
-                        black_level=0.0, names=("left-blocked capture", "right-blocked capture")):
+def calibrate_crosstalk(left_blocked: tuple[np.ndarray, np.ndarray], right_blocked: tuple[np.ndarray, np.ndarray],
+                        pattern: str = "RGGB", lam: float | None = None, saturation: float | None = None,
+                        black_level: float = 0.0,
+                        names: tuple[str, str] = ("left-blocked capture", "right-blocked capture")) -> CrosstalkCalibration:
     """Crosstalk ratios from white-wall captures with the left, then the right aperture half blocked.
 
     Parameters
@@ -337,7 +341,9 @@ def calibrate_crosstalk(left_blocked, right_blocked, pattern="RGGB", lam=None, s
                                 stored_view_half=stored_half, metadata=meta)
 
 
-def compensate_crosstalk(stored, other, calibration, origin=(0, 0), saturated=None, name="capture"):
+def compensate_crosstalk(stored: np.ndarray, other: np.ndarray, calibration: CrosstalkCalibration,
+                         origin: tuple[int, int] = (0, 0), saturated: np.ndarray | None = None,
+                         name: str = "capture") -> tuple[np.ndarray, np.ndarray]:
     """Undo the crosstalk: invert the 2x2 mixing of each pixel.
 
     Parameters
@@ -372,7 +378,7 @@ def compensate_crosstalk(stored, other, calibration, origin=(0, 0), saturated=No
     return s, o
 
 
-def coded_view_name(stored_view_half, doe_side):
+def coded_view_name(stored_view_half: str, doe_side: str) -> str:
     """'stored' or 'other': which photodiode view carries the DOE on ``doe_side`` of the aperture."""
     if doe_side not in ("left", "right"):
         raise DoeError(f"doe_side must be 'left' or 'right' for a split-aperture capture, got {doe_side!r}")
@@ -383,7 +389,7 @@ def coded_view_name(stored_view_half, doe_side):
 _BILINEAR = np.array([[0.25, 0.5, 0.25], [0.5, 1.0, 0.5], [0.25, 0.5, 0.25]])
 
 
-def demosaic_bilinear(mosaic, pattern="RGGB", origin=(0, 0)):
+def demosaic_bilinear(mosaic: np.ndarray, pattern: str = "RGGB", origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Bilinear demosaicing to (rows, cols, 3) RGB.
 
     Each colour plane is the normalized convolution of its samples with the bilinear tent
@@ -401,7 +407,7 @@ def demosaic_bilinear(mosaic, pattern="RGGB", origin=(0, 0)):
     return out
 
 
-def grey_world_gains(rgb_reference):
+def grey_world_gains(rgb_reference: np.ndarray) -> np.ndarray:
     """Per-channel gains making the reference's channel means equal (green gain 1)."""
     means = np.asarray(rgb_reference, dtype=float).reshape(-1, 3).mean(axis=0)
     if np.any(means <= 0):
@@ -409,7 +415,7 @@ def grey_world_gains(rgb_reference):
     return means[1] / means
 
 
-def white_balance(coded_rgb, uncoded_rgb):
+def white_balance(coded_rgb: np.ndarray, uncoded_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Grey-world white balance from the uncoded view, applied to both views (seed section 4).
 
     Returns (coded, uncoded, gains).
@@ -418,7 +424,7 @@ def white_balance(coded_rgb, uncoded_rgb):
     return coded_rgb * gains, uncoded_rgb * gains, gains
 
 
-def mosaic_channel_gains(mosaic, pattern="RGGB", origin=(0, 0)):
+def mosaic_channel_gains(mosaic: np.ndarray, pattern: str = "RGGB", origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Gains equalizing the four CFA channels' totals of a mosaic (grey world on the raw data).
 
     For a narrowband capture every channel sees the same irradiance times its response at that
@@ -433,7 +439,8 @@ def mosaic_channel_gains(mosaic, pattern="RGGB", origin=(0, 0)):
     return totals.mean() / totals
 
 
-def apply_channel_gains(mosaic, gains, pattern="RGGB", origin=(0, 0)):
+def apply_channel_gains(mosaic: np.ndarray, gains: ArrayLike, pattern: str = "RGGB",
+                        origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Multiply each CFA channel of a mosaic by its gain."""
     mosaic = np.asarray(mosaic, dtype=float)
     return mosaic * np.asarray(gains)[cfa_channels(mosaic.shape, pattern, origin)]

@@ -1,1 +1,3 @@
 """The ``doe`` subcommands of the metrology package: compare, calibrate, diagnose, demo."""
+
+__all__: list[str] = []

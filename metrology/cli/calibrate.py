@@ -11,13 +11,16 @@ import numpy as np
 
 from doedesign.cli.common import MAX_WINDOW_PX, Number
 from doedesign.errors import DoeError
-from doedesign.fileio import check_input_file, ensure_output_dir, ensure_output_file, save_figure, write_json, write_npz
+from doedesign.fileio import (check_input_file, ensure_output_dir, ensure_output_file, output_run, save_figure,
+                              write_json, write_npz)
 from doedesign.psf import parse_wavelengths_nm
 
 import metrology.calibration.dualpixel as dp
 import metrology.calibration.psfstack as ps
 
 log = logging.getLogger(__name__)
+
+__all__ = ["CAPTURE_HELP", "FRAME_SUFFIXES", "find_captures", "register", "run_crosstalk", "run_psf"]
 
 FRAME_SUFFIXES = (".tif", ".tiff", ".npy") + dp.RAW_SUFFIXES
 CAPTURE_HELP = """\
@@ -34,7 +37,7 @@ views coded/uncoded, normalized to the uncoded view's whole-frame total), psf_ne
 ((2, H, W, C), uncoded view first), report.json, comparison.npz with --predicted, PNG plots."""
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
     cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk and measured PSF calibration")
     sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT")
 
@@ -100,7 +103,7 @@ def _pair(values, name):
 
 
 # -- crosstalk -------------------------------------------------------------------------------------------
-def run_crosstalk(args):
+def run_crosstalk(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
 
     if args.cfa.lower() == "none":
@@ -114,9 +117,11 @@ def run_crosstalk(args):
                                  names=(f"left-blocked capture {args.left_blocked[0]}",
                                         f"right-blocked capture {args.right_blocked[0]}"))
     cal.metadata["files"] = {"left_blocked": args.left_blocked, "right_blocked": args.right_blocked}
-    cal.save(args.out)
-    if args.png:
-        save_figure(_crosstalk_figure(cal), args.png)
+    # The calibration and its plot are one result: their folder says INCOMPLETE until both are written.
+    with output_run(Path(args.out).parent, "doe calibrate crosstalk"):
+        cal.save(args.out)
+        if args.png:
+            save_figure(_crosstalk_figure(cal), args.png)
     print_json({"calibration": str(args.out), "stored_view_half": cal.stored_view_half,
                 "mean_ratio": cal.summary(), "columns": cal.width})
     return 0
@@ -141,7 +146,7 @@ def _crosstalk_figure(cal):
 
 
 # -- PSF stacks ---------------------------------------------------------------------------------------------
-def find_captures(spec, wavelengths_m=None):
+def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None) -> tuple[np.ndarray, list, tuple | None]:
     """Capture files from a directory or list file (convention in ``CAPTURE_HELP``).
 
     Returns (wavelengths_m, [(sum_path, view_path, spectrum_path or None)], dark pair or None).
@@ -236,7 +241,7 @@ def _views_of(sum_path, view_path, args, cal, coded_name):
     return coded, uncoded
 
 
-def run_psf(args):
+def run_psf(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
 
     out = ensure_output_dir(args.out)
@@ -295,6 +300,16 @@ def run_psf(args):
         stack = ps.extrapolate_orders(stack, predicted, parse_wavelengths_nm(args.extrapolate_nm))
         report["extrapolation"] = stack.info["extrapolation"]
     orders = tuple(int(v) for v in args.orders.split(",") if v.strip()) if args.orders else ()
+    with output_run(out, f"doe calibrate psf {args.captures}"):
+        _write_psf_outputs(stack, predicted, orders, report, out)
+    print_json({"out": str(out), "wavelengths_nm": (stack.wavelengths_m * 1e9).round(3).tolist(),
+                "measured": stack.measured.tolist(),
+                "energy_in_window": {v: stack.energy_in_window[i].round(5).tolist() for i, v in enumerate(ps.VIEWS)}})
+    return 0
+
+
+def _write_psf_outputs(stack, predicted, orders, report, out):
+    """Figures, comparison, stack, network export and report: INCOMPLETE in ``out`` until all are written."""
     figures = [_stack_figure(stack, out / "psf_stack.png")]
     if predicted is not None:
         comparison, difference = ps.compare_stacks(stack, predicted, orders, name="predicted")
@@ -308,10 +323,6 @@ def run_psf(args):
     ps.save_network_npy(stack, out / "psf_network.npy")
     report["outputs"] = [str(out / n) for n in ("psf_stack.npz", "psf_network.npy")] + [str(f) for f in figures]
     write_json(out / "report.json", report)
-    print_json({"out": str(out), "wavelengths_nm": (stack.wavelengths_m * 1e9).round(3).tolist(),
-                "measured": stack.measured.tolist(),
-                "energy_in_window": {v: stack.energy_in_window[i].round(5).tolist() for i, v in enumerate(ps.VIEWS)}})
-    return 0
 
 
 def _stack_figure(stack, path):

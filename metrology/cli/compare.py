@@ -5,6 +5,7 @@ Writes into ``--out`` the report and figures of :mod:`metrology.matching.report`
 
 from __future__ import annotations
 
+import argparse
 import logging
 from pathlib import Path
 
@@ -12,8 +13,10 @@ from doedesign.cli.common import Number
 
 log = logging.getLogger(__name__)
 
+__all__ = ["register", "run_compare"]
 
-def register(sub):
+
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("compare", help="compare a profilometer measurement with its design",
                        description="Level, register and compare a measurement with its design; write report.json, "
                                    "levels.png, error_map.png, masks.png, psf.png/psf.npz and surface3d.png.")
@@ -35,7 +38,7 @@ def register(sub):
     p.set_defaults(func=run_compare)
 
 
-def run_compare(args):
+def run_compare(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 
 from doedesign.cli.common import Number
@@ -9,8 +10,10 @@ from doedesign.progress import Progress
 
 log = logging.getLogger(__name__)
 
+__all__ = ["cmd_demo", "register", "seed_elements"]
 
-def cmd_demo(args):
+
+def cmd_demo(args: argparse.Namespace) -> int:
     from metrology.pipeline import DemoConfig, run_demo
 
     if args.all:
@@ -28,7 +31,7 @@ def cmd_demo(args):
     return 0
 
 
-def seed_elements(args):
+def seed_elements(args: argparse.Namespace) -> None:
     """``--all``: the seed's HDR streak, hyperspectral and depth elements with their figures against their bounds."""
     from pathlib import Path
 
@@ -39,7 +42,7 @@ def seed_elements(args):
     write_json(Path(args.out) / "elements.json", design_seed_elements(size, iterations))
 
 
-def register(sub):
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the whole chain on the default Bayer element and write a report",
                        description="Design (nlopt) -> 16 levels -> four masks as GDSII (verified) -> simulated "
                                    "fabrication with a hidden process error -> simulated Zygo .datx -> read, "

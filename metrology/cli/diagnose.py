@@ -6,6 +6,7 @@ left unexplained), ``OUT/residual_steps.png`` and ``OUT/breakdown.png``.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import logging
 from pathlib import Path
@@ -14,8 +15,10 @@ from doedesign.cli.common import Number, NumberList
 
 log = logging.getLogger(__name__)
 
+__all__ = ["register", "run"]
 
-def register(subparsers):
+
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "diagnose", help="find and fit the effects explaining a measurement (heights or PSFs)",
         description="Compare a measured height map or PSF stack with the design's ideal model, name the "
@@ -53,7 +56,7 @@ def register(subparsers):
     p.set_defaults(func=run)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run
@@ -111,8 +114,6 @@ def _camera(design, path, args, candidates):
     from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement
 
-    if args.window_px < 16:
-        raise DoeError(f"--window-px must be at least 16, got {args.window_px}")
     meas = read_measurement(path)
     # The comparison's registration is the starting placement; the data stay as read.
     comp = compare_measurement(meas, design)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,10 @@ from doedesign.design import Design
 from metrology.formats import readers
 
 
-def is_design_file(path):
+__all__ = ["cmd_inspect", "inspect_file", "is_design_file", "register"]
+
+
+def is_design_file(path: str | Path) -> bool:
     """True when ``path`` is a ``.npz`` with the design file's required fields."""
     path = Path(path)
     if path.suffix.lower() != ".npz" or not path.is_file():
@@ -23,14 +27,14 @@ def is_design_file(path):
         return False
 
 
-def inspect_file(path, pixel_size_m=None):
+def inspect_file(path: str | Path, pixel_size_m: float | None = None) -> dict:
     """Summary dictionary of a design or a measurement file."""
     if is_design_file(path):
         return Design.load(path).summary()
     return readers.read_measurement(path, pixel_size_m=pixel_size_m).summary()
 
 
-def cmd_inspect(args):
+def cmd_inspect(args: argparse.Namespace) -> int:
     summary = inspect_file(args.file, args.pixel_size_m)
     if args.json:
         print_json(summary)
@@ -43,7 +47,7 @@ def cmd_inspect(args):
 
 
 
-def register(sub):
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("inspect", help="summarize a design or measurement file",
                        description="Summarize a design (.npz) or a profilometer measurement (.dat, .datx, .xyz, "
                                    ".asc, .csv, .npy, .npz, .tif).")

@@ -3,3 +3,5 @@ profile CSV and plain height arrays, read into a :class:`~metrology.formats.meas
 (heights in metres, invalid pixels NaN, row 0 at the top of the camera image), and the
 writers that make test fixtures and the demo's simulated measurement.
 """
+
+__all__: list[str] = []

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -26,7 +27,7 @@ class MeasurementFileError(DoeError):
     """
 
 
-def read_head(path, n_bytes):
+def read_head(path: str | Path, n_bytes: int) -> bytes:
     """The first ``n_bytes`` of a measurement file; a clean error when it cannot be read."""
     from doedesign.fileio import check_input_file
 
@@ -73,16 +74,16 @@ class Measurement:
         self.metadata = dict(self.metadata)
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, int]:
         """(rows, cols) of the height map."""
         return self.height_m.shape
 
     @property
-    def valid(self):
+    def valid(self) -> np.ndarray:
         """Boolean mask of the pixels holding data."""
         return np.isfinite(self.height_m)
 
-    def summary(self):
+    def summary(self) -> dict:
         """Plain-JSON summary for ``doe inspect``.
 
         Returns

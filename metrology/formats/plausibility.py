@@ -13,12 +13,16 @@ unit, and refuse only values no instrument can produce.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from doedesign.fileio import MAX_INPUT_ARRAY_BYTES
-from metrology.formats.measurement import MeasurementFileError
+from metrology.formats.measurement import Measurement, MeasurementFileError
+
+__all__ = ["MAX_PIXELS", "RANGES", "Range", "check_claimed_pixels", "check_measurement", "check_value"]
 
 # Largest height map a file may make the tool allocate (float64 pixels).
 MAX_PIXELS = MAX_INPUT_ARRAY_BYTES // 8
@@ -33,7 +37,7 @@ class Range:
     unit: str
     meaning: str
 
-    def holds(self, value):
+    def holds(self, value: object) -> bool:
         return isinstance(value, (int, float)) and math.isfinite(value) and self.lo <= value <= self.hi
 
 
@@ -47,7 +51,7 @@ RANGES = {
 }
 
 
-def check_value(path, field, value, key=None):
+def check_value(path: str | Path, field: str, value: object, key: str | None = None) -> float:
     """``value`` as a float after checking it lies in ``RANGES[key or field]``.
 
     Raises
@@ -67,7 +71,8 @@ def check_value(path, field, value, key=None):
     return number
 
 
-def check_claimed_pixels(path, shape, listed=None, what="the header"):
+def check_claimed_pixels(path: str | Path, shape: Sequence[int], listed: int | None = None,
+                         what: str = "the header") -> int:
     """Refuse a claimed array size beyond :data:`MAX_PIXELS` or far beyond the file's content.
 
     Parameters
@@ -94,7 +99,7 @@ def check_claimed_pixels(path, shape, listed=None, what="the header"):
     return claimed
 
 
-def check_measurement(path, meas, pixel_overridden=False):
+def check_measurement(path: str | Path, meas: Measurement, pixel_overridden: bool = False) -> Measurement:
     """Check a reader's :class:`~metrology.formats.measurement.Measurement` before anyone uses it.
 
     Header quantities in the metadata (wavelength, scale and obliquity factors) and the

@@ -19,6 +19,7 @@ import re
 import struct
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,7 @@ CSV_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6, "nm":
 _TIFF_RESOLUTION_UNIT_M = {2: 0.0254, 3: 0.01}
 
 
-def detect_format(path):
+def detect_format(path: str | Path) -> str:
     """Format name of ``path`` from its magic bytes, else its extension.
 
     Raises
@@ -76,7 +77,8 @@ def detect_format(path):
     return fmt
 
 
-def read_measurement(path, format=None, pixel_size_m=None, **options):
+def read_measurement(path: str | Path, format: str | None = None, pixel_size_m: float | None = None,
+                     **options: Any) -> Measurement:
     """Read a profilometer file.
 
     Parameters
@@ -124,7 +126,7 @@ def _need_pixel(path, pixel_size_m, where):
     return pixel_size_m
 
 
-def read_array(path, pixel_size_m=None):
+def read_array(path: str | Path, pixel_size_m: float | None = None) -> Measurement:
     """Read a ``.npy`` or ``.npz`` height map in metres.
 
     An ``.npz`` uses the key ``height_m`` (or its only array), ``pixel_size_m`` (or
@@ -174,7 +176,7 @@ def _scalar(path, name, value):
     return number
 
 
-def read_tiff(path, pixel_size_m=None, z_unit_m=1.0):
+def read_tiff(path: str | Path, pixel_size_m: float | None = None, z_unit_m: float = 1.0) -> Measurement:
     """Read the first image of a TIFF as a height map (values times ``z_unit_m`` metres).
 
     The pixel size comes from ``pixel_size_m`` or the XResolution / ResolutionUnit tags
@@ -213,7 +215,7 @@ def _csv_unit(path, name):
     return CSV_UNITS_M[unit]
 
 
-def read_profile_csv(path, pixel_size_m=None):
+def read_profile_csv(path: str | Path, pixel_size_m: float | None = None) -> Measurement:
     """Read an Mx profile CSV (columns X and Y or Slice, micrometres; blank = no data).
 
     Lines before the column-name row (the first row whose first cell starts with

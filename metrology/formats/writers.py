@@ -14,8 +14,10 @@ from __future__ import annotations
 import struct
 import uuid
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path
@@ -55,10 +57,12 @@ def _intensity(intensity_frames, shape):
     return frames.astype(np.uint16)
 
 
-def write_dat(path, height_m, pixel_size_m, header_format=1, phase_res=1, sign_flip=False,
-              wavelength_m=HELIUM_NEON_M, intf_scale_factor=0.5, obliquity_factor=1.0,
-              intensity_frames=0, phase_origin=(0, 0), intensity_origin=None, comment="",
-              part_name="", objective="", magnification=0.0, numerical_aperture=0.0, time_stamp=0):
+def write_dat(path: str | Path, height_m: np.ndarray, pixel_size_m: float, header_format: int = 1,
+              phase_res: int = 1, sign_flip: bool = False, wavelength_m: float = HELIUM_NEON_M,
+              intf_scale_factor: float = 0.5, obliquity_factor: float = 1.0, intensity_frames: int = 0,
+              phase_origin: tuple[int, int] = (0, 0), intensity_origin: tuple[int, int] | None = None,
+              comment: str = "", part_name: str = "", objective: str = "", magnification: float = 0.0,
+              numerical_aperture: float = 0.0, time_stamp: int = 0) -> Path:
     """Write a MetroPro ``.dat`` file.
 
     Parameters
@@ -140,9 +144,10 @@ def _converter(pixel_size_m, converter):
     raise DoeError(f"converter must be 'standard' or 'extra_fields', got {converter!r}")
 
 
-def write_datx(path, height_m, pixel_size_m, unit="MicroMeters", layout="metadata",
-               wavelength_m=HELIUM_NEON_M, intf_scale_factor=0.5, obliquity_factor=1.0,
-               no_data=DATX_NO_DATA, converter="standard", coordinates=(0, 0), dtype=np.float64):
+def write_datx(path: str | Path, height_m: np.ndarray, pixel_size_m: float, unit: str = "MicroMeters",
+               layout: str = "metadata", wavelength_m: float = HELIUM_NEON_M, intf_scale_factor: float = 0.5,
+               obliquity_factor: float = 1.0, no_data: float = DATX_NO_DATA, converter: str = "standard",
+               coordinates: tuple[int, int] = (0, 0), dtype: DTypeLike = np.float64) -> Path:
     """Write a Zygo Mx ``.datx`` (HDF5) height map.
 
     Parameters
@@ -220,7 +225,8 @@ def _ascii_header(title, height, pixel_size_m, frames, phase_origin, options):
                         pixel_size_m=pixel_size_m, **options)
 
 
-def write_xyz(path, height_m, pixel_size_m, phase_origin=(0, 0), z_unit_m=1e-6, **header):
+def write_xyz(path: str | Path, height_m: np.ndarray, pixel_size_m: float, phase_origin: tuple[int, int] = (0, 0),
+              z_unit_m: float = 1e-6, **header: Any) -> Path:
     """Write a Zygo ``.xyz`` export ("col row z" per pixel, z in ``z_unit_m``).
 
     ``header`` takes the fields of :func:`metrology.formats.zygo_ascii.header_lines`
@@ -243,9 +249,10 @@ def _ten_per_line(values):
     return [" ".join(values[i:i + 10]) for i in range(0, len(values), 10)]
 
 
-def write_asc(path, height_m, pixel_size_m, phase_res=1, sign_flip=False, wavelength_m=HELIUM_NEON_M,
-              intf_scale_factor=0.5, obliquity_factor=1.0, intensity_frames=0, phase_origin=(0, 0),
-              **header):
+def write_asc(path: str | Path, height_m: np.ndarray, pixel_size_m: float, phase_res: int = 1,
+              sign_flip: bool = False, wavelength_m: float = HELIUM_NEON_M, intf_scale_factor: float = 0.5,
+              obliquity_factor: float = 1.0, intensity_frames: int = 0, phase_origin: tuple[int, int] = (0, 0),
+              **header: Any) -> Path:
     """Write a Zygo ``.asc`` export (header, intensity, ``#``, phase counts 10 per line, ``#``).
 
     Phase counts quantize as in :func:`write_dat`; ``header`` takes further fields of
@@ -264,7 +271,8 @@ def write_asc(path, height_m, pixel_size_m, phase_res=1, sign_flip=False, wavele
     return Path(path)
 
 
-def write_profile_csv(path, height_m, pixel_size_m, x0_m=0.0, column="Y", header=None):
+def write_profile_csv(path: str | Path, height_m: np.ndarray, pixel_size_m: float, x0_m: float = 0.0,
+                      column: str = "Y", header: dict | None = None) -> Path:
     """Write an Mx-style profile CSV: columns X and ``column`` in micrometres, blank = no data.
 
     ``height_m`` is 1-D or a single row. ``header`` (dict) adds "key,value" lines
@@ -283,14 +291,14 @@ def write_profile_csv(path, height_m, pixel_size_m, x0_m=0.0, column="Y", header
     return Path(path)
 
 
-def write_npy(path, height_m):
+def write_npy(path: str | Path, height_m: np.ndarray) -> Path:
     """Write a bare ``.npy`` height map (metres); the reader needs ``pixel_size_m`` given."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, _height(height_m))
     return Path(path)
 
 
-def write_npz(path, height_m, pixel_size_m, metadata=None):
+def write_npz(path: str | Path, height_m: np.ndarray, pixel_size_m: float, metadata: dict | None = None) -> Path:
     """Write a ``.npz`` with ``height_m``, ``pixel_size_m`` and a JSON ``metadata`` string."""
     from doedesign.fileio import dumps_json
     from doedesign.fileio import write_npz as _write
@@ -299,7 +307,7 @@ def write_npz(path, height_m, pixel_size_m, metadata=None):
                   metadata=np.array(dumps_json(metadata or {}, indent=None)))
 
 
-def write_tiff(path, height_m, pixel_size_m, z_unit_m=1.0):
+def write_tiff(path: str | Path, height_m: np.ndarray, pixel_size_m: float, z_unit_m: float = 1.0) -> Path:
     """Write a float32 TIFF of ``height / z_unit_m`` with the pixel size as XResolution (per cm)."""
     import tifffile
 
@@ -311,7 +319,8 @@ def write_tiff(path, height_m, pixel_size_m, z_unit_m=1.0):
     return Path(path)
 
 
-def write_measurement(path, measurement_or_array, pixel_size_m=None, **options):
+def write_measurement(path: str | Path, measurement_or_array: Measurement | np.ndarray,
+                      pixel_size_m: float | None = None, **options: Any) -> Path:
     """Write a :class:`Measurement` or a height array in the format named by the extension.
 
     Parameters

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import re
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -55,11 +56,13 @@ _END_OF_BLOCK = re.compile(r"^[ \t]*#[ \t]*\r?$", re.MULTILINE)
 _CONTENT_LINE = re.compile(r"^[ \t]*[^\s#]", re.MULTILINE)
 
 
-def header_lines(title, *, intensity_origin=(0, 0), intensity_shape=(0, 0), intensity_frames=0,
-                 phase_origin=(0, 0), phase_shape, comment="", part_serial="", part_name="",
-                 intf_scale_factor=0.5, wavelength_m=632.8e-9, numerical_aperture=0.0,
-                 obliquity_factor=1.0, magnification=0.0, pixel_size_m=0.0, time_stamp=0,
-                 objective="", phase_res=1, sign_flip=False):
+def header_lines(title: str, *, intensity_origin: tuple[int, int] = (0, 0),
+                 intensity_shape: tuple[int, int] = (0, 0), intensity_frames: int = 0,
+                 phase_origin: tuple[int, int] = (0, 0), phase_shape: tuple[int, int], comment: str = "",
+                 part_serial: str = "", part_name: str = "", intf_scale_factor: float = 0.5,
+                 wavelength_m: float = 632.8e-9, numerical_aperture: float = 0.0, obliquity_factor: float = 1.0,
+                 magnification: float = 0.0, pixel_size_m: float = 0.0, time_stamp: int = 0, objective: str = "",
+                 phase_res: int = 1, sign_flip: bool = False) -> list[str]:
     """The header lines of a Zygo ASCII file, in the documented order (without the ``#``).
 
     Shapes are (rows, cols); origins (x, y) in camera pixels.
@@ -122,7 +125,7 @@ def _text(header, line):
     return " ".join(fields).strip('"') if fields else ""
 
 
-def parse_header(path, header):
+def parse_header(path: str | Path, header: Sequence[str]) -> dict:
     """Header fields as a dict (origins as (x, y), shapes as (rows, cols))."""
     h = {
         "intensity_origin": (_number(path, header, 3, 0, int), _number(path, header, 3, 1, int)),
@@ -188,7 +191,7 @@ def _floats(path, text, what):
         raise MeasurementFileError(f"{path}: unparseable {what}: a field is not a number") from None
 
 
-def read_xyz(path, pixel_size_m=None, z_unit_m=1e-6):
+def read_xyz(path: str | Path, pixel_size_m: float | None = None, z_unit_m: float = 1e-6) -> Measurement:
     """Read a Zygo ``.xyz`` export.
 
     Parameters
@@ -251,7 +254,7 @@ def _check_counts(path, counts, width):
                                    f"counts are integers within the int32 range ({int(bad.sum())} bad values)")
 
 
-def read_asc(path, pixel_size_m=None, phase_res=None):
+def read_asc(path: str | Path, pixel_size_m: float | None = None, phase_res: int | None = None) -> Measurement:
     """Read a Zygo ``.asc`` export.
 
     Parameters

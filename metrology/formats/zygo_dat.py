@@ -75,7 +75,8 @@ FIELDS = {
 }
 
 
-def height_step_m(intf_scale_factor, obliquity_factor, wavelength_m, phase_res, path="<data>"):
+def height_step_m(intf_scale_factor: float, obliquity_factor: float, wavelength_m: float, phase_res: int,
+                  path: str | Path = "<data>") -> float:
     """Height of one phase count, S * O * wavelength / R, in metres.
 
     Raises
@@ -92,14 +93,14 @@ def height_step_m(intf_scale_factor, obliquity_factor, wavelength_m, phase_res, 
     return float(intf_scale_factor) * float(obliquity_factor) * float(wavelength_m) / PHASE_RES_COUNTS[phase_res]
 
 
-def counts_to_height(counts, step_m, sign_flip):
+def counts_to_height(counts: np.ndarray, step_m: float, sign_flip: bool) -> np.ndarray:
     """Phase counts (int array) to heights in metres; invalid counts become NaN."""
     height = counts.astype(np.float64) * (-step_m if sign_flip else step_m)
     height[counts >= INVALID_PHASE] = np.nan
     return height
 
 
-def height_to_counts(height_m, step_m, sign_flip, path="<data>"):
+def height_to_counts(height_m: np.ndarray, step_m: float, sign_flip: bool, path: str | Path = "<data>") -> np.ndarray:
     """Heights in metres to int32 phase counts (the inverse of :func:`counts_to_height`).
 
     NaN becomes the invalid marker; heights beyond the count range raise.
@@ -115,7 +116,7 @@ def height_to_counts(height_m, step_m, sign_flip, path="<data>"):
     return counts.astype(np.int32)
 
 
-def unix_to_iso(seconds):
+def unix_to_iso(seconds: float) -> str | None:
     """Unix seconds to an ISO 8601 UTC string (None for 0, i.e. not recorded)."""
     if not seconds:
         return None
@@ -130,7 +131,7 @@ def _text(raw):
     return raw.split(b"\0", 1)[0].decode("latin-1").strip()
 
 
-def read_header(path, raw):
+def read_header(path: str | Path, raw: bytes) -> dict:
     """Decode and check the header of a ``.dat`` file.
 
     Parameters
@@ -174,7 +175,7 @@ def read_header(path, raw):
     return header
 
 
-def read_dat(path, pixel_size_m=None):
+def read_dat(path: str | Path, pixel_size_m: float | None = None) -> Measurement:
     """Read a MetroPro ``.dat`` file.
 
     Parameters

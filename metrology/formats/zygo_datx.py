@@ -20,11 +20,15 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
 from metrology.formats.plausibility import check_claimed_pixels, check_value
+
+if TYPE_CHECKING:
+    import h5py
 
 __all__ = ["FRINGES", "HDF5_SIGNATURE", "LENGTH_UNITS_M", "NOT_HEIGHT_UNITS", "converter_parameters",
            "find_surface", "read_datx"]
@@ -69,7 +73,7 @@ def _attr(attrs, name, default=None):
     return _decode(item) if isinstance(item, (bytes, str, np.bytes_, np.str_)) else item.item()
 
 
-def converter_parameters(record):
+def converter_parameters(record: np.ndarray) -> np.ndarray | None:
     """The numeric parameter array of an ``X Converter`` / ``Y Converter`` record.
 
     The field is taken by name (``Parameters``) when present, otherwise as the first
@@ -117,7 +121,7 @@ def _first_dataset(group):
     return group[keys[0]] if keys else None
 
 
-def find_surface(f, path):
+def find_surface(f: h5py.File, path: str | Path) -> tuple[h5py.Dataset, str]:
     """The surface dataset of an open ``.datx`` and how it was found.
 
     Returns
@@ -146,7 +150,7 @@ def find_surface(f, path):
                                "/Measurement/Surface)")
 
 
-def read_datx(path, pixel_size_m=None):
+def read_datx(path: str | Path, pixel_size_m: float | None = None) -> Measurement:
     """Read a Zygo Mx ``.datx`` height map.
 
     Parameters

@@ -10,8 +10,12 @@ from doedesign.cli import main
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from masks.decompose import levels_to_masks
-from masks.gds import PixelGrid, export_masks, rasterize_layer, read_library
-from masks.layout import PlateDesign, aperture_polygons, plate_layout, write_plate
+from masks.gds import export_masks
+from masks.gds_read import read_gds_boundaries, read_library
+from masks.grid import PixelGrid, rasterize_layer
+from masks.layout import aperture_polygons
+from masks.plate import PlateDesign, plate_layout, write_plate
+from masks.verify import verify_file
 from masks.polygons import mask_polygons
 
 PITCH = 5.4e-6
@@ -204,7 +208,7 @@ def test_cli_bad_input_exit_2_no_file(tmp_path, case, capsys):
 
 
 def test_verification_failure_leaves_no_file(tmp_path, monkeypatch):
-    import masks.gds as g
+    import masks.gds_records as g
     from masks.polygons import PolygonSet
 
     real = g.mask_polygons
@@ -277,8 +281,6 @@ def test_full_merge_random_masks(density):
 
 
 def test_reader_ignores_header_lookalikes_in_coordinates(tmp_path):
-    from masks.gds import read_gds_boundaries
-
     # coordinates whose bytes spell a complete fake BOUNDARY element (header, LAYER 1,
     # DATATYPE 0, XY of 4 points, ENDEL) inside a real polygon's XY record
     fake = [(0x00040800, 0x00060D02), (0x00010006, 0x0E020000), ((36 << 16) | 0x1003, 7),
@@ -301,8 +303,6 @@ def test_reader_ignores_header_lookalikes_in_coordinates(tmp_path):
 
 
 def test_reader_matches_gdstk_and_klayout_on_export(tmp_path):
-    from masks.gds import read_gds_boundaries
-
     masks = levels_to_masks(_levels("random", (80, 70), seed=5))
     path = tmp_path / "r.gds"
     export_masks(path, masks, PITCH, tone="dark", clear_aperture_m=0.3e-3)
@@ -329,8 +329,6 @@ def test_reader_matches_gdstk_and_klayout_on_export(tmp_path):
 
 
 def test_verify_catches_byte_level_corruption(tmp_path):
-    from masks.gds import verify_file
-
     masks = levels_to_masks(_levels("rings", (40, 50)))
     path = tmp_path / "c.gds"
     export_masks(path, masks, PITCH)
@@ -346,3 +344,30 @@ def test_verify_catches_byte_level_corruption(tmp_path):
     assert verify_file(path, masks, grid)["passed"]
     res = verify_file(bad, masks, grid)
     assert not res["passed"] and any("off the pixel grid" in p for p in res["problems"])
+
+
+def test_skeleton_temporary_is_named_for_cleanup(tmp_path):
+    """A killed run's GDS skeleton must be found by the next run's temporary cleanup."""
+    import os
+    from pathlib import Path
+
+    from doedesign.fileio import remove_stale_temporaries
+    from masks.gds_records import write_element_gds
+
+    lib = gdstk.Library(unit=1e-6, precision=1e-9)
+    lib.add(gdstk.Cell("ELEMENT"))
+    seen = []
+
+    class Recorder:  # the library, recording where the skeleton is written
+        def write_gds(self, name, **kwargs):
+            seen.append(name)
+            lib.write_gds(name, **kwargs)
+
+    masks = levels_to_masks(_levels("rings", (20, 20)))
+    write_element_gds(Recorder(), tmp_path / "x.gds", masks, PixelGrid.centred((20, 20), PITCH))
+    (skeleton,) = [Path(n).name for n in seen]
+    assert not (tmp_path / skeleton).exists()  # removed after use
+    # left behind by a dead process (above Linux's largest pid), the next run removes it
+    dead = skeleton.replace(f".{os.getpid()}-", f".{2 ** 22 + 1}-")
+    (tmp_path / dead).write_bytes(b"")
+    assert remove_stale_temporaries(tmp_path) == [dead]
