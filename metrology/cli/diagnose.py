@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_effects_file(path):
+def load_effects_file(path: str | Path) -> None:
     """Run a user's Python file that registers diagnosis effects; a failure is one line."""
     import runpy
 

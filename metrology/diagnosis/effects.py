@@ -229,7 +229,7 @@ def register_effect(effect=None, *, replace=False, **kwargs):
     return decorator
 
 
-def unregister_effect(name):
+def unregister_effect(name: str) -> None:
     """Remove a (user) effect from the registry."""
     REGISTRY.pop(name, None)
 

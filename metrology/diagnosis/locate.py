@@ -14,6 +14,7 @@ binned dicts) and the residual map itself (for the field tiles), row 0 at the to
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 
 import numpy as np
 
@@ -107,7 +108,7 @@ def _frequencies(breakdown):
             for i in range(psd.size) if psd[i] > _PSD_FACTOR * floor]
 
 
-def locate_residual(breakdown, residual_map, sigma, corr_area_px):
+def locate_residual(breakdown: dict, residual_map: np.ndarray, sigma: float, corr_area_px: float) -> dict:
     """Where a residual departs from the noise.
 
     Parameters
@@ -150,7 +151,8 @@ def locate_residual(breakdown, residual_map, sigma, corr_area_px):
             "summary": summary}
 
 
-def partial_matches(problem, model, final_map, nuisance, ratio_limit):
+def partial_matches(problem: object, model: dict, final_map: np.ndarray, nuisance: Collection[str],
+                    ratio_limit: float) -> list:
     """Chosen fabrication effects that fit only part of what lies on their own footprint.
 
     An effect's footprint is where it changes the model by more than ``PARTIAL_FOOTPRINT``
