@@ -70,6 +70,8 @@ def test_a_level_offset_a_corner_and_a_ripple_are_located():
 class _Toy(Problem):
     """Data = a * template + extra on the template's footprint + noise; the effect scales the template."""
 
+    judges_partial_matches = True
+
     def __init__(self, extra):
         rng = np.random.default_rng(3)
         x = np.arange(4000)
@@ -96,6 +98,11 @@ def test_an_effect_that_fits_only_part_of_its_footprint_is_not_named():
     assert [p["effect"] for p in diag.partial_matches] == ["scale"]
     assert diag.partial_matches[0]["residual_on_footprint_over_floor"] > 3
     assert diag.unexplained_where is not None and diag.to_dict()["unexplained_where"]["summary"]
+    # A problem whose model cannot close (no instrument in it) keeps its strongest effect named.
+    loose = _Toy(extra=0.5)
+    loose.judges_partial_matches = False
+    kept = run_diagnosis(loose)
+    assert kept.named == ["scale"] and kept.unexplained and kept.partial_matches == []
     # The judge itself: the fitted effect on the partly explained data.
     fitted = {"scale": np.array([0.7])}
     assert partial_matches(bad, fitted, bad.residual_map(fitted), {}, 1.25)[0]["effect"] == "scale"
