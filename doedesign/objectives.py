@@ -15,19 +15,31 @@ energies are proportional to the weights, which is how a weight sweep traces the
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import DoeError
+from .losses import MAX_READ_LINES, PixelReads
 from .progress import Progress
 from .psf import PSFEngine
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from .optimize import OptimizerSettings
+    from .targets import Target
+
+__all__ = ["MAXMIN_ALGORITHMS", "PlaneLoss", "maximize_min", "maxmin_stage", "plane_energies", "plane_weights",
+           "softmin_loss"]
 
 log = logging.getLogger(__name__)
 
 MAXMIN_ALGORITHMS = ("LD_MMA", "LD_CCSAQ")
 
 
-def plane_weights(target, weights=None):
+def plane_weights(target: Target, weights: ArrayLike | None = None) -> np.ndarray:
     """Weights (depths, wavelengths) of the planes; ``weights`` per wavelength or per plane, default 1."""
     shape = target.intensity.shape[:2]
     if weights is None:
@@ -41,12 +53,44 @@ def plane_weights(target, weights=None):
     return np.array(w, dtype=float)
 
 
-def plane_energies(psf, target):
+def plane_energies(psf: np.ndarray, target: Target) -> np.ndarray:
     """Light (fraction of the coded view's) on each plane's target pixels, (depths, wavelengths)."""
     return np.sum(np.asarray(psf) * target.mask, axis=(-2, -1))
 
 
-def softmin_loss(target, weights=None, tau=0.01):
+class PlaneLoss:
+    """Engine loss ``f(E)`` of the plane energies ``E`` (depths, wavelengths) on ``mask``.
+
+    Reads only the target pixels: :attr:`reads` and :meth:`sparse` let the engine evaluate it
+    from those pixels alone (:mod:`doedesign.psf_reads`) when they lie on few rows and columns.
+
+    Parameters
+    ----------
+    mask : ndarray (depths, wavelengths, rows, cols) of bool
+    fn : callable
+        ``fn(E) -> (value, dvalue_dE)``.
+    """
+
+    def __init__(self, mask: np.ndarray, fn: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> None:
+        self.mask = np.asarray(mask, dtype=bool)
+        self.fn = fn
+        rows, cols = np.nonzero(self.mask.any(axis=(0, 1)))
+        self.reads = None
+        if rows.size and max(np.unique(rows).size, np.unique(cols).size) <= MAX_READ_LINES:
+            self.reads = PixelReads(rows=rows, cols=cols, energy=False)
+            self._mask = self.mask[..., rows, cols]
+
+    def __call__(self, psf: np.ndarray) -> tuple[float, np.ndarray]:
+        value, d_e = self.fn(np.sum(np.asarray(psf) * self.mask, axis=(-2, -1)))
+        return float(value), np.asarray(d_e, dtype=float)[..., None, None] * self.mask
+
+    def sparse(self, values: np.ndarray, energy: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The loss from the target pixels' values (depths, wavelengths, pixels); see :class:`doedesign.losses.Loss`."""
+        value, d_e = self.fn(np.sum(values * self._mask, axis=-1))
+        return float(value), np.asarray(d_e, dtype=float)[..., None] * self._mask, np.zeros_like(energy)
+
+
+def softmin_loss(target: Target, weights: ArrayLike | None = None, tau: float = 0.01) -> PlaneLoss:
     """Engine loss ``psf -> (value, dvalue/dpsf)``: the negative soft minimum of ``E_p / w_p``.
 
     ``value = tau log sum_p exp(-E_p / (w_p tau))`` lies within ``tau log(planes)`` of
@@ -56,21 +100,20 @@ def softmin_loss(target, weights=None, tau=0.01):
     w = plane_weights(target, weights)
     if not tau > 0:
         raise DoeError(f"soft-min temperature must be positive, got {tau}")
-    mask = target.mask
 
-    def loss(psf):
-        u = -plane_energies(psf, target) / w / tau
+    def fn(e):
+        u = -e / w / tau
         top = u.max()
         s = np.exp(u - top)
-        value = tau * (top + np.log(s.sum()))
-        share = s / s.sum()
-        return float(value), -(share / w)[..., None, None] * mask
+        return tau * (top + np.log(s.sum())), -(s / s.sum()) / w
 
-    return loss
+    return PlaneLoss(target.mask, fn)
 
 
-def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=100, max_time_s=None,
-                 xtol_rel=1e-6, desc="max-min"):
+def maximize_min(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray, lower: ArrayLike,
+                 upper: ArrayLike, weights: ArrayLike, algorithm: str = "LD_MMA", max_iter: int = 100,
+                 max_time_s: float | None = None, xtol_rel: float = 1e-6,
+                 desc: str = "max-min") -> tuple[np.ndarray, list]:
     """Maximize ``min_p E_p(x) / w_p`` with nlopt's auxiliary-variable form.
 
     Parameters
@@ -136,7 +179,17 @@ def maximize_min(fun, x0, lower, upper, weights, algorithm="LD_MMA", max_iter=10
     return best["x"], history
 
 
-def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
+def _single_plane_loss(mask, d, w):
+    """Loss of a one-wavelength engine: the energy on plane (d, w)'s target pixels."""
+    one = np.zeros((mask.shape[0], 1) + mask.shape[2:], dtype=bool)
+    one[d, 0] = mask[d, w]
+    pick = np.zeros((mask.shape[0], 1))
+    pick[d, 0] = 1.0
+    return PlaneLoss(one, lambda e: (float(e[d, 0]), pick))
+
+
+def maxmin_stage(engine: PSFEngine, target: Target, weights: np.ndarray, h0: np.ndarray, support: np.ndarray, lower: float,
+                 upper: float, settings: OptimizerSettings) -> tuple[np.ndarray, list]:
     """Continuous max-min of the plane energies through nlopt (auxiliary variable, LD_MMA or LD_CCSAQ).
 
     Each plane's energy and gradient come from a one-wavelength engine sharing the camera and
@@ -145,6 +198,7 @@ def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
     engines = [PSFEngine(engine.camera, engine.pitch_m, engine.shape, engine.material, [wl], target.depths_m,
                          engine.q) for wl in target.wavelengths_m]
     nd, nw = target.intensity.shape[:2]
+    losses = [[_single_plane_loss(target.mask, d, w) for w in range(nw)] for d in range(nd)]
 
     def fun(x):
         h = np.zeros(support.shape)
@@ -152,14 +206,7 @@ def maxmin_stage(engine, target, weights, h0, support, lower, upper, settings):
         e, g = np.empty(nd * nw), np.empty((nd * nw, x.size))
         for w, eng in enumerate(engines):
             for d in range(nd):
-                mask = target.mask[d, w]
-
-                def plane_energy(psf, d=d, mask=mask):
-                    grad = np.zeros_like(psf)
-                    grad[d, 0] = mask
-                    return float(np.sum(psf[d, 0] * mask)), grad
-
-                e[d * nw + w], gh = eng.value_and_grad(h, plane_energy)
+                e[d * nw + w], gh = eng.value_and_grad(h, losses[d][w])
                 g[d * nw + w] = gh[support]
         return e, g
 

@@ -325,6 +325,10 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
 
     with Progress(max_iter, desc=desc) as bar:
         def objective(x, grad):
+            # nlopt's L-BFGS can evaluate past maxeval (in a line search, or after a failure that
+            # it retries): the budget is enforced here, before any further evaluation.
+            if len(history) >= max_iter:
+                raise nlopt.ForcedStop
             value, g = fun(x.reshape(shape))
             if not np.isfinite(value):
                 raise DoeError(f"{desc}: the loss became {value}")
@@ -344,7 +348,7 @@ def minimize(fun, x0, lower, upper, algorithm="LD_LBFGS", max_iter=100, ftol_rel
         except nlopt.RoundoffLimited:
             log.info("%s: stopped by round-off; keeping the best point", desc)
         except nlopt.ForcedStop:
-            log.info("%s: stopped by the callback", desc)
+            log.info("%s: stopped by the callback or the evaluation budget", desc)
         except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
             # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
             if not history:
@@ -407,6 +411,8 @@ def design_doe(target, camera, pitch_m, shape, material="fused_silica", design_w
     """
     settings = settings or OptimizerSettings()
     loss = loss or LossSpec()
+    if perturbations and settings.objective == "maxmin":
+        raise DoeError("robust design: the maxmin objective has no robust form; use objective loss or softmin")
     if tuple(target.window_shape) != tuple(camera.window_shape) or target.axis_pixel != camera.axis_pixel:
         raise DoeError(f"target window {tuple(target.window_shape)} / axis {target.axis_pixel} does not match the "
                        f"camera's {camera.window_shape} / {camera.axis_pixel}")

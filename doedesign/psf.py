@@ -180,6 +180,7 @@ class PSFEngine:
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
         self._kernel_cache = {}
+        self._lag_cache = {}
         self._work = {}
 
     # -- geometry -----------------------------------------------------------------------------
@@ -306,40 +307,92 @@ class PSFEngine:
     def _fft_shape(t):
         return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
 
-    def _autocorrelation(self, t):
-        """Lags ky = 0..a-1 and kx = -(b-1)..(b-1) of sum_m t[m + k] conj(t[m]).
+    def _forward_kernels(self, view, wavelength, dtype):
+        """Real and imaginary parts of the per-axis kernels for :meth:`_view_psf`'s folded transform.
 
-        The zero-padded spectrum is taken along the short axis first (the padding rows cost
-        nothing); the autocorrelation is Hermitian, the inverse transform of the real power
-        spectrum, so a real-input transform gives it: ``C[k] = conj(R[k]) / N`` for kx >= 0 and
-        ``C[ky, -kx] = R[-ky, kx] / N``.
+        Rows: lags ky = 0..a-1 (the ky = 0 column halved, as the +-ky pairing counts it twice);
+        columns: lags kx = 0..b-1 with the Hermitian fold (factor 2 for kx > 0).
+        """
+        (r0, r1, c0, c1), _ = self._views[view]
+        key = ("forward", r1 - r0, c1 - c0, float(wavelength), np.dtype(dtype).str)
+        if key in self._kernel_cache:
+            return self._kernel_cache[key]
+        cam = self.camera
+        lz = wavelength * cam.sensor_distance_m
+        kern_y = self._axis_kernel(cam.window_shape[0], cam.axis_pixel[0], np.arange(r1 - r0), lz)
+        kern_y[:, 0] *= 0.5
+        kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], np.arange(c1 - c0), lz)
+        kern_x[:, 1:] *= 2.0
+        out = tuple(np.ascontiguousarray(part, dtype=dtype)
+                    for part in (kern_y.real, kern_y.imag, kern_x.real.T, kern_x.imag.T))
+        self._cache_put(key, out)
+        return out
+
+    def _cache_put(self, key, value):
+        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
+            self._kernel_cache.pop(next(iter(self._kernel_cache)))
+        self._kernel_cache[key] = value
+
+    def _paired_lags(self, t):
+        """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
+
+        Returns ``(S, D)``, shaped (2, a, b) each as (real, imaginary) planes, with
+        ``S[ky] = C[ky] + C[-ky]`` and ``D[ky] = C[ky] - C[-ky]`` for ky = 0..a-1. Because
+        ``C[-ky, kx]`` meets ``conj(K_y)``, the row transform of the pair is ``Re K_y S + i Im K_y D``:
+        real-by-complex products, half the work of the complex ones.
         """
         a, b = t.shape
         ly, lx = self._fft_shape(t)
         spec = sfft.fft(t, n=lx, axis=1, workers=-1)
         spec = sfft.fft(spec, n=ly, axis=0, workers=-1, overwrite_x=True)
-        power = spec.real ** 2
-        power += spec.imag ** 2
-        del spec
+        planes = spec.view(spec.real.dtype)
+        np.square(planes, out=planes)
+        power = planes[:, 0::2] + planes[:, 1::2]
+        del spec, planes
+        # C[k] = conj(R[k]) / N: the conjugate is taken below by the sign of the imaginary planes.
         r = sfft.rfft2(power, workers=-1)
-        r /= ly * lx
-        pos = r[:a, :b].conj()
-        neg = r[-np.arange(a) % ly, b - 1:0:-1]
-        return np.concatenate([neg, pos], axis=1)
+        del power
+        plus = r[:a, :b]
+        minus = r[(-np.arange(a)) % ly, :b]
+        s = np.empty((2, a, b), dtype=t.real.dtype)
+        d = np.empty_like(s)
+        np.add(plus.real, minus.real, out=s[0])
+        np.add(plus.imag, minus.imag, out=s[1])
+        np.negative(s[1], out=s[1])
+        np.subtract(plus.real, minus.real, out=d[0])
+        np.subtract(minus.imag, plus.imag, out=d[1])
+        return s, d, ly * lx
 
     def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
-        t = self._pupil(view, height_m, wavelength, depth)
-        kern_y, kern_x, const = self._kernels(view, wavelength)
-        scale = const / np.sum(np.abs(t) ** 2)
-        if precision == "single":
-            t, ky, kx = t.astype(np.complex64), kern_y.astype(np.complex64), kern_x.astype(np.complex64)
-        else:
-            ky, kx = kern_y, kern_x
-        half = ky @ self._autocorrelation(t)
-        # Only the real part of the last product is wanted: two real products instead of one complex.
-        psf = half.real @ kx.real.T
-        psf -= half.imag @ kx.imag.T
-        return scale * psf.astype(float, copy=False), (t, kern_y, kern_x, scale)
+        """Pixel-integrated PSF of one view; in the folded form of :meth:`_paired_lags`.
+
+        ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
+        ``K_x``): six real matrix products, about half the work of the complex lag transform.
+        The lags of a pupil that does not depend on the wavelength (the uncoded view in focus)
+        are reused across wavelengths.
+        """
+        dtype = np.float32 if precision == "single" else np.float64
+        key = ("lags", view, float(depth), np.dtype(dtype).str)
+        lags = self._lag_cache.get(key)
+        if lags is None:
+            t = self._pupil(view, height_m, wavelength, depth)
+            energy = float(np.sum(t.real ** 2 + t.imag ** 2))
+            if precision == "single":
+                t = t.astype(np.complex64)
+            lags = self._paired_lags(t) + (energy,)
+            if view == "uncoded" and self._opd[float(depth)] is None:
+                self._lag_cache[key] = lags
+        s, d, n_fft, energy = lags
+        kyr, kyi, kxr, kxi = self._forward_kernels(view, wavelength, dtype)
+        lz = wavelength * self.camera.sensor_distance_m
+        scale = self.step_m ** 2 / lz ** 2 / energy / n_fft
+        zr = kyr @ s[0]
+        zi = kyr @ s[1]
+        zr -= kyi @ d[1]
+        zi += kyi @ d[0]
+        psf = zr @ kxr
+        psf -= zi @ kxi
+        return scale * psf.astype(float, copy=False)
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
@@ -365,10 +418,10 @@ class PSFEngine:
                     if view == "uncoded":
                         key = (float(depth), float(wl), self.precision)
                         if key not in self._uncoded_cache:
-                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)[0]
+                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)
                         out[vi, di, wi] = self._uncoded_cache[key]
                     else:
-                        out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision)[0]
+                        out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision)
                     if progress is not None:
                         progress.update(1)
         return PSFResult(psf=out, views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
@@ -406,7 +459,10 @@ class PSFEngine:
         saved = {}
         for di, depth in enumerate(self.depths_m):
             for wi, wl in enumerate(self.wavelengths_m):
-                psf[di, wi], saved[di, wi] = self._view_psf("coded", h, wl, depth)
+                psf[di, wi] = self._view_psf("coded", h, wl, depth)
+                t = self._pupil("coded", h, wl, depth)
+                kern_y, kern_x, const = self._kernels("coded", wl)
+                saved[di, wi] = (t, kern_y, kern_x, const / np.sum(np.abs(t) ** 2))
         loss, dpsf = loss_fn(psf)
         dpsf = np.asarray(dpsf, dtype=float)
         if dpsf.shape != psf.shape:

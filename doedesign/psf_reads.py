@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+__all__ = ["ReadAxis", "apply_energy_operator", "read_axis", "read_pixels", "read_pixels_adjoint"]
+
 
 @dataclass
 class ReadAxis:
@@ -39,7 +41,8 @@ class ReadAxis:
     symbol_fft: np.ndarray | None
 
 
-def read_axis(centres, u, w, freq, n, lag_sum=None):
+def read_axis(centres: np.ndarray, u: np.ndarray, w: np.ndarray, freq: float, n: int,
+              lag_sum: np.ndarray | None = None) -> ReadAxis:
     """:class:`ReadAxis` for pixel ``centres`` read, node offsets ``u`` and weights ``w`` in a pixel.
 
     ``lag_sum``: the window-summed kernel ``s(k)`` for lags ``-(n-1)..(n-1)`` when the energy is needed.
@@ -58,7 +61,7 @@ def read_axis(centres, u, w, freq, n, lag_sum=None):
     return ReadAxis(fringe, weight, symbol)
 
 
-def apply_energy_operator(t, ay, ax, work=None):
+def apply_energy_operator(t: np.ndarray, ay: ReadAxis, ax: ReadAxis, work: dict | None = None) -> np.ndarray:
     """``Ty t Tx^T`` by FFT convolution along each axis (zero-padded, no wrap-around).
 
     ``work``: optional dict of reusable padded buffers (fresh large arrays cost page faults
@@ -86,7 +89,7 @@ def apply_energy_operator(t, ay, ax, work=None):
     return v[:, :b].copy()
 
 
-def read_pixels(t, ay, ax, scale):
+def read_pixels(t: np.ndarray, ay: ReadAxis, ax: ReadAxis, scale: float) -> tuple[np.ndarray, np.ndarray]:
     """Pixel values on every (row line, column line) pair read, and the node field for the adjoint.
 
     Returns
@@ -102,7 +105,8 @@ def read_pixels(t, ay, ax, scale):
     return values, field
 
 
-def read_pixels_adjoint(dvalues, field, ay, ax, scale):
+def read_pixels_adjoint(dvalues: np.ndarray, field: np.ndarray, ay: ReadAxis, ax: ReadAxis,
+                        scale: float) -> np.ndarray:
     """``dL / dt*`` from ``dL / dvalues`` (row lines, column lines) through :func:`read_pixels`."""
     nr, qy = ay.weight.shape
     nc, qx = ax.weight.shape

@@ -20,12 +20,22 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import DoeError
 from .materials import get_material
 from .objectives import maximize_min, plane_weights
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+    from .camera import Camera
+    from .optimize import OptimizerSettings
+    from .targets import Target
+
+__all__ = ["MAX_TARGET_PIXELS", "PupilModel", "pupil_model", "router_heights", "router_start", "to_design_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +57,7 @@ class PupilModel:
     weights_q: list             # per plane: quadrature weights including the normalization
     plane_shape: tuple
 
-    def energies(self, h):
+    def energies(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Energies (planes,) and their gradients (planes, n) for coarse heights ``h`` (n,)."""
         e_out = np.empty(len(self.bases))
         g_out = np.empty((len(self.bases), h.size))
@@ -60,7 +70,7 @@ class PupilModel:
         return e_out, g_out
 
 
-def pupil_model(camera, target, material="fused_silica", grid_px=100, nq=3):
+def pupil_model(camera: Camera, target: Target, material: str = "fused_silica", grid_px: int = 100, nq: int = 3) -> PupilModel:
     """Build the :class:`PupilModel` of ``camera`` and a point ``target`` (at most a few pixels per plane)."""
     if camera.aperture_diameter_m is None:
         raise DoeError("the router model needs a camera with a circular aperture")
@@ -105,7 +115,8 @@ def _sag(r2, d):
     return np.zeros_like(r2) if np.isinf(d) else r2 / (np.sqrt(r2 + d * d) + d)
 
 
-def router_heights(model, lower, weights=None, max_iter=300, h0=None, algorithm="LD_MMA", target=None):
+def router_heights(model: PupilModel, lower: float, weights: ArrayLike | None = None, max_iter: int = 300, h0: np.ndarray | None = None,
+                   algorithm: str = "LD_MMA", target: Target | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Max-min heights on the coarse grid (n,) in [lower, 0], and the model energies per plane."""
     w = plane_weights(target, weights).ravel() if target is not None else np.ones(len(model.bases))
     x0 = np.zeros(model.amplitude.size) if h0 is None else np.asarray(h0, dtype=float)
@@ -113,7 +124,7 @@ def router_heights(model, lower, weights=None, max_iter=300, h0=None, algorithm=
     return h, model.energies(h)[0]
 
 
-def to_design_grid(model, h_coarse, camera, pitch_m, shape):
+def to_design_grid(model: PupilModel, h_coarse: np.ndarray, camera: Camera, pitch_m: float, shape: tuple) -> np.ndarray:
     """Carry coarse heights to the design grid (nearest coarse cell); pixels outside stay 0."""
     coarse = np.zeros(model.grid_shape)
     coarse[model.support] = h_coarse
@@ -126,7 +137,8 @@ def to_design_grid(model, h_coarse, camera, pitch_m, shape):
     return coarse[np.ix_(iy, ix)]
 
 
-def router_start(target, camera, pitch_m, shape, material, lower, settings):
+def router_start(target: Target, camera: Camera, pitch_m: float, shape: tuple, material: str, lower: float,
+                 settings: OptimizerSettings) -> np.ndarray:
     """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.router`)."""
     # No finer than the design itself.
     model = pupil_model(camera, target, material, min(settings.router_grid_px, max(shape)))

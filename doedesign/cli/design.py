@@ -90,7 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--reweight-iterations", type=Number(int, 1, 10**6), help="evaluations per reweighting round (default --iterations)")
     p.add_argument("--objective", choices=OBJECTIVES,
                    help="loss: the --loss terms; softmin / maxmin: the weakest colour's energy on target "
-                        "(maxmin: nlopt auxiliary variable with LD_MMA/LD_CCSAQ; default maxmin for bayer, else loss)")
+                        "(maxmin: nlopt auxiliary variable with LD_MMA/LD_CCSAQ; default softmin for bayer, else loss)")
     p.add_argument("--colour-weights", help="per-wavelength weights of the balanced objective, e.g. 1,1.2,1")
     p.add_argument("--starts", help="further initial designs for a multi-start, e.g. zeros,random,lens")
     p.add_argument("--no-quantize", action="store_true", help="keep continuous heights")
@@ -213,7 +213,9 @@ def cmd_design(args: argparse.Namespace) -> int:
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))
-    opt.setdefault("objective", DEFAULT_OBJECTIVE.get(kind, "loss"))
+    # The max-min stage has no robust form; its smooth stand-in, the soft minimum, has.
+    opt.setdefault("objective", "softmin" if args.robust and DEFAULT_OBJECTIVE.get(kind) == "maxmin"
+                   else DEFAULT_OBJECTIVE.get(kind, "loss"))
     opt.setdefault("max_time_s", 45.0)
     opt.setdefault("anneal_iter", 10)
     if args.no_quantize:

@@ -6,3 +6,5 @@ sample), :mod:`.evaluate` (one sample: process -> surface -> PSF -> metrics),
 (one-at-a-time and Sobol indices through SALib), :mod:`.report` (report.json, plots,
 report.md) and :mod:`.cli` (``doe tolerance``).
 """
+
+__all__: list[str] = []

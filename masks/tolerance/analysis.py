@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.camera import Camera
+from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, write_json
 from doedesign.levels import design_levels, level_step_m
@@ -23,12 +25,15 @@ from .metrics import DIRECTIONS, metric_set
 from .report import default_thresholds, markdown, metric_summary, plot_distributions, plot_tornado, yield_summary
 from .runner import make_client, n_workers, open_store, run_jobs, run_key
 from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
-from .spec import nominal_process
+from .spec import ToleranceSpec, nominal_process
+
+__all__ = ["build_evaluator", "design_wavelengths_depths", "nominal_depths", "sampling_description",
+           "tolerance_analysis"]
 
 log = logging.getLogger(__name__)
 
 
-def design_wavelengths_depths(design, camera):
+def design_wavelengths_depths(design: Design, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Wavelengths and depths of the design's target (metadata), else 550 nm at the focus."""
     meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
     wls = np.asarray(meta.get("wavelengths_nm") or [550.0], float) * 1e-9
@@ -36,15 +41,16 @@ def design_wavelengths_depths(design, camera):
     return wls, np.asarray(depths or [camera.focus_distance_m], float)
 
 
-def nominal_depths(design):
+def nominal_depths(design: Design) -> np.ndarray:
     """Mask etch depths (m) of the design's process: binary multiples of its level step."""
     n_levels = int(design.metadata.get("n_levels", 16))
     n_masks = int(round(math.log2(n_levels)))
     return binary_depths_m(level_step_m(design.material, design.design_wavelength_m, n_levels), n_masks)
 
 
-def build_evaluator(design, spec, source="design", oversample=2, process_upsample=None, wavelengths_m=None,
-                    metric_script=None):
+def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design", oversample: int = 2,
+                    process_upsample: int | None = None, wavelengths_m: np.ndarray | None = None,
+                    metric_script: str | None = None) -> tuple[Evaluator, dict, float]:
     """The evaluator of ``design`` under ``spec`` and the nominal (ideal element) metrics."""
     camera = design.camera()
     wls, depths = design_wavelengths_depths(design, camera)
@@ -63,7 +69,7 @@ def build_evaluator(design, spec, source="design", oversample=2, process_upsampl
     return ev, nominal, time.perf_counter() - t0
 
 
-def sampling_description(ev):
+def sampling_description(ev: Evaluator) -> dict:
     u = ev.process_upsample or ev.oversample
     return {"oversample": ev.oversample, "process_upsample": u,
             "psf_grid_m": ev.pitch_m / ev.oversample, "process_grid_m": ev.pitch_m / u,
@@ -75,9 +81,12 @@ def sampling_description(ev):
                             "depth(s); sub-sample mask slivers are height-averaged (see masks/fabricated.py)")}
 
 
-def tolerance_analysis(design, spec, n_samples, out_dir, design_name="design", seed=0, scheduler="processes",
-                       workers=None, oversample=2, process_upsample=None, wavelengths_m=None, sobol_base=8,
-                       one_at_a_time=True, thresholds=None, metric_script=None):
+def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_dir: str | Path,
+                       design_name: str = "design", seed: int = 0, scheduler: str = "processes",
+                       workers: int | None = None, oversample: int = 2, process_upsample: int | None = None,
+                       wavelengths_m: np.ndarray | None = None, sobol_base: int = 8,
+                       one_at_a_time: bool = True, thresholds: dict | None = None,
+                       metric_script: str | None = None) -> dict:
     """Run the study and write ``report.json``, ``report.md``, ``distributions.png``, ``tornado.png``.
 
     Returns

@@ -7,6 +7,8 @@ import argparse
 from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 
+__all__ = ["cmd_tolerance", "register"]
+
 TOLERANCE_HELP = """\
 Each sample draws the process parameters from the spec (seeded from --seed and the sample
 index, so results do not depend on workers or scheduler), makes the fabricated surface with
@@ -21,7 +23,7 @@ distributions.png and tornado.png.
 """
 
 
-def register(subparsers):
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("tolerance", help="Monte Carlo tolerance analysis, yield and sensitivity",
                               description=TOLERANCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("design", help="design file (.npz)")
@@ -45,7 +47,7 @@ def register(subparsers):
     p.set_defaults(func=cmd_tolerance)
 
 
-def cmd_tolerance(args):
+def cmd_tolerance(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.psf import parse_wavelengths_nm

@@ -27,6 +27,8 @@ from ..process import ProcessParams
 from .metrics import MetricSet
 from .spec import ToleranceSpec
 
+__all__ = ["Evaluator", "evaluate_batch"]
+
 
 @dataclass
 class Evaluator:
@@ -57,7 +59,7 @@ class Evaluator:
         self._local = threading.local()
 
     @property
-    def engine(self):
+    def engine(self) -> PSFEngine:
         engine = getattr(self._local, "engine", None)
         if engine is None:
             q = self.oversample
@@ -67,12 +69,12 @@ class Evaluator:
             self._local.engine = engine
         return engine
 
-    def height(self, values, seed=None):
+    def height(self, values: dict, seed: int | None = None) -> np.ndarray:
         """Fabricated height map (m) for parameter values (SI, by :attr:`Param.name`)."""
         params = self.spec.params_for(values, self.base, seed=seed)
         return fabricated_height(self.levels, self.pitch_m, params, self.oversample, self.process_upsample)
 
-    def coded_psf(self, height_m):
+    def coded_psf(self, height_m: np.ndarray) -> np.ndarray:
         """Coded PSF (depths, wavelengths, rows, cols) of a height map on the engine's grid."""
         return self.engine.psf(height_m, views=("coded",)).view("coded")
 
@@ -83,6 +85,6 @@ class Evaluator:
         return {**job, "metrics": self.metrics(psf), "seconds": time.perf_counter() - t0}
 
 
-def evaluate_batch(evaluator, jobs):
+def evaluate_batch(evaluator: Evaluator, jobs: list[dict]) -> list[dict]:
     """Evaluate a list of jobs in order (one dask task)."""
     return [evaluator(job) for job in jobs]

@@ -31,9 +31,13 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from doedesign import targets
+from doedesign.camera import Camera
+from doedesign.design import Design
 from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
+
+__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "metric_set", "ring_radii_px", "user_metric_functions"]
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +63,7 @@ class MetricSet:
     script_name: str = "metrics script"
 
     @property
-    def primary(self):
+    def primary(self) -> str:
         return PRIMARY.get(self.kind, "efficiency")
 
     def __call__(self, psf):
@@ -116,7 +120,7 @@ class MetricSet:
             out[name] = value
         return out
 
-    def directions(self):
+    def directions(self) -> dict:
         """metric -> "higher" or "lower" (is better), user metrics included."""
         out = dict(DIRECTIONS)
         if self.script_source:
@@ -128,7 +132,7 @@ class MetricSet:
 _SCRIPTS = {}
 
 
-def user_metric_functions(source, name="metrics script"):
+def user_metric_functions(source: str, name: str = "metrics script") -> dict:
     """``{name: function}`` of the ``metric_*`` functions of a script (compiled once per process)."""
     key = (name, source)
     if key not in _SCRIPTS:
@@ -144,7 +148,7 @@ def user_metric_functions(source, name="metrics script"):
     return _SCRIPTS[key]
 
 
-def ring_radii_px(psf, axis_pixel):
+def ring_radii_px(psf: np.ndarray, axis_pixel: tuple) -> np.ndarray:
     """Light-weighted mean distance (px) from the axis per depth, averaged over wavelengths."""
     rows, cols = psf.shape[-2:]
     rr, cc = np.mgrid[:rows, :cols]
@@ -154,7 +158,8 @@ def ring_radii_px(psf, axis_pixel):
     return mean_r.mean(axis=1)
 
 
-def metric_set(design, camera, nominal_psf, wavelengths_m, depths_m, script=None):
+def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, wavelengths_m: np.ndarray,
+               depths_m: np.ndarray, script: str | None = None) -> MetricSet:
     """The metrics for this design's target kind (from its metadata), set up on its nominal PSF."""
     meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
     kind = str(meta.get("kind", "image"))

@@ -7,6 +7,8 @@ helper (no shared Markdown module was on main when this was written).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from scipy import stats
 
@@ -14,13 +16,16 @@ from doedesign.fileio import save_figure
 
 from .spec import meets
 
+__all__ = ["clopper_pearson", "default_thresholds", "markdown", "md_table", "metric_summary",
+           "plot_distributions", "plot_tornado", "yield_summary"]
+
 CONFIDENCE = 0.95
 # Without user thresholds, the primary metric must keep this share of its nominal value
 # (or, for a lower-is-better metric, stay below nominal / this).
 DEFAULT_KEEP = 0.9
 
 
-def clopper_pearson(k, n, confidence=CONFIDENCE):
+def clopper_pearson(k: int, n: int, confidence: float = CONFIDENCE) -> list[float]:
     """Exact binomial interval of ``k`` successes in ``n`` trials."""
     if n == 0:
         return [0.0, 1.0]
@@ -30,7 +35,7 @@ def clopper_pearson(k, n, confidence=CONFIDENCE):
     return [lo, hi]
 
 
-def default_thresholds(primary, nominal, direction):
+def default_thresholds(primary: str, nominal: dict, direction: str) -> dict:
     """The primary metric keeps :data:`DEFAULT_KEEP` of its nominal value."""
     value = nominal[primary]
     if direction == "lower":
@@ -38,7 +43,7 @@ def default_thresholds(primary, nominal, direction):
     return {primary: (">=", value * DEFAULT_KEEP)}
 
 
-def yield_summary(samples, thresholds):
+def yield_summary(samples: list[dict], thresholds: dict) -> dict:
     """Fraction of samples meeting every threshold, with its interval and per-threshold pass rates."""
     n = len(samples)
     passed = [all(meets(s["metrics"][m], t) for m, t in thresholds.items()) for s in samples]
@@ -50,7 +55,7 @@ def yield_summary(samples, thresholds):
             "interval": "Clopper-Pearson exact binomial, 95 %"}
 
 
-def metric_summary(samples, nominal, directions):
+def metric_summary(samples: list[dict], nominal: dict, directions: dict) -> dict:
     """Per metric: nominal, mean, std, percentiles and the worst-decile mean."""
     out = {}
     for name in nominal:
@@ -66,7 +71,7 @@ def metric_summary(samples, nominal, directions):
     return out
 
 
-def plot_distributions(samples, nominal, path):
+def plot_distributions(samples: list[dict], nominal: dict, path: str | Path) -> None:
     """Histogram of each metric with its nominal value."""
     import matplotlib.pyplot as plt
 
@@ -88,7 +93,7 @@ def plot_distributions(samples, nominal, path):
     plt.close(fig)
 
 
-def plot_tornado(oat, path, top=12):
+def plot_tornado(oat: dict, path: str | Path, top: int = 12) -> None:
     """Tornado chart: change of the metric at -1 / +1 sigma of each mask and effect."""
     import matplotlib.pyplot as plt
 
@@ -106,7 +111,7 @@ def plot_tornado(oat, path, top=12):
     plt.close(fig)
 
 
-def md_table(header, rows):
+def md_table(header: list, rows: list) -> str:
     """A Markdown table from a header and rows of cells."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
@@ -119,7 +124,7 @@ def _cell(value):
     return str(value)
 
 
-def markdown(report):
+def markdown(report: dict) -> str:
     """report.md text of a tolerance report."""
     y = report["yield"]
     lines = [f"# Tolerance analysis of {report['design']}", "",

@@ -18,13 +18,21 @@ import json
 import logging
 import math
 import os
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from doedesign.errors import DoeError
 from doedesign.fileio import write_json
 from doedesign.progress import Progress
 
-from .evaluate import evaluate_batch
+from .evaluate import Evaluator, evaluate_batch
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+__all__ = ["SCHEDULERS", "batch_size", "load_done", "make_client", "n_workers", "open_store", "run_jobs",
+           "run_key"]
 
 log = logging.getLogger(__name__)
 
@@ -41,13 +49,13 @@ def _lost_work_errors():
     return (FutureCancelledError, KilledWorker)
 
 
-def run_key(parts):
+def run_key(parts: dict) -> str:
     """Short hash of the run's inputs (design, spec, seed, sampling)."""
     text = json.dumps(parts, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def open_store(out_dir, key, description):
+def open_store(out_dir: str | Path, key: str, description: dict) -> Path:
     """Create or reopen ``out_dir``; refuse one that holds another run's samples."""
     out = Path(out_dir)
     (out / "samples").mkdir(parents=True, exist_ok=True)
@@ -65,7 +73,7 @@ def open_store(out_dir, key, description):
     return out / "samples"
 
 
-def load_done(samples_dir, ids):
+def load_done(samples_dir: str | Path, ids: Iterable[str]) -> dict:
     """Results already written for these job ids."""
     done = {}
     for job_id in ids:
@@ -78,7 +86,7 @@ def load_done(samples_dir, ids):
     return done
 
 
-def batch_size(seconds_per_job, n_jobs, n_workers):
+def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
     """Jobs per task: about :data:`TARGET_TASK_S` of work, at least two tasks per worker."""
     by_time = max(1, int(TARGET_TASK_S / max(seconds_per_job, 1e-3)))
     by_spread = max(1, math.ceil(n_jobs / (2 * max(n_workers, 1))))
@@ -86,7 +94,7 @@ def batch_size(seconds_per_job, n_jobs, n_workers):
 
 
 @contextlib.contextmanager
-def make_client(scheduler="processes", workers=None):
+def make_client(scheduler: str = "processes", workers: int | None = None) -> Iterator[Client | None]:
     """A dask client: a LocalCluster of processes or threads, an existing cluster, or None (inline).
 
     ``workers`` defaults to the machine's cores. ``tcp://host:port`` connects to a running
@@ -117,14 +125,15 @@ def make_client(scheduler="processes", workers=None):
         yield client
 
 
-def n_workers(client):
+def n_workers(client: Client | None) -> int:
     """Threads available on the client's cluster (1 inline)."""
     if client is None:
         return 1
     return max(sum(client.nthreads().values()), 1)
 
 
-def run_jobs(evaluator, jobs, samples_dir, client=None, seconds_per_job=1.0, desc="tolerance"):
+def run_jobs(evaluator: Evaluator, jobs: list[dict], samples_dir: str | Path, client: Client | None = None,
+             seconds_per_job: float = 1.0, desc: str = "tolerance") -> dict:
     """Evaluate ``jobs`` (skipping those already in ``samples_dir``); results by job id.
 
     Parameters

@@ -11,12 +11,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from .spec import ToleranceSpec
+
+__all__ = ["oat_jobs", "oat_table", "sobol_indices", "sobol_jobs"]
+
 ONE_SIGMA_QUANTILES = (0.15865525393145707, 0.8413447460685429)
 # Sobol quantiles stay off 0 and 1, where a normal's ppf is infinite.
 _U_EPS = 1e-6
 
 
-def oat_jobs(spec):
+def oat_jobs(spec: ToleranceSpec) -> list[dict]:
     """Jobs with one parameter at -1 / +1 sigma-equivalent quantiles, the others at their centres."""
     centre = spec.nominal_values()
     jobs = [{"id": "oat-centre", "kind": "oat", "param": None, "side": None, "seed": 0, "values": centre}]
@@ -27,7 +31,7 @@ def oat_jobs(spec):
     return jobs
 
 
-def oat_table(spec, results, metric):
+def oat_table(spec: ToleranceSpec, results: dict, metric: str) -> dict:
     """Rows ``{param, label, low_delta, high_delta, swing}`` of ``metric`` changes, largest |change| first."""
     base = results["oat-centre"]["metrics"][metric]
     rows = []
@@ -47,7 +51,7 @@ def _problem(spec):
             "groups": [p.group for p in params]}
 
 
-def sobol_jobs(spec, base_n, seed):
+def sobol_jobs(spec: ToleranceSpec, base_n: int, seed: int) -> list[dict]:
     """Saltelli jobs (``base_n`` rounded up to a power of two), or [] when nothing varies."""
     from SALib.sample import sobol as sobol_sample
 
@@ -66,7 +70,7 @@ def sobol_jobs(spec, base_n, seed):
     return jobs
 
 
-def sobol_indices(spec, results, metric, seed):
+def sobol_indices(spec: ToleranceSpec, results: dict, metric: str, seed: int) -> dict:
     """First-order and total Sobol indices of ``metric`` per group (effect on one mask)."""
     from SALib.analyze import sobol as sobol_analyze
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,9 @@ from scipy import stats
 from doedesign.errors import DoeError
 
 from ..process import ProcessParams
+
+__all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "build_spec", "default_spec", "load_spec",
+           "meets", "nominal_process", "parse_threshold", "sample_seed", "spec_from_compare"]
 
 # The effects of masks.effects, as a tolerance spec names them (mask_rotation in urad here,
 # applied as the rotation in ProcessParams.mask_overlay).
@@ -98,11 +102,11 @@ class Param:
     b: float = 0.0
 
     @property
-    def unit(self):
+    def unit(self) -> str:
         return COMPONENTS.get(self.effect, {}).get(self.component, EFFECTS[self.effect][3])
 
     @property
-    def name(self):
+    def name(self) -> str:
         """Report key with its unit, e.g. ``mask_overlay.dx_um[mask 2]``."""
         unit = self.unit
         comp = f".{self.component}" if self.component else ""
@@ -110,23 +114,23 @@ class Param:
         return f"{self.effect}{comp}{'_' + unit if unit else ''}{where}"
 
     @property
-    def label(self):
+    def label(self) -> str:
         """Human label for plots naming the mask and effect."""
         where = f"mask {self.mask} " if self.mask is not None else ""
         comp = f" {self.component}" if self.component else ""
         return f"{where}{self.effect}{comp}"
 
     @property
-    def group(self):
+    def group(self) -> str:
         """Sobol group: the effect on one mask (its components together, e.g. overlay x and y)."""
         where = f"mask {self.mask} " if self.mask is not None else ""
         return f"{where}{self.effect}"
 
     @property
-    def spread(self):
+    def spread(self) -> float:
         return self.b - self.a if self.dist == "uniform" else (self.b if self.dist == "normal" else 0.0)
 
-    def ppf(self, u):
+    def ppf(self, u: float | np.ndarray) -> float | np.ndarray:
         """Value at quantile(s) ``u`` in (0, 1), clipped at 0 for non-negative effects."""
         u = np.asarray(u, float)
         if self.dist == "normal":
@@ -137,7 +141,7 @@ class Param:
             v = np.full(u.shape, self.a)
         return np.maximum(v, 0.0) if EFFECTS[self.effect][4] else v
 
-    def to_report(self, value):
+    def to_report(self, value: float) -> float:
         return float(value) * REPORT_SCALE[self.unit]
 
 
@@ -162,21 +166,21 @@ class ToleranceSpec:
     table: dict = field(default_factory=dict)
 
     @property
-    def random_params(self):
+    def random_params(self) -> list[Param]:
         """Parameters with a non-zero spread (the ones sensitivity analysis varies)."""
         return [p for p in self.params if p.spread > 0]
 
-    def draw(self, seed_root, index):
+    def draw(self, seed_root: int, index: int) -> tuple[dict, int]:
         """Parameter values (SI) of sample ``index`` and its integer seed."""
         seed = sample_seed(seed_root, index)
         u = np.random.default_rng(seed).random(len(self.params))
         return {p.name: float(p.ppf(ui)) for p, ui in zip(self.params, u)}, seed
 
-    def nominal_values(self):
+    def nominal_values(self) -> dict:
         """Every parameter at its centre (mean, mid-range or fixed value)."""
         return {p.name: float(p.ppf(0.5)) for p in self.params}
 
-    def params_for(self, values, base, seed=None):
+    def params_for(self, values: dict, base: ProcessParams, seed: int | None = None) -> ProcessParams:
         """The :class:`ProcessParams` of one sample: ``base`` plus the drawn errors."""
         depth = np.array(base.etch_depth, float)
         overlay = np.array(base.mask_overlay, float)
@@ -204,7 +208,7 @@ class ToleranceSpec:
         return base.copy(etch_depth=np.maximum(depth, 0.0), mask_overlay=overlay, linewidth_bias=bias,
                          seed=seed, **scalars, **arrays)
 
-    def describe(self):
+    def describe(self) -> dict:
         """JSON-friendly description (units in the keys)."""
         rows = []
         for p in self.params:
@@ -217,12 +221,12 @@ class ToleranceSpec:
                 "thresholds": {k: f"{op} {v:g}" for k, (op, v) in self.thresholds.items()}}
 
 
-def sample_seed(seed_root, index):
+def sample_seed(seed_root: int, index: int) -> int:
     """Integer seed of sample ``index`` of a run seeded ``seed_root`` (independent streams)."""
     return int(np.random.SeedSequence([int(seed_root), int(index)]).generate_state(1)[0])
 
 
-def parse_threshold(text, source="threshold"):
+def parse_threshold(text: str, source: str = "threshold") -> tuple[str, tuple[str, float]]:
     """``"metric >= 0.3"`` -> ``(metric, (">=", 0.3))``."""
     m = re.fullmatch(r"\s*([A-Za-z_][\w\[\]. ]*?)?\s*(>=|<=|>|<)\s*([-+0-9.eE]+)\s*", str(text))
     if not m:
@@ -234,12 +238,12 @@ def parse_threshold(text, source="threshold"):
     return (m.group(1) or "").strip(), (m.group(2), value)
 
 
-def meets(value, threshold):
+def meets(value: float, threshold: tuple[str, float]) -> bool:
     op, limit = threshold
     return bool(_OPS[op](value, limit))
 
 
-def build_spec(table, nominal_depths_m, source="spec"):
+def build_spec(table: dict, nominal_depths_m: np.ndarray, source: str = "spec") -> ToleranceSpec:
     """Parse a spec dict (the TOML schema above) for a design with ``len(nominal_depths_m)`` masks."""
     if not isinstance(table, dict):
         raise DoeError(f"{source}: the spec must be a table")
@@ -338,7 +342,7 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
     return Param(effect, mask, component, dist, a, b)
 
 
-def load_spec(path, nominal_depths_m):
+def load_spec(path: str | Path, nominal_depths_m: np.ndarray) -> ToleranceSpec:
     """Read a spec: a TOML file, or a ``doe compare`` report.json (what the fab delivered)."""
     import json
     import tomllib
@@ -355,14 +359,15 @@ def load_spec(path, nominal_depths_m):
         raise DoeError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
 
 
-def default_spec(nominal_depths_m):
+def default_spec(nominal_depths_m: np.ndarray) -> ToleranceSpec:
     """The built-in spec (:data:`DEFAULT_SPEC`)."""
     spec = build_spec(DEFAULT_SPEC, nominal_depths_m, "built-in default")
     spec.source = DEFAULT_SPEC_NOTE
     return spec
 
 
-def spec_from_compare(report, nominal_depths_m, source="compare report"):
+def spec_from_compare(report: dict, nominal_depths_m: np.ndarray,
+                      source: str = "compare report") -> ToleranceSpec:
     """Spec centred on the values a ``doe compare`` measured, with their standard errors as sigma."""
     n = len(nominal_depths_m)
     try:
@@ -395,6 +400,6 @@ def spec_from_compare(report, nominal_depths_m, source="compare report"):
                          table=table)
 
 
-def nominal_process(nominal_depths_m):
+def nominal_process(nominal_depths_m: np.ndarray) -> ProcessParams:
     """The ideal process for these mask depths."""
     return ProcessParams.ideal(depths_m=nominal_depths_m)

@@ -18,8 +18,11 @@ __all__ = ["register", "run_compare"]
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("compare", help="compare a profilometer measurement with its design",
-                       description="Level, register and compare a measurement with its design; write report.json, "
-                                   "levels.png, error_map.png, masks.png, psf.png/psf.npz and surface3d.png.")
+                       description="Level, register and compare a measurement with its design; etch depths, "
+                                   "overlay and linewidth bias are fitted in the camera's own pixels (objective "
+                                   "blur, pixel-area integration and placement as nuisances, the data never "
+                                   "resampled); write report.json, levels.png, error_map.png, masks.png, "
+                                   "psf.png/psf.npz and surface3d.png.")
     p.add_argument("measurement", help="height map (.dat, .datx, .xyz, .asc, .npz, .npy, .tif)")
     p.add_argument("--design", required=True, help="design .npz")
     p.add_argument("--out", required=True, help="output directory")

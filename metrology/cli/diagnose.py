@@ -108,22 +108,14 @@ def _heights(design, path, args, candidates):
 
 
 def _camera(design, path, args, candidates):
-    from doedesign.levels import design_levels
-    from metrology.diagnosis.camera import diagnose_camera
+    from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
-    from metrology.matching.compare import compare_measurement
-    from metrology.matching.instrument import Placement
 
-    meas = read_measurement(path)
-    # The comparison's registration is the starting placement; the data stay as read.
-    comp = compare_measurement(meas, design)
     depths = [v * 1e-9 for v in args.depths_nm]
-    diag = diagnose_camera(design_levels(design), design.pitch_m, meas.height_m,
-                           Placement.from_registration(comp.registration), depths_m=depths,
-                           candidates=candidates, threshold=args.threshold, window_px=args.window_px)
-    return diag, {"measured": str(path), "frame": "camera", "window_camera_px": diag.window_camera_px,
-                  "placement": diag.placement, "excluded_pixels": diag.excluded_pixels,
-                  "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths}
+    diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=depths, candidates=candidates,
+                                               threshold=args.threshold, window_px=args.window_px, source=str(path),
+                                               force=args.force)
+    return diag, {"measured": str(path), **inputs}
 
 
 def _psf(design, path, args, candidates):

@@ -26,7 +26,7 @@ from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
-                                           robust_valid)
+                                           busiest_camera_window, robust_valid)
 
 log = logging.getLogger(__name__)
 
@@ -202,26 +202,8 @@ class CameraHeightProblem(dg.Problem):
                 "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}
 
 
-def busiest_window(levels, placement, shape, size):
-    """The ``size`` x ``size`` camera window (row0, col0) with the most design edges inside."""
-    if size >= min(shape):
-        return 0, 0
-    r, c = placement.to_design(*np.mgrid[:shape[0], :shape[1]].astype(float))
-    ri = np.clip(np.rint(r).astype(int), 0, levels.shape[0] - 1)
-    ci = np.clip(np.rint(c).astype(int), 0, levels.shape[1] - 1)
-    lev = levels[ri, ci]
-    edges = np.zeros(shape)
-    edges[:, :-1] += lev[:, 1:] != lev[:, :-1]
-    edges[:-1, :] += lev[1:, :] != lev[:-1, :]
-    sums = ndi.uniform_filter(edges, size, mode="constant")
-    h = size // 2
-    inner = sums[h:shape[0] - (size - h) + 1, h:shape[1] - (size - h) + 1]
-    r0, c0 = np.unravel_index(np.argmax(inner), inner.shape)
-    return int(r0), int(c0)
-
-
 def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths_m=None, candidates=None,
-                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None):
+                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None, screen=None):
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -235,6 +217,10 @@ def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths
     window_px : int
         The fit uses the camera window of this many pixels per side with the most design edges
         (cropped, not resampled).
+    screen : (ProcessParams, float), optional
+        Process and objective blur whose residual the robust rule first screens for spikes
+        (e.g. the comparison's camera-frame fit). Default: the ideal process, whose residual
+        also flags real edge signal, so the fit reruns once those pixels are re-admitted.
 
     Returns
     -------
@@ -244,15 +230,18 @@ def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths
     from masks.process import ProcessParams
 
     meas = np.asarray(measured_height_m, float)
-    r0, c0 = busiest_window(np.asarray(design_levels), placement, meas.shape, window_px)
+    r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
     size = min(window_px, *meas.shape)
     crop = meas[r0:r0 + size, c0:c0 + size]
     start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
     base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
     effects = effects_for("height", candidates)
     finite = np.isfinite(crop)
-    first = CameraHeightProblem(design_levels, pitch_m, crop, start, base, [], step_m=step_m)
-    keep = robust_valid(first.residual_map({CAMERA.name: CAMERA.start_values()}), finite)
+    screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
+    first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m)
+    camera0 = np.array(CAMERA.start_values(), float)
+    camera0[5] = screen_blur
+    keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
     diag = problem = None
     for _ in range(3):
         problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep)
@@ -280,3 +269,57 @@ def _plane(problem, crop, model):
     k = problem.keep.ravel()
     coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(r), r, 0).ravel()[k], rcond=None)
     return (basis @ coef).reshape(crop.shape)
+
+
+def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=None, threshold=dg.DEFAULT_THRESHOLD,
+                                window_px=160, source="measurement", force=False, comparison=None):
+    """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
+    and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
+
+    Parameters
+    ----------
+    design : Design
+    measurement : Measurement
+        As read by :func:`metrology.formats.readers.read_measurement`.
+    depths_m : sequence of float, optional
+        Nominal etch depths per mask (the ideal model).
+    candidates : list of str, optional
+    threshold : float
+    window_px : int
+        Camera pixels per side of the window diagnosed.
+    source : str
+        Name of the measurement in error messages (its file).
+    force : bool
+        Diagnose even when the measurement matches the design poorly.
+    comparison : Comparison, optional
+        :func:`~metrology.matching.compare.compare_measurement` of the same measurement and
+        design, if already made (its camera-frame placement starts the fit).
+
+    Returns
+    -------
+    (Diagnosis, dict)
+        The diagnosis and its inputs (frame, window, refined placement with uncertainties,
+        excluded pixels, registration correlation, nominal depths, match).
+    """
+    from doedesign.levels import design_levels
+    from masks.process import ProcessParams
+    from metrology.matching.compare import compare_measurement
+
+    if window_px < 16:
+        raise DoeError(f"--window-px must be at least 16, got {window_px}")
+    comp = comparison
+    if comp is None:
+        try:
+            comp = compare_measurement(measurement, design, force=force)
+        except DoeError as exc:
+            raise DoeError(f"{source}: {exc}") from None
+    depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
+    # The comparison's placement was refined in the camera's frame (same measurement model).
+    fit = comp.instrument_fit
+    diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
+                           depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
+                           screen=(comp.fitted_params(), fit.blur_sigma_m))
+    return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
+                  "excluded_pixels": diag.excluded_pixels,
+                  "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,
+                  "match": comp.match}

@@ -26,7 +26,7 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.psf import PSFEngine
-from masks.fabricated import fabricated_height, target_from_psf
+from masks.fabricated import DEFAULT_TARGET_FRACTION, fabricated_height, target_from_psf
 
 __all__ = ["DEFAULT_TARGET_FRACTION", "MIN_APERTURE_PX_COARSE_DESIGN", "PSFComparison", "compare_psf",
            "target_from_psf"]

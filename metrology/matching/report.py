@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 def write_comparison(measurement: Measurement, design: Design, out, *, measurement_source: str = "measurement",
                      design_source: str = "design", wavelengths_m=(486e-9, 589e-9, 656e-9), psf_oversample: int = 1,
-                     psf: bool = True, render: bool = True, force: bool = False) -> dict:
+                     psf: bool = True, render: bool = True, force: bool = False, comparison=None) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
@@ -50,6 +50,8 @@ def write_comparison(measurement: Measurement, design: Design, out, *, measureme
     force : bool
         Go on when the measurement matches the design poorly
         (see :func:`metrology.matching.compare.match_quality`).
+    comparison : Comparison, optional
+        The :func:`~metrology.matching.compare.compare_measurement` result, if already made.
 
     Returns
     -------
@@ -58,10 +60,12 @@ def write_comparison(measurement: Measurement, design: Design, out, *, measureme
     """
     out = ensure_output_dir(out)
     with Progress(6 + (2 if psf else 0), desc="compare") as prog:
-        try:
-            comp = compare_measurement(measurement, design, progress=prog, force=force)
-        except DoeError as exc:
-            raise DoeError(f"{measurement_source}: {exc}") from None
+        comp = comparison
+        if comp is None:
+            try:
+                comp = compare_measurement(measurement, design, progress=prog, force=force)
+            except DoeError as exc:
+                raise DoeError(f"{measurement_source}: {exc}") from None
         report = {"measurement": measurement_source, "design": design_source, **comp.report()}
         psf_cmp = None
         if psf:

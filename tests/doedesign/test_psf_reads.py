@@ -36,6 +36,24 @@ def test_bayer_loss_and_gradient_match_full_window(spec):
     assert np.abs(g_read - g_full).max() <= 1e-9 * np.abs(g_full).max()
 
 
+@pytest.mark.parametrize("weights", [None, [1.0, 0.7, 1.3]])
+def test_softmin_and_plane_losses_match_full_window(weights):
+    # The balanced objectives read only the target pixels (no window energy): same value and
+    # gradient as the whole window, to 1e-9.
+    from doedesign.objectives import _single_plane_loss, softmin_loss
+
+    _, target, engine = bayer_engine(focus=5.0)
+    h = random_height(64, seed=4)
+    for loss in (softmin_loss(target, weights, tau=0.02), _single_plane_loss(target.mask, 0, 1)):
+        eng = engine if loss.mask.shape[1] == 3 else PSFEngine(
+            engine.camera, PITCH, (64, 64), wavelengths_m=target.wavelengths_m[1:2], depths_m=target.depths_m)
+        assert loss.reads is not None and not loss.reads.energy
+        v_full, g_full = eng.value_and_grad(h, loss, full_window=True)
+        v_read, g_read = eng.value_and_grad(h, loss)
+        assert v_read == pytest.approx(v_full, rel=1e-9)
+        assert np.abs(g_read - g_full).max() <= 1e-9 * np.abs(g_full).max()
+
+
 def test_spot_array_with_defocus_and_oversampling_matches_full_window():
     # Spots on 3 rows x 3 columns (not every pair is a target), a source at 2 m seen by a lens
     # focused at 5 m (defocus term), two pupil samples per DOE pixel, pixel weights on target.

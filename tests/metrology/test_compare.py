@@ -205,3 +205,23 @@ def test_wrong_design_is_refused_unless_forced(case, tmp_path, capsys):
     forced = compare.compare_measurement(Measurement(case["height"], PIXEL), wrong, force=True)
     assert forced.match["confidence"] == "low" and forced.match["forced"]
     assert forced.match["level_agreement"] < 0.8
+
+
+def test_simulated_camera_pixels_integrate_the_surface():
+    """A straight 600 nm step under 1.1 um camera pixels: each pixel reports the step times the
+    fraction of its footprint on the etched side (no blur), not the value at its centre."""
+    levels = np.zeros((12, 12), int)
+    levels[:, 6:] = 8  # mask 3 open right of design column 5.5
+    params = ProcessParams.ideal()
+    scale = PIXEL / PITCH
+    reg = register.Registration.from_parameters(scale, 0.0, (False, False, False), (5.5, 5.42), PITCH,
+                                                levels.shape, (20, 20))
+    h = compare.process_on_measurement(levels, PITCH, params, reg, step_m=PITCH / 64, pixel_subsamples=16)
+    _, c_design = reg.to_design(np.zeros(20), np.arange(20.0))
+    # Fraction of each pixel's footprint (width = scale design px) right of the edge at 5.5.
+    frac = np.clip((c_design + scale / 2 - 5.5) / scale, 0, 1)
+    np.testing.assert_allclose(h[10], -params.etch_depth[3] * frac, atol=0.02 * params.etch_depth[3])
+    straddling = (frac > 0.2) & (frac < 0.8)
+    assert straddling.any()
+    point = compare.process_on_measurement(levels, PITCH, params, reg, step_m=PITCH / 64)
+    assert np.all(np.abs(point[10][straddling] + params.etch_depth[3] * frac[straddling]) > 0.1 * params.etch_depth[3])

@@ -1,0 +1,198 @@
+"""Level heights on feature interiors, etch depths from them, and how well a measurement
+matches its design (the first stages of ``doe compare``).
+
+- Level heights on feature interiors only (ISO 5436-1: the central third of a feature).
+- Etch depth per mask by weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the 16
+  level means, with chi-square telling whether the etches add up.
+- The match: the fraction of feature interiors on their design level.
+
+Arrays are row-major, row 0 at the top (camera order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import ndimage, stats
+
+from doedesign.errors import DoeError
+
+if TYPE_CHECKING:
+    from metrology.matching.register import Registration
+
+__all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MATCH_TOLERANCE_STEPS", "MAX_EDGE_BAND_PITCH",
+           "MIN_LEVEL_AGREEMENT", "binary_code_matrix", "fit_etch_depths", "interior_mask", "level_agreement",
+           "level_heights", "match_quality"]
+
+# Repeatability floor (m) added in quadrature to each level mean's standard error in the
+# chi-square: a white-light profiler does not repeat a terrace height better than this.
+LEVEL_REPEATABILITY_M = 0.3e-9
+# Features wider than 3 design pixels keep all but a band this many design pixels wide at
+# their edges (instead of only the central third), far beyond edge blur and overlay.
+MAX_EDGE_BAND_PITCH = 1.0
+
+
+def binary_code_matrix(n_levels: int = 16) -> np.ndarray:
+    """``B[k, j]`` = bit j of level k (mask j open at level k)."""
+    n_masks = int(np.log2(n_levels))
+    return ((np.arange(n_levels)[:, None] >> np.arange(n_masks)[None, :]) & 1).astype(float)
+
+
+def interior_mask(labels: np.ndarray, pitch_px: float) -> np.ndarray:
+    """Pixels in the central third of their feature (ISO 5436-1), edges excluded.
+
+    Parameters
+    ----------
+    labels : ndarray of int
+        Design level at each measurement pixel; negative = outside the design.
+    pitch_px : float
+        DOE pitch in measurement pixels (caps the excluded band on wide features).
+
+    Returns
+    -------
+    ndarray of bool
+    """
+    labels = np.asarray(labels)
+    edge = np.zeros(labels.shape, bool)
+    diff_r = labels[1:] != labels[:-1]
+    diff_c = labels[:, 1:] != labels[:, :-1]
+    edge[1:] |= diff_r
+    edge[:-1] |= diff_r
+    edge[:, 1:] |= diff_c
+    edge[:, :-1] |= diff_c
+    # Distance (px) from each pixel to the nearest boundary between features.
+    dist = ndimage.distance_transform_edt(~edge) + 0.5
+    # One id per connected feature (all levels), then each feature's largest distance.
+    feature = np.zeros(labels.shape, np.int64)
+    n_total = 0
+    for k in np.unique(labels[labels >= 0]):
+        comp, n = ndimage.label(labels == k)
+        feature[comp > 0] = comp[comp > 0] + n_total
+        n_total += n
+    dmax = np.zeros(n_total + 1)
+    np.maximum.at(dmax, feature.ravel(), dist.ravel())
+    cap = MAX_EDGE_BAND_PITCH * pitch_px
+    # No feature is narrower than one DOE pixel, whose central third starts pitch/3 in:
+    # thinner pieces are features cut by the field border.
+    need = np.clip(2.0 / 3.0 * dmax, pitch_px / 3.0, cap)
+    need[0] = np.inf
+    inner = dist >= need[feature]
+    return inner
+
+
+@dataclass
+class LevelStats:
+    """Height of each level on feature interiors.
+
+    Attributes
+    ----------
+    mean_m, std_m, median_m : ndarray (n_levels,)
+        NaN for levels without interior pixels.
+    count : ndarray of int (n_levels,)
+    """
+
+    mean_m: np.ndarray
+    std_m: np.ndarray
+    median_m: np.ndarray
+    count: np.ndarray
+
+
+def level_heights(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, n_levels: int = 16) -> LevelStats:
+    """Robust mean, spread and count of each level's interior heights.
+
+    Outliers beyond 5 robust sigmas (bat-wings, particles) are left out of the mean.
+    """
+    use = interior & np.isfinite(height_m) & (labels >= 0)
+    mean, std, med = (np.full(n_levels, np.nan) for _ in range(3))
+    count = np.zeros(n_levels, int)
+    lab, val = labels[use], height_m[use]
+    order = np.argsort(lab, kind="stable")
+    lab, val = lab[order], val[order]
+    bounds = np.searchsorted(lab, np.arange(n_levels + 1))
+    for k in range(n_levels):
+        v = val[bounds[k]:bounds[k + 1]]
+        if v.size == 0:
+            continue
+        m = np.median(v)
+        mad = 1.4826 * np.median(np.abs(v - m))
+        keep = v[np.abs(v - m) <= 5 * max(mad, 1e-12)] if mad > 0 else v
+        mean[k], std[k], med[k], count[k] = keep.mean(), keep.std(), m, keep.size
+    return LevelStats(mean, std, med, count)
+
+
+@dataclass
+class DepthFit:
+    """Etch depths from the level means.
+
+    Attributes
+    ----------
+    depths_m, depths_err_m : ndarray (n_masks,)
+    top_m : float
+        Fitted height of level 0.
+    residual_m : ndarray (n_levels,)
+        Level mean minus the fitted sum (NaN where a level is missing).
+    chi2, dof, p_value : float
+        Chi-square of the fit with each level's standard error plus
+        ``LEVEL_REPEATABILITY_M``; a tiny p-value says the etches do not add up
+        (loading, slivers, an etch that depends on what was etched before).
+    """
+
+    depths_m: np.ndarray
+    depths_err_m: np.ndarray
+    top_m: float
+    residual_m: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+
+
+def fit_etch_depths(stats_: LevelStats) -> DepthFit:
+    """Weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the levels present."""
+    n_levels = stats_.mean_m.size
+    b = binary_code_matrix(n_levels)
+    ok = np.isfinite(stats_.mean_m) & (stats_.count > 0)
+    a = np.column_stack([np.ones(n_levels), -b])[ok]
+    if np.linalg.matrix_rank(a) < a.shape[1]:
+        raise DoeError(f"only levels {np.flatnonzero(ok).tolist()} are measured: too few to separate "
+                       f"the {b.shape[1]} etch depths")
+    sigma = np.sqrt(stats_.std_m[ok] ** 2 / np.maximum(stats_.count[ok], 1) + LEVEL_REPEATABILITY_M ** 2)
+    aw = a / sigma[:, None]
+    yw = stats_.mean_m[ok] / sigma
+    coef, *_ = np.linalg.lstsq(aw, yw, rcond=None)
+    cov = np.linalg.inv(aw.T @ aw)
+    resid = np.full(n_levels, np.nan)
+    resid[ok] = stats_.mean_m[ok] - a @ coef
+    chi2 = float(np.sum((resid[ok] / sigma) ** 2))
+    dof = int(ok.sum() - a.shape[1])
+    return DepthFit(depths_m=coef[1:], depths_err_m=np.sqrt(np.diag(cov))[1:], top_m=float(coef[0]),
+                    residual_m=resid, chi2=chi2, dof=dof,
+                    p_value=float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan"))
+
+
+# A correct match puts nearly every feature interior on its design level (noise and roughness are
+# a few nm, a quarter step is 19 nm); against the wrong design or field the interiors spread over
+# many levels although the registration still finds a lattice (its correlation alone does not
+# separate the cases: 0.6 for a small correct field, 0.62 for a wrong design).
+MATCH_TOLERANCE_STEPS = 0.25
+MIN_LEVEL_AGREEMENT = 0.8
+
+
+def level_agreement(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, stats: LevelStats,
+                    step_m: float) -> float:
+    """Fraction of valid feature-interior pixels within MATCH_TOLERANCE_STEPS of their level's mean."""
+    use = interior & np.isfinite(height_m) & (labels >= 0)
+    lab = labels[use]
+    means = stats.mean_m[lab]
+    ok = np.isfinite(means) & (np.abs(height_m[use] - means) <= MATCH_TOLERANCE_STEPS * step_m)
+    return float(ok.mean()) if ok.size else 0.0
+
+
+def match_quality(agreement: float, registration: Registration, forced: bool = False) -> dict:
+    """Match quality and confidence of a comparison (the ``match`` entry of its report)."""
+    return {"level_agreement": agreement, "tolerance_steps": MATCH_TOLERANCE_STEPS,
+            "threshold": MIN_LEVEL_AGREEMENT, "registration_ncc": float(registration.match_ncc),
+            "confidence": "high" if agreement >= MIN_LEVEL_AGREEMENT else "low", "forced": bool(forced),
+            "meaning": "fraction of feature-interior pixels within tolerance_steps level steps of their "
+                       "design level's mean height"}
