@@ -162,6 +162,13 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
                                "a structured residual remains that no candidate effect explains; treat the "
                                "named effects as the strongest found, not the whole story") + ".",
              "", f"{h} Steps (each added effect and how far the residual shrank)", ""]
+    where = rep.get("unexplained_where")
+    if where:
+        partial = ", ".join(p["effect"] for p in rep.get("partial_matches") or [])
+        extra = [f"- Where the unexplained residual lives: {where['summary']}"]
+        if partial:
+            extra.append(f"- Not named, they fit only part of the residual on their own footprint: {partial}.")
+        parts[4:4] = extra
     rows = []
     for i, step in enumerate(rep.get("steps") or [], 1):
         params = step.get("params") or {}

@@ -32,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                "views when two, optional depth_m and axis_pixel)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--effects", help="comma-separated candidate effects (default: all of the domain)")
+    p.add_argument("--effects-file", action="append", default=[], metavar="FILE.py",
+                   help="Python file that registers user effects (metrology.diagnosis.register_effect); "
+                        "they join the candidates (repeatable)")
     p.add_argument("--region-px", type=Number(int, 8, 4096, unit="px"), default=40,
                    help="design pixels per side of the window diagnosed (height maps; default 40)")
     p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
@@ -58,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run
 
+    for path in args.effects_file:
+        load_effects_file(path)
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
@@ -74,6 +79,21 @@ def run(args: argparse.Namespace) -> int:
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
                 "noise_floor": diag.noise_floor, "unexplained": diag.unexplained})
     return 0
+
+
+def load_effects_file(path: str | Path) -> None:
+    """Run a user's Python file that registers diagnosis effects; a failure is one line."""
+    import runpy
+
+    from doedesign.errors import DoeError
+
+    path = Path(path)
+    if not path.is_file():
+        raise DoeError(f"{path}: effects file not found")
+    try:
+        runpy.run_path(str(path), run_name="doe_user_effects")
+    except Exception as exc:  # the user's code: any failure is reported as one line
+        raise DoeError(f"{path}: the effects file failed: {type(exc).__name__}: {exc}") from None
 
 
 def _heights(design, path, args, candidates):

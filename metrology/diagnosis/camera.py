@@ -73,6 +73,7 @@ class CameraHeightProblem(dg.Problem):
     """
 
     units = "m"
+    judges_partial_matches = True
 
     def __init__(self, levels, pitch_m, measured_height_m, placement, base_params, effects, step_m=None,
                  curvature=False, keep=None):

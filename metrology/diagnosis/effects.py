@@ -21,11 +21,19 @@ PSF domain (a PSF stack shaped (views, wavelengths, rows, cols))
 
 Users add their own effect from a script::
 
-    @register_effect(name="my_tilt", domain="height", stage="surface",
-                     params=[Parameter("slope", "rad", -1e-3, 1e-3, 1e-4)],
-                     description="A residual plane the levelling missed.")
-    def my_tilt(height_m, values, step_m):
-        ...
+    @register_effect(name="depth_nonlinearity", domain="height", stage="surface",
+                     params=[Parameter("k_per_m", "1/m", -1e5, 1e5, 5e3)],
+                     description="The etch rate changed with depth: every height h became h + k h**2.")
+    def depth_nonlinearity(height_m, values, step_m):
+        return height_m + values[0] * height_m ** 2
+
+and rerun: the library's ``candidates`` (``None`` = every registered effect of the domain) or
+``doe diagnose --effects-file mine.py`` (the file registers them). A ``"surface"`` effect acts on
+the model heights (m) on the fine grid in the design frame, before the instrument's blur and
+pixels; a ``"process"`` effect maps :class:`masks.process.ProcessParams` to new ones.
+``kind="artefact"`` marks a measurement artefact. :func:`unregister_effect` removes it. When no
+registered effect explains a structured residual, the diagnosis names none and reports where
+the residual lives (:mod:`metrology.diagnosis.locate`): that is when to write one.
 """
 
 from __future__ import annotations
@@ -221,7 +229,7 @@ def register_effect(effect=None, *, replace=False, **kwargs):
     return decorator
 
 
-def unregister_effect(name):
+def unregister_effect(name: str) -> None:
     """Remove a (user) effect from the registry."""
     REGISTRY.pop(name, None)
 
@@ -323,6 +331,24 @@ def _etch_loading(params, values):
     return params.copy(etch_loading=float(values[0]))
 
 
+def _mask_rotation(params, values):
+    rotation = np.array(params.mask_rotation, dtype=float, copy=True)
+    rotation[1:] += values
+    return params.copy(mask_rotation=rotation)
+
+
+def _microtrenching(params, values):
+    trench = np.array(params.microtrenching, dtype=float, copy=True)
+    trench[:, 0] += values[0::2]
+    # The width is a fitted value, not an increment: at zero depth it is free and harmless.
+    trench[:, 1] = values[1::2]
+    return params.copy(microtrenching=trench)
+
+
+def _etch_gradient(params, values):
+    return params.copy(etch_gradient=np.asarray(params.etch_gradient, dtype=float) + values)
+
+
 def _instrument_blur(height_m, values, step_m):
     return gaussian_blur(height_m, float(values[0]), step_m)
 
@@ -356,6 +382,21 @@ _BUILTIN_HEIGHT = [
     Effect("etch_loading", "height", "process",
            [Parameter("loading", "1", -0.5, 0.5, 0.02)], _etch_loading,
            "The etch rate depends on the local open fraction of the mask: depth follows pattern density."),
+    Effect("mask_rotation", "height", "process",
+           [Parameter(f"rotation_mask{j}_deg", "deg", -0.5, 0.5, 0.005) for j in (1, 2, 3)], _mask_rotation,
+           "A mask was printed rotated about the field centre against the first one: its overlay grows "
+           "linearly with the distance from the centre, opposite in sign on opposite sides."),
+    Effect("microtrenching", "height", "process",
+           [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null) for j in range(4)
+            for q, lo, hi, sc, null in (("depth", 0.0, 150e-9, 5e-9, 0.0), ("width", 0.05 * _UM, 3 * _UM, 0.1 * _UM,
+                                                                             0.4 * _UM))],
+           _microtrenching,
+           "Ions reflected from the sidewalls etched deeper at the foot of a mask's etched edges: a trench "
+           "inside each opening along its edges, decaying over a width, in proportion to that etch."),
+    Effect("etch_gradient", "height", "process",
+           [Parameter(f"{ax}_per_m", "1/m", -100.0, 100.0, 5.0) for ax in ("x", "y")], _etch_gradient,
+           "Plasma non-uniformity made every etch deeper on one side of the field by the same relative "
+           "amount per metre (x toward +column, y up; 10 /m = 1 % per mm)."),
     Effect("instrument_blur", "height", "surface",
            [Parameter("sigma_m", "m", 0.0, 3 * _UM, 0.2 * _UM)], _instrument_blur,
            "Measurement artefact: the profilometer's finite lateral resolution (about 0.8 um at NA 0.4) "

@@ -14,7 +14,8 @@ How a case is made (every number drawn from a seed):
    cell, 0, 1)``, exact for the straight Manhattan edges of a DOE. Etch depth per mask,
    microtrenching (extra depth ``m exp(-d_in / w)`` inside the opening), an etch gradient
    across the field and etch loading (the depth falls with the local open fraction) scale the
-   etch; the etches are summed.
+   etch; the etches are summed. Outside the diagnosis's vocabulary, a depth nonlinearity
+   ``h + k h**2`` of the summed surface.
 3. The instrument: a Gaussian objective blur, optional batwing, and camera pixels of 0.8-1.2 um
    (not a multiple of anything in the design) rotated by up to 1 degree, possibly mirrored,
    each reporting the mean of the blurred surface over its footprint (8 x 8 sub-samples).
@@ -39,6 +40,8 @@ SUBSAMPLES = 8
 # Fabrication effects the generator can hide, and measurement artefacts it always or sometimes adds.
 FAB_EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias", "etch_loading", "mask_rotation",
                "microtrenching", "etch_gradient")
+# Effects the generator can hide that no built-in diagnosis effect describes.
+OUTSIDE_VOCABULARY = ("depth_nonlinearity",)
 
 
 @dataclass
@@ -173,6 +176,10 @@ def wafer_surface(levels, truth, fine=FINE_PER_PX):
             inside = np.maximum(-dist, 0.0) * PITCH_M
             depth = depth + t["depth_m"] * np.exp(-inside / t["width_m"])
         height -= cover * depth
+    if "depth_nonlinearity" in truth:
+        # Outside the diagnosis's vocabulary: the etch rate changed with depth, so every level
+        # departs from its nominal height by k h**2 (not a per-mask sum).
+        height = height + truth["depth_nonlinearity"]["per_m"] * height ** 2
     return height
 
 
@@ -229,6 +236,8 @@ def draw_effect(name, rng):
         # Relative depth change per mm; steeper than across a whole wafer so that it shows over a
         # 0.3 mm field at all (a few nm on the 600 nm step).
         return {"per_mm": rng.choice([-1, 1]) * rng.uniform(0.02, 0.05), "direction_deg": rng.uniform(0, 360)}
+    if name == "depth_nonlinearity":
+        return {"per_m": rng.choice([-1, 1]) * rng.uniform(2e4, 4e4)}
     raise KeyError(name)
 
 

@@ -8,7 +8,7 @@ from metrology.diagnosis import effects as fx
 from metrology.diagnosis.effects import Effect, EffectError, Parameter, get_effect, register_effect
 
 BUILTIN = {"etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope", "etch_loading",
-           "instrument_blur", "batwing", "dual_pixel_crosstalk", "source_bandwidth", "defocus", "depth_scale",
+           "mask_rotation", "microtrenching", "etch_gradient", "instrument_blur", "batwing", "dual_pixel_crosstalk", "source_bandwidth", "defocus", "depth_scale",
            "background"}
 
 
@@ -16,6 +16,7 @@ def test_builtin_names_domains_and_artefacts():
     assert BUILTIN <= set(fx.REGISTRY)
     assert {e.name for e in fx.effects_for("height")} >= {"etch_depth", "mask_overlay", "linewidth_bias",
                                                           "proximity_blur", "sidewall_slope", "etch_loading",
+                                                          "mask_rotation", "microtrenching", "etch_gradient",
                                                           "instrument_blur", "batwing"}
     assert {e.name for e in fx.effects_for("psf")} >= {"dual_pixel_crosstalk", "source_bandwidth", "defocus",
                                                        "depth_scale", "background"}
@@ -89,6 +90,39 @@ def test_process_effects_change_the_right_parameters():
     assert np.allclose(q.mask_overlay[3, :2], [0.4e-6, -0.1e-6]) and not np.any(q.mask_overlay[:3])
     q = get_effect("linewidth_bias").apply(p, np.full(4, 0.3e-6))
     assert np.allclose(q.linewidth_bias, 0.3e-6)
+
+
+def test_new_process_effects_in_physical_units():
+    """mask_rotation (deg, masks 1-3), microtrenching (depth and width per mask, m) and
+    etch_gradient (1/m, x toward +column, y up) reach the process model with their units."""
+    from masks.effects import effect_spec
+    from masks.process import ProcessParams, simulate_surface
+
+    p = ProcessParams.ideal()
+    rot = get_effect("mask_rotation")
+    assert [x.unit for x in rot.params] == ["deg"] * 3
+    assert np.allclose(rot.apply(p, np.array([0.0, 0.03, 0.0])).mask_rotation, [0, 0, 0.03, 0])
+    trench = get_effect("microtrenching")
+    assert [x.name for x in trench.params][:2] == ["depth_mask0_m", "width_mask0_m"]
+    values = np.array([0, 0.4e-6, 0, 0.4e-6, 0, 0.4e-6, 40e-9, 0.5e-6])
+    assert np.allclose(trench.apply(p, values).microtrenching[3], [40e-9, 0.5e-6])
+    # The null values print the ideal surface (a trench of zero depth has any width).
+    levels = np.kron(np.array([[0, 8], [8, 0]]), np.ones((4, 4), int))
+    ideal = simulate_surface(levels, 5.4e-6).height_m
+    null = simulate_surface(levels, 5.4e-6, trench.apply(p, trench.null_values())).height_m
+    np.testing.assert_array_equal(ideal, null)
+    grad = get_effect("etch_gradient").apply(p, np.array([20.0, -10.0]))
+    assert np.allclose(grad.etch_gradient, [20.0, -10.0])
+    # A uniform level-8 field 64.8 um wide: the 600 nm etch changes by 20 /m * 64.8 um * 600 nm
+    # from the left column to the right one.
+    h = simulate_surface(np.full((12, 12), 8), 5.4e-6, grad, step_m=5.4e-6).height_m
+    assert h[6, -1] - h[6, 0] == pytest.approx(-20.0 * 11 * 5.4e-6 * 600e-9, rel=1e-6)
+    # Bounds inside the process table's plausible range.
+    for name in ("mask_rotation", "microtrenching", "etch_gradient"):
+        table = effect_spec(name)
+        lo, hi = get_effect(name).bounds()
+        assert lo.min() >= min(t.lower for t in table.params)
+        assert hi.max() <= max(t.upper for t in table.params)
 
 
 def test_psf_sensor_effects_closed_form():
