@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 __all__ = ["binned", "radial_psd"]
 
 
-def binned(values, key, edges):
+def binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray | Sequence[float]) -> dict[str, list]:
     """Mean, rms and count of ``values`` in bins of ``key`` (NaN values ignored)."""
     ok = np.isfinite(values) & np.isfinite(key)
     idx = np.digitize(key[ok], edges) - 1
@@ -21,7 +23,7 @@ def binned(values, key, edges):
             "rms": np.sqrt(ms).tolist(), "count": count.tolist()}
 
 
-def radial_psd(residual_map, step_m):
+def radial_psd(residual_map: np.ndarray, step_m: float) -> dict[str, list]:
     """Radially averaged power spectral density of a residual map (NaN set to 0).
 
     Returns a binned dict keyed by spatial frequency (cycles/m); ``mean`` holds the PSD

@@ -15,6 +15,8 @@ Arrays are row-major with row 0 at the top of the camera image.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -27,6 +29,14 @@ from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
                                            busiest_camera_window, robust_valid)
+
+if TYPE_CHECKING:
+    from doedesign.design import Design
+    from masks.process_params import ProcessParams
+    from metrology.formats.measurement import Measurement
+    from metrology.matching.compare import Comparison
+
+__all__ = ["CAMERA", "SUBSUMED", "CameraHeightProblem", "diagnose_camera", "diagnose_camera_measurement"]
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +85,9 @@ class CameraHeightProblem(dg.Problem):
     units = "m"
     judges_partial_matches = True
 
-    def __init__(self, levels, pitch_m, measured_height_m, placement, base_params, effects, step_m=None,
-                 curvature=False, keep=None):
+    def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
+                 base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
+                 curvature: bool = False, keep: np.ndarray | None = None) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -131,7 +142,7 @@ class CameraHeightProblem(dg.Problem):
         return tuple((n, tuple(np.round(np.asarray(v, float), 15))) for n, v in sorted(model.items())
                      if n != CAMERA.name and self.effects[n].stage == "process")
 
-    def render(self, model):
+    def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model heights in the camera frame (before levelling)."""
         cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
         chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
@@ -155,15 +166,15 @@ class CameraHeightProblem(dg.Problem):
             self._cache[key] = coeffs
         return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape))
 
-    def residual(self, model):
+    def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
 
-    def residual_map(self, model):
+    def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)
         out[self.keep] = self.residual(model)
         return out
 
-    def structure_groups(self):
+    def structure_groups(self) -> list[np.ndarray]:
         """Level x edge distance, level x 4 x 4 field tiles, signed distance to two masks' edges."""
         dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
         rows, cols = self.keep.shape
@@ -173,7 +184,7 @@ class CameraHeightProblem(dg.Problem):
                 sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2]))]
         return [np.where(self.keep, m + 1, 0) for m in maps]
 
-    def breakdown(self, residual_map):
+    def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         """Residual by signed distance to each mask's edges, level, field position, frequency."""
         out = {}
         edges_d = np.linspace(-4e-6, 4e-6, 17)
@@ -187,7 +198,8 @@ class CameraHeightProblem(dg.Problem):
         out["spatial_frequency_per_m"] = radial_psd(residual_map, self.pixel_m)
         return out
 
-    def placement_report(self, model, errors=None):
+    def placement_report(self, model: dict[str, np.ndarray],
+                         errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
         """The refined placement with uncertainties (camera pixels and degrees)."""
         cam = np.asarray(model[CAMERA.name], float)
         err = np.asarray((errors or {}).get(CAMERA.name, np.full(6, np.nan)), float)
@@ -202,8 +214,11 @@ class CameraHeightProblem(dg.Problem):
                 "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}
 
 
-def diagnose_camera(design_levels, pitch_m, measured_height_m, placement, depths_m=None, candidates=None,
-                    threshold=dg.DEFAULT_THRESHOLD, max_steps=6, window_px=160, step_m=None, screen=None):
+def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
+                    depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
+                    threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
+                    step_m: float | None = None,
+                    screen: tuple[ProcessParams, float] | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -271,8 +286,10 @@ def _plane(problem, crop, model):
     return (basis @ coef).reshape(crop.shape)
 
 
-def diagnose_camera_measurement(design, measurement, depths_m=None, candidates=None, threshold=dg.DEFAULT_THRESHOLD,
-                                window_px=160, source="measurement", force=False, comparison=None):
+def diagnose_camera_measurement(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
+                                candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
+                                window_px: int = 160, source: str = "measurement", force: bool = False,
+                                comparison: Comparison | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 

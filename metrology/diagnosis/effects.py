@@ -38,7 +38,9 @@ the residual lives (:mod:`metrology.diagnosis.locate`): that is when to write on
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -139,10 +141,10 @@ class Effect:
             raise EffectError(f"effect {self.name}: needs at least one parameter")
 
     @property
-    def n_params(self):
+    def n_params(self) -> int:
         return len(self.params)
 
-    def for_channels(self, channels):
+    def for_channels(self, channels: Sequence[str]) -> Effect:
         """This effect with its parameters repeated per channel (``per_channel`` effects).
 
         Parameters
@@ -158,22 +160,22 @@ class Effect:
         return Effect(self.name, self.domain, self.stage, params, self.apply, self.description,
                       self.kind, self.order, start, per_channel=False)
 
-    def null_values(self):
+    def null_values(self) -> np.ndarray:
         """Parameter values of the ideal model (the effect absent)."""
         return np.array([p.null for p in self.params], dtype=float)
 
-    def start_values(self):
+    def start_values(self) -> np.ndarray:
         """Where a fit starts: ``start`` if given (for effects degenerate at null), else null."""
         return np.array(self.start, dtype=float) if self.start is not None else self.null_values()
 
-    def bounds(self):
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return (np.array([p.lower for p in self.params], dtype=float),
                 np.array([p.upper for p in self.params], dtype=float))
 
-    def scales(self):
+    def scales(self) -> np.ndarray:
         return np.array([p.scale for p in self.params], dtype=float)
 
-    def check(self, values):
+    def check(self, values: float | Sequence[float] | np.ndarray) -> np.ndarray:
         """Values as a float array of the right length (raises :class:`EffectError`)."""
         v = np.atleast_1d(np.asarray(values, dtype=float))
         if v.shape != (self.n_params,):
@@ -181,7 +183,7 @@ class Effect:
                               f"({', '.join(p.name for p in self.params)}), got {v.size}")
         return v
 
-    def describe(self):
+    def describe(self) -> dict[str, Any]:
         """Dictionary for reports."""
         return {"name": self.name, "domain": self.domain, "stage": self.stage, "kind": self.kind,
                 "description": self.description,
@@ -192,7 +194,8 @@ class Effect:
 REGISTRY: dict = {}
 
 
-def register_effect(effect=None, *, replace=False, **kwargs):
+def register_effect(effect: Effect | None = None, *, replace: bool = False,
+                    **kwargs: Any) -> Effect | Callable[[Callable], Callable]:
     """Add an effect to the registry; usable as a function or as a decorator.
 
     ``register_effect(Effect(...))`` registers an effect object.
@@ -234,14 +237,14 @@ def unregister_effect(name: str) -> None:
     REGISTRY.pop(name, None)
 
 
-def get_effect(name):
+def get_effect(name: str) -> Effect:
     try:
         return REGISTRY[name]
     except KeyError:
         raise EffectError(f"unknown effect {name!r}; registered: {', '.join(sorted(REGISTRY))}") from None
 
 
-def effects_for(domain, names=None):
+def effects_for(domain: str, names: Sequence[str] | None = None) -> list[Effect]:
     """Registered effects of ``domain`` (optionally only ``names``), in forward-model order."""
     if domain not in DOMAINS:
         raise EffectError(f"domain must be one of {DOMAINS}, got {domain!r}")
@@ -276,7 +279,7 @@ def _gaussian_taps(sigma_m, step_m):
     return smooth / smooth.sum(), second
 
 
-def gaussian_blur(height_m, sigma_m, step_m):
+def gaussian_blur(height_m: np.ndarray, sigma_m: float, step_m: float) -> np.ndarray:
     """Gaussian blur of standard deviation ``sigma_m`` of a pixel-averaged map (separable)."""
     h = np.asarray(height_m, dtype=float)
     if sigma_m <= 0:
@@ -286,7 +289,7 @@ def gaussian_blur(height_m, sigma_m, step_m):
     return ndi.correlate1d(out, smooth, axis=1, mode="nearest")
 
 
-def batwing_profile(height_m, amplitude, sigma_m, step_m):
+def batwing_profile(height_m: np.ndarray, amplitude: float, sigma_m: float, step_m: float) -> np.ndarray:
     """Edge overshoot of a white-light interferometer: ``-a sigma^2 lap(G_sigma * h) / peak``.
 
     Across a step of height H the added profile is a derivative of Gaussian of width

@@ -28,8 +28,10 @@ A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -56,7 +58,7 @@ JAC_STEP = 0.02
 UNEXPLAINED_RATIO = 1.25
 
 
-def bic_eff(rss, n, n_eff, k):
+def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
     """Information criterion with an effective sample count: ``n_eff ln(RSS/N) + k ln(n_eff)``."""
     return float(n_eff * np.log(rss / n) + k * np.log(n_eff))
 
@@ -79,7 +81,7 @@ class Step:
     ambiguous_with: list = field(default_factory=list)
     revised: str | None = None
 
-    def to_dict(self):
+    def to_dict(self) -> dict[str, Any]:
         return {"effect": self.effect, "kind": self.kind, "description": self.description,
                 "measurement_artefact": self.kind == "artefact",
                 "params": self.params, "uncertainties": self.uncertainties, "units": self.units,
@@ -136,11 +138,11 @@ class Diagnosis:
     partial_matches: list = field(default_factory=list)
 
     @property
-    def named(self):
+    def named(self) -> list[str]:
         """Names of the effects found, in order."""
         return [s.effect for s in self.steps]
 
-    def to_dict(self):
+    def to_dict(self) -> dict[str, Any]:
         return {"domain": self.domain, "units": self.units,
                 "steps": [s.to_dict() for s in self.steps],
                 "effects_found": self.named,
@@ -153,7 +155,7 @@ class Diagnosis:
                 "unexplained": self.unexplained, "structure_criterion": self.structure_criterion,
                 "unexplained_where": self.unexplained_where, "partial_matches": self.partial_matches,
                 "breakdown_initial": self.breakdown_initial, "breakdown_final": self.breakdown_final}
-    def plot(self, out_dir):
+    def plot(self, out_dir: str | Path) -> list[Path]:
         """Write ``residual_steps.png`` (residual map before and after each step) and
         ``breakdown.png`` (residual by edge distance, level, density, position, frequency).
 
@@ -166,7 +168,7 @@ class Diagnosis:
         return [plot_steps(self, Path(out_dir) / "residual_steps.png"),
                 plot_breakdown(self, Path(out_dir) / "breakdown.png")]
 
-    def save(self, out_dir, inputs=None):
+    def save(self, out_dir: str | Path, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write the figures (:meth:`plot`), ``report.json`` (:meth:`to_dict` with ``inputs``
         and ``plots``) and the page a person reads, ``report.md``, into ``out_dir``; return the report."""
         from doedesign.fileio import json_ready, write_json
@@ -199,16 +201,16 @@ class Problem:
     # design-frame height fit resamples the data and does not close to the floor (issue 11).
     judges_partial_matches = False
 
-    def residual(self, model):
+    def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         raise NotImplementedError
 
-    def residual_map(self, model):
+    def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         raise NotImplementedError
 
-    def breakdown(self, residual_map):
+    def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         return {}
 
-    def structure_groups(self):
+    def structure_groups(self) -> list[np.ndarray]:
         """Label maps of bins for the structured-residual test (0 = excluded), one per way of
         grouping pixels that an unmodelled effect would show up in."""
         return []
@@ -345,8 +347,9 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
     return model, errors, crit
 
 
-def run_diagnosis(problem, threshold=DEFAULT_THRESHOLD, max_steps=6, domain="height", candidates=None,
-                  screen_iter=SCREEN_ITER, stop_at_floor=True):
+def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
+                  candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
+                  stop_at_floor: bool = True) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Parameters

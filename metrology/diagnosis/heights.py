@@ -5,6 +5,9 @@ Arrays are row-major with row 0 at the top; residuals are in metres.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 import scipy.ndimage as ndi
 
@@ -15,6 +18,12 @@ from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
 from metrology.diagnosis.window import busiest_window
+
+if TYPE_CHECKING:
+    from doedesign.design import Design
+    from masks.process_params import ProcessParams
+    from metrology.diagnosis.engine import Diagnosis
+    from metrology.formats.measurement import Measurement
 
 __all__ = ["HeightProblem", "INTERIOR_MARGIN_M", "REGISTRATION", "diagnose_heights", "diagnose_measurement",
            "signed_edge_distance_m"]
@@ -40,7 +49,7 @@ REGISTRATION = Effect(
     order=-1)
 
 
-def signed_edge_distance_m(mask, step_m):
+def signed_edge_distance_m(mask: np.ndarray, step_m: float) -> np.ndarray:
     """Distance (m) of each pixel centre to the nearest edge of a boolean mask; positive inside."""
     inside = ndi.distance_transform_edt(mask) - 0.5
     outside = ndi.distance_transform_edt(~mask) - 0.5
@@ -72,8 +81,9 @@ class HeightProblem(Problem):
 
     units = "m"
 
-    def __init__(self, levels, pitch_m, measured_height_m, step_m, region, base_params, effects,
-                 border_m=3e-6, fit_registration=True):
+    def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, step_m: float,
+                 region: tuple[int, int, int, int], base_params: ProcessParams, effects: Sequence[Effect],
+                 border_m: float = 3e-6, fit_registration: bool = True) -> None:
         from masks.decompose import levels_to_masks
         from masks.process import fine_upsample
 
@@ -117,7 +127,7 @@ class HeightProblem(Problem):
         groups, _ = ndi.label(flat)
         self.noise = estimate_noise(meas, groups)
 
-    def surface(self, model):
+    def surface(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model height map (m) on the fine grid with the effects in ``model`` applied."""
         from masks.process import simulate_surface
 
@@ -133,17 +143,17 @@ class HeightProblem(Problem):
                 h = e.apply(h, e.check(model[e.name]), self.step_m)
         return h
 
-    def residual(self, model):
+    def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         r = self.measured[self.valid] - self.surface(model)[self.valid]
         # The measurement's height zero is arbitrary: a piston is always removed (1 dof).
         return r - r.mean()
 
-    def residual_map(self, model):
+    def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)
         out[self.valid] = self.residual(model)
         return out
 
-    def structure_groups(self):
+    def structure_groups(self) -> list[np.ndarray]:
         """Level x distance to the nearest edge (edge effects), level x 4 x 4 tiles of the field
         (density and position effects), and signed distance to each mask's edges."""
         dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
@@ -154,7 +164,7 @@ class HeightProblem(Problem):
         maps.append(sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2])))
         return [np.where(self.valid, m + 1, 0) for m in maps]
 
-    def breakdown(self, residual_map):
+    def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         """Residual by signed distance to each mask's edges, level, density, position, frequency."""
         out = {}
         edges_d = np.linspace(-4e-6, 4e-6, 17)
@@ -172,8 +182,11 @@ class HeightProblem(Problem):
         return out
 
 
-def diagnose_heights(design_levels, pitch_m, measured_height_m, step_m, region=None, region_px=40,
-                     depths_m=None, candidates=None, threshold=DEFAULT_THRESHOLD, max_steps=6, stop_at_floor=True):
+def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, step_m: float,
+                     region: tuple[int, int, int, int] | None = None, region_px: int = 40,
+                     depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
+                     threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6,
+                     stop_at_floor: bool = True) -> Diagnosis:
     """Find, name and fit the effects that explain a measured height map.
 
     Parameters
@@ -232,8 +245,10 @@ def diagnose_heights(design_levels, pitch_m, measured_height_m, step_m, region=N
     return diag
 
 
-def diagnose_measurement(design, measurement, region_px=40, upsample=5, depths_m=None, candidates=None,
-                         threshold=DEFAULT_THRESHOLD, source="measurement", force=False):
+def diagnose_measurement(design: Design, measurement: Measurement, region_px: int = 40, upsample: int = 5,
+                         depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
+                         threshold: float = DEFAULT_THRESHOLD, source: str = "measurement",
+                         force: bool = False) -> tuple[Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement of a design: prepare, register, choose the window.
 
     The comparison's preparation (despiked, levelled jointly on the registered levels,

@@ -38,7 +38,7 @@ class NoiseEstimate:
     n_samples: int
 
 
-def estimate_noise(values, groups, max_lag=MAX_LAG_PX):
+def estimate_noise(values: np.ndarray, groups: np.ndarray, max_lag: int = MAX_LAG_PX) -> NoiseEstimate:
     """Noise rms and correlation area from pixels scattering about a per-group constant.
 
     Parameters

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from doedesign.fileio import save_figure
 
+if TYPE_CHECKING:
+    from metrology.diagnosis.engine import Diagnosis
+
 __all__ = ["plot_breakdown", "plot_steps"]
 
 
-def plot_steps(diag, path):
+def plot_steps(diag: Diagnosis, path: str | Path) -> Path:
     """Residual map before and after each step (row 0 at the top); returns the path."""
     import matplotlib.pyplot as plt
 
@@ -32,7 +38,7 @@ def plot_steps(diag, path):
     return save_figure(fig, path)
 
 
-def plot_breakdown(diag, path):
+def plot_breakdown(diag: Diagnosis, path: str | Path) -> Path:
     """Mean residual by each breakdown key, before and after; returns the path."""
     import matplotlib.pyplot as plt
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -20,6 +22,14 @@ from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
 from metrology.diagnosis.window import window_sums
 
+if TYPE_CHECKING:
+    from doedesign.camera import Camera
+    from doedesign.design import Design
+    from doedesign.materials import Material
+    from metrology.diagnosis.effects import Effect
+    from metrology.diagnosis.engine import Diagnosis
+    from metrology.diagnosis.noise import NoiseEstimate
+
 log = logging.getLogger(__name__)
 
 # Windows larger than twice this square (pixels per side) screen candidates on a crop of it.
@@ -28,6 +38,9 @@ SCREEN_WINDOW_PX = 128
 RESULT_CACHE_BYTES = 512 * 2 ** 20
 
 __all__ = ["PsfProblem", "PsfRenderer", "diagnose_psf", "psf_forward"]
+
+# render(height_m, wavelengths_m, depth_m) -> (views, wavelengths, rows, cols) stack.
+RenderFn = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
 
 class PsfRenderer:
@@ -40,7 +53,8 @@ class PsfRenderer:
     the views ``("coded", "uncoded")``.
     """
 
-    def __init__(self, camera, pitch_m, shape, material="fused_silica", doe_oversample=1, cache_size=4):
+    def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
+                 material: str | Material = "fused_silica", doe_oversample: int = 1, cache_size: int = 4) -> None:
         self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
         self.material, self.q = material, int(doe_oversample)
         self._engines = {}
@@ -69,7 +83,8 @@ class PsfRenderer:
         return out
 
 
-def psf_forward(model, effects, render, height_m, wavelengths_m, depth_m, views):
+def psf_forward(model: dict[str, np.ndarray], effects: dict[str, Effect], render: RenderFn, height_m: np.ndarray,
+                wavelengths_m: Sequence[float] | np.ndarray, depth_m: float, views: Sequence[str]) -> np.ndarray:
     """Model PSF stack of the measured ``views`` with the effects of ``model`` applied.
 
     Each (view, wavelength) channel is normalized to unit sum over the window, as the measured
@@ -134,9 +149,11 @@ class PsfProblem(Problem):
 
     units = "fraction of the channel's light per pixel"
 
-    def __init__(self, design_height_m, pitch_m, camera, measured, views, wavelengths_m, depth_m, effects,
-                 material="fused_silica", doe_oversample=1, renderer=None, screen_window_px=SCREEN_WINDOW_PX,
-                 noise=None):
+    def __init__(self, design_height_m: np.ndarray, pitch_m: float, camera: Camera, measured: np.ndarray,
+                 views: Sequence[str], wavelengths_m: Sequence[float] | np.ndarray, depth_m: float,
+                 effects: Sequence[Effect], material: str | Material = "fused_silica", doe_oversample: int = 1,
+                 renderer: RenderFn | None = None,
+                 screen_window_px: int | None = SCREEN_WINDOW_PX, noise: NoiseEstimate | None = None) -> None:
         meas = np.asarray(measured, dtype=float)
         self.views = tuple(views)
         self.wavelengths_m = np.asarray(wavelengths_m, dtype=float)
@@ -192,7 +209,7 @@ class PsfProblem(Problem):
                           self.wavelengths_m, self.depth_m, self._effect_list, self.material, self.doe_oversample,
                           noise=self.noise)
 
-    def stack(self, model):
+    def stack(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return psf_forward(model, self.effects, self.render, self.height_m, self.wavelengths_m, self.depth_m,
                            self.views)
 
@@ -204,10 +221,10 @@ class PsfProblem(Problem):
         scale = (m * p).sum(axis=(-2, -1), keepdims=True) / (p * p).sum(axis=(-2, -1), keepdims=True)
         return np.where(self.valid, m - scale * p, np.nan)
 
-    def residual(self, model):
+    def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self._residual_stack(model)[self.valid]
 
-    def residual_map(self, model):
+    def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return _mosaic(self._residual_stack(model))
 
     def _radius(self):
@@ -215,7 +232,7 @@ class PsfProblem(Problem):
         yy, xx = np.mgrid[:rows, :cols]
         return np.hypot(yy - self.axis_pixel[0], xx - self.axis_pixel[1])
 
-    def structure_groups(self):
+    def structure_groups(self) -> list[np.ndarray]:
         """Radial rings about the axis per channel, and 8 x 8 pixel tiles per channel."""
         rows, cols = self.measured.shape[-2:]
         ring = np.minimum(self._radius() // 3, 40).astype(int)
@@ -228,7 +245,7 @@ class PsfProblem(Problem):
             out.append(np.nan_to_num(_mosaic(labelled.reshape(self.measured.shape))).astype(int))
         return out
 
-    def breakdown(self, residual_map):
+    def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         """Residual by radius from the axis (pixels), by channel, and by spatial frequency."""
         nch = len(self.channels)
         rows, cols = self.measured.shape[-2:]
@@ -243,8 +260,10 @@ class PsfProblem(Problem):
         return out
 
 
-def diagnose_psf(design, camera, measured_stack, wavelengths_m, views=("coded",), depth_m=None, candidates=None,
-                 threshold=DEFAULT_THRESHOLD, max_steps=5, doe_oversample=1):
+def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
+                 wavelengths_m: Sequence[float] | np.ndarray, views: Sequence[str] = ("coded",),
+                 depth_m: float | None = None, candidates: Sequence[str] | None = None,
+                 threshold: float = DEFAULT_THRESHOLD, max_steps: int = 5, doe_oversample: int = 1) -> Diagnosis:
     """Find, name and fit the effects that explain a measured PSF stack.
 
     Parameters

@@ -8,12 +8,20 @@ top.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
 
 from metrology.diagnosis.effects import get_effect
+
+if TYPE_CHECKING:
+    from doedesign.camera import Camera
+    from doedesign.design import Design
+    from metrology.diagnosis.engine import Diagnosis
+    from metrology.diagnosis.psf import PsfRenderer
 
 __all__ = ["HEIGHT_EFFECTS", "HiddenCase", "PSF_EFFECTS", "correlated_noise", "make_height_case",
            "make_psf_case", "parameter_errors", "psf_test_setup", "random_levels"]
@@ -44,7 +52,8 @@ class HiddenCase:
     data: dict = field(default_factory=dict)
 
 
-def random_levels(shape, rng, n_levels=16, feature_px=4.0):
+def random_levels(shape: tuple[int, int], rng: np.random.Generator, n_levels: int = 16,
+                  feature_px: float = 4.0) -> np.ndarray:
     """A DOE-like level map: a smooth random phase wrapped into ``n_levels`` levels, with an
     unetched (level 0) patch so the local pattern density varies across the field."""
     field_ = ndi.gaussian_filter(rng.standard_normal(shape), feature_px, mode="wrap")
@@ -88,7 +97,7 @@ def _height_truth(name, rng):
     raise KeyError(name)
 
 
-def correlated_noise(shape, rms, corr_px, rng):
+def correlated_noise(shape: tuple[int, ...], rms: float, corr_px: float, rng: np.random.Generator) -> np.ndarray:
     """Gaussian noise of rms ``rms`` smoothed by a Gaussian of ``corr_px`` pixels."""
     n = rng.standard_normal(shape)
     if corr_px > 0:
@@ -96,7 +105,8 @@ def correlated_noise(shape, rms, corr_px, rng):
     return n * (rms / n.std())
 
 
-def make_height_case(effects, seed, shape=(48, 48), pitch_m=5.4e-6, upsample=5):
+def make_height_case(effects: Sequence[str], seed: int, shape: tuple[int, int] = (48, 48), pitch_m: float = 5.4e-6,
+                     upsample: int = 5) -> HiddenCase:
     """A measured height map of a random design with hidden ``effects``.
 
     Parameters
@@ -140,7 +150,7 @@ def make_height_case(effects, seed, shape=(48, 48), pitch_m=5.4e-6, upsample=5):
                       data={"levels": levels, "pitch_m": pitch_m, "step_m": step, "measured_height_m": h})
 
 
-def parameter_errors(case, diagnosis):
+def parameter_errors(case: HiddenCase, diagnosis: Diagnosis) -> dict[str, float]:
     """Relative error of each hidden effect's main parameters (|fit - truth| / |truth|).
 
     Returns a dict effect -> max relative error over its main parameters (inf when the effect
@@ -176,7 +186,9 @@ def _psf_truth(name, rng, n_channels):
     raise KeyError(name)
 
 
-def psf_test_setup(n_wavelengths=3, size_px=96, pitch_m=14.4e-6, window=(40, 72), axis=(20, 16)):
+def psf_test_setup(n_wavelengths: int = 3, size_px: int = 96, pitch_m: float = 14.4e-6,
+                   window: tuple[int, int] = (40, 72),
+                   axis: tuple[float, float] = (20, 16)) -> tuple[Design, Camera, np.ndarray]:
     """A small split-aperture configuration for fast PSF diagnoses.
 
     A 16-level blazed staircase of period 12 pixels (172.8 um) over a 1.38 mm square pupil
@@ -201,7 +213,10 @@ def psf_test_setup(n_wavelengths=3, size_px=96, pitch_m=14.4e-6, window=(40, 72)
     return design, camera, wavelengths
 
 
-def make_psf_case(effects, seed, n_wavelengths=3, views=("coded", "uncoded"), setup=None, renderer=None):
+def make_psf_case(effects: Sequence[str], seed: int, n_wavelengths: int = 3,
+                  views: Sequence[str] = ("coded", "uncoded"),
+                  setup: tuple[Design, Camera, np.ndarray] | None = None,
+                  renderer: PsfRenderer | None = None) -> HiddenCase:
     """A measured PSF stack with hidden PSF-domain ``effects`` and Gaussian read noise.
 
     Returns
