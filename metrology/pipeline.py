@@ -133,7 +133,7 @@ def masks_step(design: Design, design_path: Path, out: Path) -> dict:
 def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[Path, dict]:
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
-    from metrology.diagnosis.window import busiest_window
+    from metrology.matching.window import busiest_window
     from metrology.matching import compare, register
     from metrology.formats.writers import write_datx
 

@@ -17,7 +17,7 @@ from metrology.diagnosis.heights import (HeightProblem, diagnose_heights, diagno
                                          signed_edge_distance_m)
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.psf import PsfProblem, PsfRenderer, diagnose_psf, psf_forward
-from metrology.diagnosis.window import busiest_window
+from metrology.matching.window import busiest_window
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "Effect", "EffectError", "HeightProblem", "NoiseEstimate", "Parameter",
            "Problem", "PsfProblem", "PsfRenderer", "Step", "bic_eff", "binned", "busiest_window", "diagnose_heights",

@@ -28,7 +28,8 @@ from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
-                                           busiest_camera_window, robust_valid)
+                                           robust_valid)
+from metrology.matching.window import busiest_camera_window
 
 if TYPE_CHECKING:
     from doedesign.design import Design

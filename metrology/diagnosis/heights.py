@@ -17,7 +17,7 @@ from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
-from metrology.diagnosis.window import busiest_window
+from metrology.matching.window import busiest_window
 
 if TYPE_CHECKING:
     from doedesign.design import Design

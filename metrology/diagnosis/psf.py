@@ -20,7 +20,7 @@ from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
-from metrology.diagnosis.window import window_sums
+from metrology.matching.window import window_sums
 
 if TYPE_CHECKING:
     from doedesign.camera import Camera

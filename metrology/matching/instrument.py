@@ -49,8 +49,8 @@ if TYPE_CHECKING:
     from masks.process_params import ProcessParams
     from metrology.matching.register import Registration
 
-__all__ = ["FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMENT_PARAMS", "Placement", "busiest_camera_window",
-           "footprint_kernel", "levelling_basis", "robust_valid"]
+__all__ = ["FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMENT_PARAMS", "Placement", "footprint_kernel",
+           "levelling_basis", "robust_valid"]
 
 # Fine-grid spacing requested from the process model (m).
 FINE_STEP_M = 0.125e-6
@@ -262,31 +262,3 @@ def robust_valid(residual_map: np.ndarray, valid: np.ndarray, k: float = 6.0) ->
     keep = valid.copy()
     keep[valid] = np.abs(vals - med) <= k * max(mad, 1e-15)
     return keep
-
-
-def busiest_camera_window(levels: np.ndarray, placement: Placement, shape: tuple[int, int],
-                          size: int) -> tuple[int, int]:
-    """The ``size`` x ``size`` camera window (row0, col0) richest in every mask's edges.
-
-    Score: the sum over masks of ``log(1 + edges of that mask)``, so a window that misses a
-    mask's edges (and could not tell anything about that mask) loses to one holding all.
-    """
-    from masks.decompose import levels_to_masks
-
-    if size >= min(shape):
-        return 0, 0
-    r, c = placement.to_design(*np.mgrid[:shape[0], :shape[1]].astype(float))
-    ri = np.clip(np.rint(r).astype(int), 0, levels.shape[0] - 1)
-    ci = np.clip(np.rint(c).astype(int), 0, levels.shape[1] - 1)
-    n_masks = max(int(np.ceil(np.log2(max(int(levels.max()) + 1, 2)))), 1)
-    score = np.zeros(shape)
-    h = size // 2
-    for mask in levels_to_masks(levels, n_masks):
-        m = mask[ri, ci]
-        edges = np.zeros(shape)
-        edges[:, :-1] += m[:, 1:] != m[:, :-1]
-        edges[:-1, :] += m[1:, :] != m[:-1, :]
-        score += np.log1p(ndi.uniform_filter(edges, size, mode="constant") * size * size)
-    inner = score[h:shape[0] - (size - h) + 1, h:shape[1] - (size - h) + 1]
-    r0, c0 = np.unravel_index(np.argmax(inner), inner.shape)
-    return int(r0), int(c0)

@@ -30,7 +30,8 @@ from scipy import optimize
 
 from doedesign.errors import DoeError
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
-                                           busiest_camera_window, robust_valid)
+                                           robust_valid)
+from metrology.matching.window import busiest_camera_window
 
 __all__ = ["InstrumentFit", "fit_in_camera_frame"]
 

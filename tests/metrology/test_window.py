@@ -1,10 +1,10 @@
-"""Where the profilometer field and the diagnosis window go (metrology.diagnosis.window)."""
+"""Where the profilometer field and the diagnosis window go (metrology.matching.window)."""
 
 import numpy as np
 import pytest
 
 from doedesign.errors import DoeError
-from metrology.diagnosis.window import busiest_window
+from metrology.matching.window import busiest_window
 
 
 def _stripes_without_top(n=120):

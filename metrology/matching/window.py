@@ -1,19 +1,25 @@
-"""Where to look: the window of a design with the most structure.
+"""Where to look: the window with the most structure, in the design's or the camera's frame.
 
-Both the profilometer field of the demo and the window a height diagnosis fits are placed
-where the pattern has level edges (the effects show at edges and between levels) and, for the
-diagnosis, flat interiors too (the noise floor is measured there). Arrays are row-major, row 0
-at the top; windows are half-open ``(row0, row1, col0, col1)`` in design pixels.
+The profilometer field of the demo, the window a height diagnosis fits (design frame) and the
+window a camera-frame comparison or diagnosis fits are all placed where the pattern has level
+edges (the effects show at edges and between levels), scored by one edge count
+(:func:`edge_count`). Arrays are row-major, row 0 at the top; design windows are half-open
+``(row0, row1, col0, col1)`` in design pixels, camera windows their top-left camera pixel.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
 
-__all__ = ["busiest_window"]
+if TYPE_CHECKING:
+    from metrology.matching.instrument import Placement
+
+__all__ = ["busiest_camera_window", "busiest_window", "edge_count", "window_sums"]
 
 
 def busiest_window(levels: np.ndarray, size_px: int, need_flat: bool = True, inside_circle: bool = False,
@@ -44,10 +50,7 @@ def busiest_window(levels: np.ndarray, size_px: int, need_flat: bool = True, ins
     levels = np.asarray(levels)
     rows, cols = levels.shape
     h, w = min(int(size_px), rows), min(int(size_px), cols)
-    edges = np.zeros(levels.shape)
-    edges[:, :-1] += levels[:, 1:] != levels[:, :-1]
-    edges[:-1, :] += levels[1:, :] != levels[:-1, :]
-    counts = window_sums(edges, h, w)
+    counts = window_sums(edge_count(levels), h, w)
     if need_flat:
         flat = (ndi.maximum_filter(levels, size=3) == ndi.minimum_filter(levels, size=3)).astype(float)
         counts = counts * window_sums(flat, h, w)
@@ -72,7 +75,41 @@ def busiest_window(levels: np.ndarray, size_px: int, need_flat: bool = True, ins
     return (r0, r0 + h, c0, c0 + w)
 
 
-def window_sums(a, h, w):
+def window_sums(a: np.ndarray, h: int, w: int) -> np.ndarray:
     """Sum of ``a`` over every ``h x w`` window (summed-area table), indexed by the top-left pixel."""
     sat = np.pad(a.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     return sat[h:, w:] - sat[:-h, w:] - sat[h:, :-w] + sat[:-h, :-w]
+
+
+def edge_count(labels: np.ndarray) -> np.ndarray:
+    """Per pixel, how many of its right and lower neighbours carry another label (0, 1 or 2)."""
+    labels = np.asarray(labels)
+    edges = np.zeros(labels.shape)
+    edges[:, :-1] += labels[:, 1:] != labels[:, :-1]
+    edges[:-1, :] += labels[1:, :] != labels[:-1, :]
+    return edges
+
+
+def busiest_camera_window(levels: np.ndarray, placement: Placement, shape: tuple[int, int],
+                          size: int) -> tuple[int, int]:
+    """The ``size`` x ``size`` camera window (row0, col0) richest in every mask's edges.
+
+    Score: the sum over masks of ``log(1 + edges of that mask)``, so a window that misses a
+    mask's edges (and could not tell anything about that mask) loses to one holding all.
+    """
+    from masks.decompose import levels_to_masks
+
+    if size >= min(shape):
+        return 0, 0
+    r, c = placement.to_design(*np.mgrid[:shape[0], :shape[1]].astype(float))
+    ri = np.clip(np.rint(r).astype(int), 0, levels.shape[0] - 1)
+    ci = np.clip(np.rint(c).astype(int), 0, levels.shape[1] - 1)
+    n_masks = max(int(np.ceil(np.log2(max(int(levels.max()) + 1, 2)))), 1)
+    score = np.zeros(shape)
+    h = size // 2
+    for mask in levels_to_masks(levels, n_masks):
+        m = mask[ri, ci]
+        score += np.log1p(ndi.uniform_filter(edge_count(m), size, mode="constant") * size * size)
+    inner = score[h:shape[0] - (size - h) + 1, h:shape[1] - (size - h) + 1]
+    r0, c0 = np.unravel_index(np.argmax(inner), inner.shape)
+    return int(r0), int(c0)
