@@ -1,4 +1,6 @@
-"""Residual breakdown helpers: binned statistics and the radial power spectral density."""
+"""Residual breakdown: binned statistics, the radial power spectral density, and the two views
+every height problem (design frame or camera frame) shares: the structure groups the engine
+tests for unexplained structure, and the breakdown the report prints."""
 
 from __future__ import annotations
 
@@ -6,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["binned", "radial_psd"]
+__all__ = ["binned", "edge_breakdown", "radial_psd", "structure_groups"]
 
 
 def binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray | Sequence[float]) -> dict[str, list]:
@@ -38,4 +40,36 @@ def radial_psd(residual_map: np.ndarray, step_m: float) -> dict[str, list]:
     edges = np.linspace(0, 0.5 / step_m, 16)
     out = binned(spec.ravel(), f.ravel(), edges)
     out.pop("rms")
+    return out
+
+
+def structure_groups(levels: np.ndarray, any_edge_m: np.ndarray, edge_m: Sequence[np.ndarray],
+                     keep: np.ndarray) -> list[np.ndarray]:
+    """Group labels (0 = left out) in which an explained residual must average to zero.
+
+    Level x distance to the nearest edge (edge effects), level x 4 x 4 tiles of the field
+    (density and position effects), and signed distance to the edges of the two highest masks.
+    """
+    dist_bin = np.digitize(any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
+    rows, cols = keep.shape
+    tile = (np.arange(rows)[:, None] * 4 // rows) * 4 + (np.arange(cols)[None, :] * 4 // cols)
+    signed = [np.digitize(d, np.linspace(-3e-6, 3e-6, 13)) for d in edge_m]
+    maps = [levels * 8 + dist_bin, levels * 16 + tile, sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2]))]
+    return [np.where(keep, m + 1, 0) for m in maps]
+
+
+def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], levels: np.ndarray,
+                   spacing_m: float) -> dict[str, dict]:
+    """Residual by signed distance to each mask's edges, by level, by distance from the field
+    centre and by spatial frequency (``spacing_m``: the map's pixel spacing)."""
+    out = {}
+    edges_d = np.linspace(-4e-6, 4e-6, 17)
+    for j, d in enumerate(edge_m):
+        out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
+    out["level"] = binned(residual_map, np.asarray(levels, dtype=float), np.arange(-0.5, 16.5))
+    rows, cols = residual_map.shape
+    yy, xx = np.mgrid[:rows, :cols]
+    radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * spacing_m
+    out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
+    out["spatial_frequency_per_m"] = radial_psd(residual_map, spacing_m)
     return out

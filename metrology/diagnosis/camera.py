@@ -23,7 +23,7 @@ import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
 from metrology.diagnosis import engine as dg
-from metrology.diagnosis.breakdown import binned, radial_psd
+from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import estimate_noise
@@ -177,27 +177,11 @@ class CameraHeightProblem(dg.Problem):
 
     def structure_groups(self) -> list[np.ndarray]:
         """Level x edge distance, level x 4 x 4 field tiles, signed distance to two masks' edges."""
-        dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
-        rows, cols = self.keep.shape
-        tile = (np.arange(rows)[:, None] * 4 // rows) * 4 + (np.arange(cols)[None, :] * 4 // cols)
-        signed = [np.digitize(d, np.linspace(-3e-6, 3e-6, 13)) for d in self.edge_m]
-        maps = [self.cam_levels * 8 + dist_bin, self.cam_levels * 16 + tile,
-                sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2]))]
-        return [np.where(self.keep, m + 1, 0) for m in maps]
+        return structure_groups(self.cam_levels, self.any_edge_m, self.edge_m, self.keep)
 
     def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         """Residual by signed distance to each mask's edges, level, field position, frequency."""
-        out = {}
-        edges_d = np.linspace(-4e-6, 4e-6, 17)
-        for j, d in enumerate(self.edge_m):
-            out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
-        out["level"] = binned(residual_map, self.cam_levels.astype(float), np.arange(-0.5, 16.5))
-        rows, cols = residual_map.shape
-        yy, xx = np.mgrid[:rows, :cols]
-        radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * self.pixel_m
-        out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
-        out["spatial_frequency_per_m"] = radial_psd(residual_map, self.pixel_m)
-        return out
+        return edge_breakdown(residual_map, self.edge_m, self.cam_levels, self.pixel_m)
 
     def placement_report(self, model: dict[str, np.ndarray],
                          errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:

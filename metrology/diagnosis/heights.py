@@ -13,7 +13,7 @@ import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
 
-from metrology.diagnosis.breakdown import binned, radial_psd
+from metrology.diagnosis.breakdown import binned, edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
 from metrology.diagnosis.noise import estimate_noise
@@ -156,29 +156,14 @@ class HeightProblem(Problem):
     def structure_groups(self) -> list[np.ndarray]:
         """Level x distance to the nearest edge (edge effects), level x 4 x 4 tiles of the field
         (density and position effects), and signed distance to each mask's edges."""
-        dist_bin = np.digitize(self.any_edge_m, np.array([0.25, 0.5, 1.0, 1.5, 2.5, 4.0]) * 1e-6)
-        rows, cols = self.valid.shape
-        tile = (np.arange(rows)[:, None] * 4 // rows) * 4 + (np.arange(cols)[None, :] * 4 // cols)
-        signed = [np.digitize(d, np.linspace(-3e-6, 3e-6, 13)) for d in self.edge_m]
-        maps = [self.fine_levels * 8 + dist_bin, self.fine_levels * 16 + tile]
-        maps.append(sum(b * 14 ** j for j, b in enumerate(signed[::-1][:2])))
-        return [np.where(self.valid, m + 1, 0) for m in maps]
+        return structure_groups(self.fine_levels, self.any_edge_m, self.edge_m, self.valid)
 
     def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         """Residual by signed distance to each mask's edges, level, density, position, frequency."""
-        out = {}
-        edges_d = np.linspace(-4e-6, 4e-6, 17)
-        for j, d in enumerate(self.edge_m):
-            out[f"edge_distance_mask{j}_m"] = binned(residual_map, d, edges_d)
-        out["level"] = binned(residual_map, self.fine_levels.astype(float), np.arange(-0.5, 16.5))
+        out = edge_breakdown(residual_map, self.edge_m, self.fine_levels, self.step_m)
         sigma_px = 50e-6 / self.step_m
         density = ndi.gaussian_filter(self.fine_masks.mean(axis=0).astype(float), sigma_px, mode="reflect")
         out["pattern_density"] = binned(residual_map, density, np.linspace(0, 1, 11))
-        rows, cols = residual_map.shape
-        yy, xx = np.mgrid[:rows, :cols]
-        radius = np.hypot(yy - (rows - 1) / 2, xx - (cols - 1) / 2) * self.step_m
-        out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
-        out["spatial_frequency_per_m"] = radial_psd(residual_map, self.step_m)
         return out
 
 
