@@ -85,8 +85,19 @@ def estimate_noise(values: np.ndarray, groups: np.ndarray, max_lag: int = MAX_LA
 
 def _correlation_area(dev, valid, groups, max_lag):
     """Sum of the autocorrelation of ``dev`` over lags up to ``max_lag`` (pairs within a group)."""
-    var = np.mean(dev[valid] ** 2)
-    clip = np.where(valid & (np.abs(dev) < 5 * np.sqrt(var)), dev, 0.0)
+    # Clip at 5 robust sigmas: a few spikes or edge pixels left in the interiors would
+    # otherwise set both the clip level and the autocorrelation, and inflate the area.
+    d = dev[valid]
+    sigma = 1.4826 * np.median(np.abs(d - np.median(d)))
+    if not sigma > 0:
+        sigma = float(np.sqrt(np.mean(d ** 2)))
+    ok = valid & (np.abs(dev) < 5 * sigma)
+    # Re-centre each group on its kept pixels: the outliers also moved the group's mean, and
+    # that offset would correlate at every lag.
+    lab = groups[ok]
+    centre = np.bincount(lab, weights=dev[ok]) / np.maximum(np.bincount(lab), 1)
+    clip = np.zeros(dev.shape)
+    clip[ok] = dev[ok] - centre[lab]
     ref = np.mean(clip[valid] ** 2)
     rows, cols = dev.shape
     area = 0.0
