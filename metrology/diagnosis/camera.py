@@ -26,7 +26,7 @@ from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
-from metrology.diagnosis.noise import estimate_noise
+from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
                                            robust_valid)
 from metrology.matching.window import busiest_camera_window
@@ -81,6 +81,9 @@ class CameraHeightProblem(dg.Problem):
         Also project out a curvature term in the levelling.
     keep : ndarray of bool, optional
         Pixels compared (default: the finite ones).
+    noise : NoiseEstimate, optional
+        The measurement's noise floor, when already estimated on a better model's residual
+        (default: estimated here on the residual against ``base_params``).
     """
 
     units = "m"
@@ -88,7 +91,8 @@ class CameraHeightProblem(dg.Problem):
 
     def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
-                 curvature: bool = False, keep: np.ndarray | None = None) -> None:
+                 curvature: bool = False, keep: np.ndarray | None = None,
+                 noise: NoiseEstimate | None = None) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -122,6 +126,9 @@ class CameraHeightProblem(dg.Problem):
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
         flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
         groups, _ = ndi.label(flat & (self.cam_levels >= 0))
+        if noise is not None:
+            self.noise = noise
+            return
         first = self.measured - self.render({CAMERA.name: CAMERA.start_values()})
         levelled = np.full(first.shape, np.nan)
         levelled[self.keep] = self.leveller(first[self.keep])
@@ -244,7 +251,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
     diag = problem = None
     for _ in range(3):
-        problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep)
+        # The floor is the measurement's: estimated once, on the screening model's residual
+        # (the comparison's fitted process when given), not on the ideal element's, whose
+        # process errors would leak into the interiors and raise it.
+        problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
+                                      noise=first.noise)
         diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height")
         new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
                                 - _plane(problem, crop, diag.model), np.isfinite(crop))
