@@ -29,3 +29,18 @@ def test_ring_radius():
     rr, cc = np.meshgrid(np.arange(64) - 32, np.arange(64) - 30, indexing="ij")
     ring = np.exp(-((np.hypot(rr, cc) - 12.0) ** 2) / 2)
     assert ring_radius_px(ring, (32, 30)) == 12
+
+
+def test_seed_elements_report_each_figure_beside_its_bound():
+    from doedesign.elements import design_seed_elements
+
+    out = design_seed_elements(size_px=32, iterations=2)
+    streak, hyper, depth = out["elements"]
+    assert [e["element"] for e in out["elements"]] == ["hdr-streak", "hyperspectral", "depth"]
+    assert 0 < streak["value"] <= streak["envelope_bound"] == 1.0
+    np.testing.assert_allclose(hyper["staircase_limit"], staircase_first_order(np.array(hyper["wavelengths_nm"]) * 1e-9))
+    np.testing.assert_allclose(hyper["bound"], np.multiply(hyper["staircase_limit"], hyper["spot_on_order"]))
+    np.testing.assert_allclose(hyper["fraction_of_bound"], np.divide(hyper["value"], hyper["bound"]))
+    # The seed's schedule: 25 - 5 d px at 1, 2, 3, 4 m.
+    assert depth["target_radius_px"] == [20, 15, 10, 5] and len(depth["radius_px"]) == 4
+    assert all(e["cpu_time_s"] > 0 for e in out["elements"]) and out["cpu_time_s"] > 0
