@@ -12,8 +12,9 @@ log = logging.getLogger(__name__)
 
 __all__ = ["ELEMENTS_ITERATIONS", "ELEMENTS_PX", "cmd_demo", "register", "seed_elements"]
 
-# --all designs the three elements at this DOE size (5.4 um pixels); --quick at 48 px.
-ELEMENTS_PX, ELEMENTS_ITERATIONS = 160, 30
+# --all designs the three elements at this DOE size (5.4 um pixels, a spot twice the camera's;
+# about 160 s of CPU); --quick at 48 px.
+ELEMENTS_PX, ELEMENTS_ITERATIONS = 800, 30
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
