@@ -36,7 +36,6 @@ it does not depend on which worker or scheduler computes it.
 
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -47,6 +46,7 @@ from scipy import stats
 from doedesign.errors import DoeError
 
 from ..process import ProcessParams
+from ..process_params import finite_float
 
 __all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "build_spec", "default_spec", "load_spec",
            "meets", "nominal_process", "parse_threshold", "sample_seed", "spec_from_compare"]
@@ -322,12 +322,7 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
         if base not in DISTRIBUTIONS[dist] or unit not in units:
             allowed = [f"{b}_{u}" if u else b for b in DISTRIBUTIONS[dist] for u in units]
             raise DoeError(f"{source}: {where}: unknown key {key!r} for dist {dist!r}; use {', '.join(allowed)}")
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise DoeError(f"{source}: {where}: {key} must be a number, got {value!r}") from None
-        if not math.isfinite(value):
-            raise DoeError(f"{source}: {where}: {key} must be finite")
+        value = finite_float(value, f"{source}: {where}: {key}")
         if base in got:
             raise DoeError(f"{source}: {where}: give {base} once (in one unit), got {sorted(values)}")
         factor = units[unit] if units[unit] is not None else nominal_depth_m

@@ -59,6 +59,10 @@ def test_spec_errors_name_the_problem():
         build_spec({"etch_depth": {"sigma_nm": 2, "sigma_rel": 0.01}}, DEPTHS, "p.toml")
     with pytest.raises(DoeError, match="unknown key 'sigma_mm'"):
         build_spec({"mask_overlay": {"sigma_mm": 0.2}}, DEPTHS, "p.toml")
+    with pytest.raises(DoeError, match=r"^p.toml: \[etch_depth\] mask 0: sigma_nm must be a number, got 'two'$"):
+        build_spec({"etch_depth": {"sigma_nm": "two"}}, DEPTHS, "p.toml")
+    with pytest.raises(DoeError, match=r"^p.toml: \[roughness\]: sigma_nm must be finite, got inf$"):
+        build_spec({"roughness": {"sigma_nm": float("inf")}}, DEPTHS, "p.toml")
 
 
 def test_spec_units_and_per_mask_override():
