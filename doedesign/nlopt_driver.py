@@ -3,7 +3,13 @@
 Every stage of :func:`doedesign.optimize.design_doe` (continuous, reweighting, multi-start,
 annealing) runs through :func:`minimize`. The evaluation budget is enforced inside the objective,
 because nlopt's L-BFGS can evaluate past ``maxeval``; round-off and nlopt's generic failures keep
-the best point evaluated instead of raising.
+the best point evaluated instead of raising, except a failure before any step (the start returned
+unoptimized), which raises.
+
+nlopt's LD_LBFGS (Luksan's PLIS) computes ``-999 * n`` in a C ``int`` before its first step
+(nlopt issue #632, open in 2.11): above :data:`LBFGS_MAX_VARIABLES` free variables it overflows,
+and every run fails after the first evaluation. :func:`choose_algorithm` runs those sizes with
+LD_MMA instead (the paper setting's 4500 px DOE has about 7.9 million free heights).
 """
 
 from __future__ import annotations
@@ -17,14 +23,31 @@ from numpy.typing import ArrayLike
 from .errors import DoeError
 from .progress import Progress
 
-__all__ = ["ALGORITHMS", "StageCallback", "minimize"]
+__all__ = ["ALGORITHMS", "LARGE_ALGORITHM", "LBFGS_MAX_VARIABLES", "StageCallback", "choose_algorithm", "minimize"]
 
 log = logging.getLogger(__name__)
 
 # Gradient algorithms of nlopt that take bounds.
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
+# The largest n for which PLIS's int product 999 * n does not overflow (2,149,633).
+LBFGS_MAX_VARIABLES = (2**31 - 1) // 999
+# What runs LD_LBFGS's problems above that size: bounded, gradient-based, no O(n * m) int products.
+LARGE_ALGORITHM = "LD_MMA"
 # callback(evaluation, loss, height_m); True stops the stage.
 StageCallback = Callable[[int, float, np.ndarray], bool | None]
+
+
+def choose_algorithm(algorithm: str, n: int) -> str:
+    """The nlopt algorithm that can run ``algorithm``'s problem with ``n`` variables.
+
+    LD_LBFGS above :data:`LBFGS_MAX_VARIABLES` becomes :data:`LARGE_ALGORITHM` (logged);
+    everything else is returned unchanged.
+    """
+    if algorithm == "LD_LBFGS" and n > LBFGS_MAX_VARIABLES:
+        log.info("%d free variables exceed nlopt LD_LBFGS's limit of %d (an int overflow, nlopt issue #632): "
+                 "running %s instead", n, LBFGS_MAX_VARIABLES, LARGE_ALGORITHM)
+        return LARGE_ALGORITHM
+    return algorithm
 
 
 def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarray, lower: ArrayLike,
@@ -35,6 +58,9 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
 
     Parameters
     ----------
+    algorithm : str
+        An nlopt gradient algorithm; LD_LBFGS above its size limit runs as LD_MMA
+        (:func:`choose_algorithm`).
     callback : callable, optional
         ``callback(evaluation, value, x)``; returning True stops the run.
 
@@ -47,6 +73,7 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
 
     shape = x0.shape
     n = x0.size
+    algorithm = choose_algorithm(algorithm, n)
     opt = nlopt.opt(getattr(nlopt, algorithm), n)
     lo = np.broadcast_to(np.asarray(lower, float), shape).ravel()
     hi = np.broadcast_to(np.asarray(upper, float), shape).ravel()
@@ -88,8 +115,10 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
             log.info("%s: stopped by the callback or the evaluation budget", desc)
         except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
             # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
-            if not history:
-                raise DoeError(f"{desc}: nlopt failed before the first evaluation ({exc})") from None
+            if len(history) <= 1:
+                # No step was taken: returning the start would pass an unoptimized design as a result.
+                raise DoeError(f"{desc}: nlopt {algorithm} failed after {len(history)} evaluation(s) with {n} "
+                               f"variables, before any step ({exc})") from None
             log.warning("%s: nlopt stopped with a failure after %d evaluations; keeping the best point",
                         desc, len(history))
         result = opt.last_optimize_result()
