@@ -43,6 +43,30 @@ def test_small_quadratic_converges():
     assert history[-1] == pytest.approx(f_min, abs=1e-9)
 
 
+def test_switched_run_scales_a_small_objective(monkeypatch):
+    # Gains per variable of ~1e-9 (like heights in metres): plain MMA's curvature bound (>= 1e-5)
+    # swamps them; the switched run scales the objective and reaches the closed-form minimum.
+    import doedesign.nlopt_driver as driver
+
+    fun, x_min, f_min = separable_quadratic(2000)
+    calls = []
+
+    def tiny(x):
+        calls.append(1)
+        value, g = fun(x)
+        return 1e-9 * value, 1e-9 * g
+
+    x_plain, _ = minimize(tiny, np.zeros(2000), -1.0, 1.0, "LD_MMA", max_iter=40, ftol_rel=0)
+    assert np.abs(x_plain - x_min).max() > 0.1
+    monkeypatch.setattr(driver, "LBFGS_MAX_VARIABLES", 100)
+    calls.clear()
+    x, history = minimize(tiny, np.zeros(2000), -1.0, 1.0, "LD_LBFGS", max_iter=40, ftol_rel=0)
+    assert np.abs(x - x_min).max() < 1e-4
+    assert history[-1] == pytest.approx(1e-9 * f_min, rel=1e-6)
+    # The start, evaluated for the scale, is not evaluated again.
+    assert len(history) == len(calls) <= 40
+
+
 def test_failure_before_any_step_raises():
     # An infinite gradient makes nlopt's L-BFGS fail after its first evaluation: the start must
     # not come back as if it were a result.
