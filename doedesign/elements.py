@@ -9,7 +9,12 @@
   depth of one period in waves at that band (``a = 1`` at the design wavelength, where it is
   ``sinc^2(1/16) = 0.9872``), times the light of a spot on the order's pixels.
 - Depth: the ring radius per depth (the radius holding most light, from the azimuthal sum about
-  the axis) against the target radius schedule (seed: 25 - 5 d px).
+  the axis) against a ring schedule the optics can reach (:func:`geometric_ring_radius_px`).
+  The seed's schedule, 25 - 5 d px, cannot be reached: defocus moves the ray from pupil radius
+  ``rho`` by ``rho s (1/d - 1/d_f)`` on the sensor (``s`` the sensor distance, ``d_f`` the focus),
+  affine in 1/d, at most 1.7 px between 3 and 4 m at 800 px (3.3 px at 1600 px) where the seed
+  asks 5. The design starts from an axicon (:func:`axicon_ring_start`), whose ring radius
+  follows that geometry; from the lens start the L1 design formed no rings (8 / 1 / 1 / 1 px).
 
 Sizes are reduced (``size_px`` DOE pixels of 5.4 um, so the spot is ``1600 / size_px`` times the
 camera's; ``doe demo --all`` uses 800 px, a spot twice the camera's, where the arms, orders and
@@ -33,8 +38,9 @@ from .levels import N_LEVELS
 from .materials import get_material
 from .optimize import OptimizerSettings, design_doe
 
-__all__ = ["AXIS", "PITCH_M", "WINDOW", "cylinder_streak_start", "depth_element", "design_seed_elements", "hyperspectral_element",
-           "ring_radius_px", "staircase_first_order", "streak_element"]
+__all__ = ["AXIS", "PITCH_M", "RING_R0_PX", "RING_ZONE", "WINDOW", "axicon_ring_start", "cylinder_streak_start",
+           "depth_element", "design_seed_elements", "geometric_ring_radius_px", "hyperspectral_element",
+           "mean_ring_radius_px", "ring_radius_px", "staircase_first_order", "streak_element"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +49,10 @@ PITCH_M = 5.4e-6
 # the rings (<= 25 px) about its centre, at a seventh of the full window's cost.
 WINDOW = (192, 192)
 AXIS = (96, 96)
+# The depth element's ring: radius at the focus depth, and the pupil zone (fraction of the pupil
+# radius) whose defocus sets the schedule: 2/3 is the light-weighted mean over the half disk.
+RING_R0_PX = 10.0
+RING_ZONE = 2.0 / 3.0
 
 
 def staircase_first_order(wavelengths_m: ArrayLike, material: str = "fused_silica",
@@ -63,6 +73,43 @@ def ring_radius_px(psf: np.ndarray, axis_pixel: tuple[int, int]) -> int:
     r = np.rint(np.hypot(rr, cc)).astype(int)
     sums = np.bincount(r.ravel(), weights=psf.ravel())
     return int(np.argmax(sums))
+
+
+def mean_ring_radius_px(psf: np.ndarray, axis_pixel: tuple[int, int]) -> float:
+    """Light-weighted mean distance (px) of the PSF from the axis pixel."""
+    rows, cols = psf.shape
+    rr, cc = np.meshgrid(np.arange(rows) - axis_pixel[0], np.arange(cols) - axis_pixel[1], indexing="ij")
+    return float(np.sum(np.hypot(rr, cc) * psf) / np.sum(psf))
+
+
+def geometric_ring_radius_px(camera: Camera, size_px: int, depths_m: ArrayLike, r0_px: float = RING_R0_PX,
+                             zone: float = RING_ZONE) -> np.ndarray:
+    """Ring radius (px) of an axicon of in-focus radius ``r0_px`` at each depth, by ray optics.
+
+    The ray through pupil radius ``rho`` lands ``rho s (1/d - 1/d_f)`` further out than in
+    focus (``s`` the sensor distance, ``d_f`` the focus distance; exact for a thin lens), so
+    the light of the zone ``rho = zone * D / 2`` (``D = size_px * 5.4 um``) lies at
+    ``r0 + zone (D / 2) (s / p) (1/d - 1/d_f)`` pixels of pitch ``p``.
+    """
+    d = np.asarray(depths_m, dtype=float)
+    rim_px = size_px * PITCH_M / 2 * camera.sensor_distance_m / camera.pixel_pitch_m
+    return r0_px + zone * rim_px * (1.0 / d - 1.0 / camera.focus_distance_m)
+
+
+def axicon_ring_start(camera: Camera, size_px: int, r0_px: float = RING_R0_PX, material: str = "fused_silica",
+                      design_wavelength_m: float = 550e-9) -> np.ndarray:
+    """An axicon about the optical axis that puts an in-focus ring of radius ``r0_px`` on the sensor.
+
+    The phase ``2 pi theta rho / lambda`` deflects every ray outward by ``theta = r0 p / s``;
+    heights wrapped into one wave at the design wavelength (z up, etched negative).
+    """
+    mat = get_material(material)
+    x = (np.arange(size_px) - (size_px - 1) / 2) * PITCH_M
+    rho = np.hypot(*np.meshgrid(x, x, indexing="ij"))
+    theta = r0_px * camera.pixel_pitch_m / camera.sensor_distance_m
+    phase = 2 * np.pi * theta * rho / design_wavelength_m
+    h2pi = mat.height_2pi_m(design_wavelength_m)
+    return -np.mod(-phase / (2 * np.pi) * h2pi, h2pi)
 
 
 def _run(target, camera, size_px, settings, init_height_m=None):
@@ -132,14 +179,17 @@ def depth_element(size_px: int = 160, iterations: int = 30, depths_m: ArrayLike 
     from .psf import PSFEngine
 
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, focus_distance_m=3.5, window_shape=WINDOW, axis_pixel=AXIS)
-    target = targets.depth_ring(cam, depths_m=depths_m)
-    run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="lens"))
+    radii = geometric_ring_radius_px(cam, size_px, depths_m)
+    target = targets.depth_ring(cam, depths_m=depths_m, radii_px=radii)
+    run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4),
+               axicon_ring_start(cam, size_px))
     engine = PSFEngine(cam, PITCH_M, (size_px, size_px), wavelengths_m=target.wavelengths_m, depths_m=target.depths_m)
     psf = engine.psf(run.design.height_m, views=("coded",)).psf[0]
     measured = [ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
-    wanted = [ring_radius_px(target.intensity[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
+    mean = [mean_ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
     return {"element": "depth", "figure_of_merit": "ring radius (px) per depth (quantized)",
-            "depths_m": list(depths_m), "radius_px": measured, "target_radius_px": wanted,
+            "depths_m": list(depths_m), "radius_px": measured, "mean_radius_px": mean,
+            "target_radius_px": radii.tolist(), "seed_radius_px": targets.seed_ring_radius_px(depths_m).tolist(),
             "energy_on_ring": run.report["quantized"]["energy_on_target"], **_times(run)}
 
 

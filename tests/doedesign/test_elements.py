@@ -41,8 +41,11 @@ def test_seed_elements_report_each_figure_beside_its_bound():
     np.testing.assert_allclose(hyper["staircase_limit"], staircase_first_order(np.array(hyper["wavelengths_nm"]) * 1e-9))
     np.testing.assert_allclose(hyper["bound"], np.multiply(hyper["staircase_limit"], hyper["spot_on_order"]))
     np.testing.assert_allclose(hyper["fraction_of_bound"], np.divide(hyper["value"], hyper["bound"]))
-    # The seed's schedule: 25 - 5 d px at 1, 2, 3, 4 m.
-    assert depth["target_radius_px"] == [20, 15, 10, 5] and len(depth["radius_px"]) == 4
+    # The reachable schedule: 10 px in focus (3.5 m) plus the 2/3-pupil zone's defocus shift, the
+    # rim of the 32 px pupil shifting 32 * 0.025 = 0.8 px per 1/m; the seed's 25 - 5 d beside it.
+    wanted = 10 + 2 / 3 * 0.8 * (1 / np.array([1.0, 2.0, 3.0, 4.0]) - 1 / 3.5)
+    np.testing.assert_allclose(depth["target_radius_px"], wanted, rtol=1e-12)
+    assert depth["seed_radius_px"] == [20, 15, 10, 5] and len(depth["radius_px"]) == len(depth["mean_radius_px"]) == 4
     assert all(e["cpu_time_s"] > 0 for e in out["elements"]) and out["cpu_time_s"] > 0
 
 
@@ -64,3 +67,27 @@ def test_cylinder_streak_start_spreads_each_half_over_one_arm():
         assert band.sum() == pytest.approx(0.5, abs=0.03)
         assert band[d <= arm].sum() / band.sum() > 0.93
         assert 0.5 < band[d <= arm // 2].sum() / band.sum() < 0.75
+
+
+def test_axicon_ring_follows_the_ray_optics_radius():
+    # Ray optics: the ray through pupil radius rho lands rho s (1/d - 1/d_f) further out than the
+    # in-focus ring r0; over the half disk the light-weighted mean rho is 2/3 of the rim, whose
+    # shift at 800 px is 800 * 5.4 um / 2 * 50 mm / 5.4 um = 20 px per 1/m. Wave optics adds the
+    # in-focus spot's own spread (about 0.6 px): 1 px tolerance.
+    from doedesign import elements
+    from doedesign.camera import Camera
+    from doedesign.psf import PSFEngine
+
+    n, depths = 800, np.array([1.0, 2.0, 3.0, 4.0])
+    cam = Camera(aperture_diameter_m=n * elements.PITCH_M, focus_distance_m=3.5, window_shape=elements.WINDOW,
+                 axis_pixel=elements.AXIS)
+    h = elements.axicon_ring_start(cam, n, r0_px=10.0)
+    psf = PSFEngine(cam, elements.PITCH_M, (n, n), wavelengths_m=[550e-9], depths_m=depths).psf(
+        h, views=("coded",)).psf[0, :, 0]
+    geometric = 10.0 + 2 / 3 * 20.0 * (1 / depths - 1 / 3.5)
+    np.testing.assert_allclose(elements.geometric_ring_radius_px(cam, n, depths), geometric, rtol=1e-12)
+    mean = [elements.mean_ring_radius_px(p, cam.axis_pixel) for p in psf]
+    np.testing.assert_allclose(mean, geometric, atol=1.0)
+    # The radius moves with depth as the geometry says: 9.5 px from 1 to 4 m, against the 15 px the
+    # seed's 25 - 5 d asks (out of reach: at most the rim's 14.3 px).
+    assert mean[0] - mean[3] == pytest.approx(geometric[0] - geometric[3], abs=1.0)
