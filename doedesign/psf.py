@@ -20,38 +20,37 @@ and normalized to all the light through the view's half-aperture: ``energy_in_wi
 what the window holds, nothing is renormalized.
 
 Cost per view and wavelength: one FFT autocorrelation on a (2N)^2 grid and a matrix
-Fourier transform from the lag grid to the window's pixel centres (Hermitian half only).
+Fourier transform from the lag grid to the window's pixel centres (Hermitian half only); those
+transforms live in :mod:`doedesign.psf_lags`, the result container in :mod:`doedesign.psf_result`
+(re-exported here).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.fft as sfft
 from numpy.typing import ArrayLike
 
 from .camera import Camera
 from .errors import DoeError, SamplingError
-from .fileio import dumps_json, read_npz, write_npz
 from .materials import get_material
+from .psf_lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
 from .psf_reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
+from .psf_result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
 
 if TYPE_CHECKING:
     from .design import Design
     from .materials import Material
     from .progress import Progress
 
-__all__ = ["KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "PSFEngine", "PSFResult", "VIEWS",
+__all__ = ["KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS", "PSFEngine", "PSFResult", "VIEWS",
            "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
 
 log = logging.getLogger(__name__)
 
-VIEWS = ("coded", "uncoded")
 # Kernel pairs kept per engine (each about 26 MB for the seed camera): enough for an
 # optimization over a few wavelengths, bounded for 31-band stacks.
 KERNEL_CACHE_SIZE = 8
@@ -59,68 +58,6 @@ KERNEL_CACHE_SIZE = 8
 # sampling of the smooth spherical term is refused, and before it is warned about.
 MAX_DEFOCUS_STEP_RAD = np.pi / 2
 WARN_DEFOCUS_STEP_RAD = np.pi / 4
-
-
-@dataclass
-class PSFResult:
-    """PSFs of both views on the sensor window.
-
-    Attributes
-    ----------
-    psf : ndarray (views, depths, wavelengths, rows, cols)
-        Fraction of the light through each view's half-aperture falling in each sensor pixel.
-        Row 0 is the top of the window; the axis is at ``axis_pixel``.
-    energy_in_window : ndarray (views, depths, wavelengths)
-        ``psf.sum((-2, -1))``: the part of that light the window holds.
-    """
-
-    psf: np.ndarray
-    views: tuple
-    wavelengths_m: np.ndarray
-    depths_m: np.ndarray
-    pixel_pitch_m: float
-    axis_pixel: tuple = (256, 256)
-    sampling: dict = field(default_factory=dict)
-
-    @property
-    def energy_in_window(self) -> np.ndarray:
-        return self.psf.sum(axis=(-2, -1))
-
-    def view(self, name: str) -> np.ndarray:
-        """The PSF of one view, shaped (depths, wavelengths, rows, cols)."""
-        return self.psf[list(self.views).index(name)]
-
-    def polychromatic(self, weights: ArrayLike) -> np.ndarray:
-        """Spectrally weighted PSF (views, depths, rows, cols); weights are normalized to sum 1."""
-        w = np.asarray(weights, dtype=float)
-        if w.shape != (len(self.wavelengths_m),) or np.any(w < 0) or w.sum() <= 0:
-            raise DoeError(f"spectral weights must be {len(self.wavelengths_m)} non-negative numbers, not all zero")
-        return np.tensordot(self.psf, w / w.sum(), axes=([2], [0]))
-
-    def save(self, path: str | Path) -> Path:
-        """Write the PSF ``.npz`` (fields documented in the README)."""
-        return write_npz(
-            path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
-            depths_m=np.asarray(self.depths_m), pixel_pitch_m=np.float64(self.pixel_pitch_m),
-            energy_in_window=self.energy_in_window, axis_pixel=np.asarray(self.axis_pixel),
-            sampling=np.str_(dumps_json(self.sampling, indent=None)))
-
-    @classmethod
-    def load(cls, path: str | Path) -> PSFResult:
-        """Read a PSF ``.npz`` written by :meth:`save`."""
-        path = Path(path)
-        data = read_psf_arrays(path, ("psf", "views", "wavelengths_m", "depths_m", "pixel_pitch_m"))
-        psf = data["psf"]
-        if psf.ndim != 5:
-            raise DoeError(f"{path}: psf must be (views, depths, wavelengths, rows, cols), got shape {psf.shape}")
-        return cls(psf=psf, views=tuple(str(v) for v in data["views"]), wavelengths_m=data["wavelengths_m"],
-                   depths_m=data["depths_m"], pixel_pitch_m=float(data["pixel_pitch_m"]),
-                   axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))))
-
-
-def read_psf_arrays(path: str | Path, required: Iterable[str], what: str = "PSF file") -> dict[str, np.ndarray]:
-    """All arrays of a PSF ``.npz`` after checking the ``required`` fields; errors name the file."""
-    return read_npz(path, required, what)
 
 
 class PSFEngine:
@@ -293,28 +230,12 @@ class PSFEngine:
         self._kernel_cache[key] = out
         return out
 
-    def _axis_nodes(self, n_pix, axis, max_lag, lz):
-        """Sensor pixel centres along one axis and the Gauss-Legendre rule within a pixel.
 
-        Nodes enough for the fastest fringe across one pixel (phase span up to
-        ``2 pi |k| f a`` for lag ``k``); the one rule of both the full window and the pixel reads.
-        """
-        pix = self.camera.pixel_pitch_m
-        centres = (np.arange(n_pix) - axis) * pix
-        span = 2 * np.pi * max_lag * (self.step_m / lz) * pix
-        nodes, weights = np.polynomial.legendre.leggauss(int(np.ceil(span / 2)) + 8)
-        return centres, nodes * pix / 2, weights * pix / 2
+    def _axis_nodes(self, n_pix, axis, max_lag, lz):
+        return axis_nodes(n_pix, axis, self.camera.pixel_pitch_m, max_lag, self.step_m / lz)
 
     def _axis_kernel(self, n_pix, axis, lags, lz):
-        centres, u, w = self._axis_nodes(n_pix, axis, np.abs(lags).max(), lz)
-        freq = self.step_m / lz  # fringe frequency per lag (cycles per metre on the sensor)
-        env = np.sinc(freq * (centres[:, None] + u[None, :])) ** 2 * w
-        within = np.exp(-2j * np.pi * freq * np.outer(u, lags))
-        return np.exp(-2j * np.pi * freq * np.outer(centres, lags)) * (env @ within)
-
-    @staticmethod
-    def _fft_shape(t):
-        return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
+        return axis_kernel(n_pix, axis, self.camera.pixel_pitch_m, lags, self.step_m / lz)
 
     def _forward_kernels(self, view, wavelength, dtype):
         """Real and imaginary parts of the per-axis kernels for :meth:`_view_psf`'s folded transform.
@@ -342,38 +263,9 @@ class PSFEngine:
             self._kernel_cache.pop(next(iter(self._kernel_cache)))
         self._kernel_cache[key] = value
 
-    def _paired_lags(self, t):
-        """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
-
-        Returns ``(S, D)``, shaped (2, a, b) each as (real, imaginary) planes, with
-        ``S[ky] = C[ky] + C[-ky]`` and ``D[ky] = C[ky] - C[-ky]`` for ky = 0..a-1. Because
-        ``C[-ky, kx]`` meets ``conj(K_y)``, the row transform of the pair is ``Re K_y S + i Im K_y D``:
-        real-by-complex products, half the work of the complex ones.
-        """
-        a, b = t.shape
-        ly, lx = self._fft_shape(t)
-        spec = sfft.fft(t, n=lx, axis=1, workers=-1)
-        spec = sfft.fft(spec, n=ly, axis=0, workers=-1, overwrite_x=True)
-        planes = spec.view(spec.real.dtype)
-        np.square(planes, out=planes)
-        power = planes[:, 0::2] + planes[:, 1::2]
-        del spec, planes
-        # C[k] = conj(R[k]) / N: the conjugate is taken below by the sign of the imaginary planes.
-        r = sfft.rfft2(power, workers=-1)
-        del power
-        plus = r[:a, :b]
-        minus = r[(-np.arange(a)) % ly, :b]
-        s = np.empty((2, a, b), dtype=t.real.dtype)
-        d = np.empty_like(s)
-        np.add(plus.real, minus.real, out=s[0])
-        np.add(plus.imag, minus.imag, out=s[1])
-        np.negative(s[1], out=s[1])
-        np.subtract(plus.real, minus.real, out=d[0])
-        np.subtract(minus.imag, plus.imag, out=d[1])
-        return s, d, ly * lx
 
     def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
-        """Pixel-integrated PSF of one view; in the folded form of :meth:`_paired_lags`.
+        """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.psf_lags.paired_lags`.
 
         ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
         ``K_x``): six real matrix products, about half the work of the complex lag transform.
@@ -388,20 +280,14 @@ class PSFEngine:
             energy = float(np.sum(t.real ** 2 + t.imag ** 2))
             if precision == "single":
                 t = t.astype(np.complex64)
-            lags = self._paired_lags(t) + (energy,)
+            lags = paired_lags(t) + (energy,)
             if view == "uncoded" and self._opd[float(depth)] is None:
                 self._lag_cache[key] = lags
         s, d, n_fft, energy = lags
-        kyr, kyi, kxr, kxi = self._forward_kernels(view, wavelength, dtype)
+        kernels = self._forward_kernels(view, wavelength, dtype)
         lz = wavelength * self.camera.sensor_distance_m
         scale = self.step_m ** 2 / lz ** 2 / energy / n_fft
-        zr = kyr @ s[0]
-        zi = kyr @ s[1]
-        zr -= kyi @ d[1]
-        zi += kyi @ d[0]
-        psf = zr @ kxr
-        psf -= zi @ kxi
-        return scale * psf.astype(float, copy=False)
+        return scale * folded_psf(s, d, kernels).astype(float, copy=False)
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
@@ -484,7 +370,7 @@ class PSFEngine:
             # dL/dC_k for lags with ky >= 0 (the fold factor 2 of ky > 0 splits over +-ky).
             d_half = scale * (kern_y.T @ dpsf[di, wi] @ kern_x)
             d_half[1:] *= 0.5
-            grad_pupil += float(self.material.phase(1.0, wl)) * self._phase_gradient(t, d_half)
+            grad_pupil += float(self.material.phase(1.0, wl)) * phase_gradient(t, d_half)
         return float(loss), self._height_gradient(grad_pupil)
 
     def _height_gradient(self, grad_pupil):
@@ -549,49 +435,6 @@ class PSFEngine:
             grad_pupil += float(self.material.phase(1.0, wl)) * 2.0 * np.imag(t.conj() * g)
         return float(loss), self._height_gradient(grad_pupil)
 
-    def _phase_gradient(self, t, d_half):
-        """d loss / d phase of each pupil sample from d loss / d C (lags ky >= 0)."""
-        a, b = t.shape
-        shape = self._fft_shape(t)
-        # Full Hermitian lag array in circular layout: D_{-k} = conj(D_k).
-        d_full = np.zeros(shape, dtype=complex)
-        kx_idx = np.r_[shape[1] - (b - 1):shape[1], 0:b]
-        d_full[np.arange(a)[:, None], kx_idx[None, :]] = d_half
-        neg_rows = (-np.arange(1, a)) % shape[0]
-        neg_cols = (-np.arange(-(b - 1), b)) % shape[1]
-        d_full[neg_rows[:, None], neg_cols[None, :]] = d_half[1:].conj()
-        # alpha_n = sum_k D_k conj(t_{n-k}); dL/dphi_n = -2 Im(alpha_n t_n).
-        alpha = sfft.ifft2(sfft.fft2(d_full, workers=-1) * sfft.fft2(t.conj(), s=shape, workers=-1),
-                           workers=-1)[:a, :b]
-        return -2.0 * np.imag(alpha * t)
-
-
-# Most wavelengths one command computes (each is a full PSF per view and depth).
-MAX_WAVELENGTHS = 1000
-
-
-def parse_wavelengths_nm(text: str) -> np.ndarray:
-    """Wavelengths in metres from ``"486,589,656"`` or ``"400:700:10"`` (inclusive), in nm."""
-    text = str(text).strip()
-    try:
-        if ":" in text:
-            parts = [float(v) for v in text.split(":")]
-            if len(parts) != 3 or not np.all(np.isfinite(parts)) or parts[2] <= 0 or parts[1] < parts[0]:
-                raise ValueError
-            count = (parts[1] - parts[0]) / parts[2] + 1
-            if count > MAX_WAVELENGTHS:
-                raise DoeError(f"wavelengths {text!r}: {count:.3g} wavelengths; at most {MAX_WAVELENGTHS} "
-                               "(use a larger step)")
-            values = np.arange(parts[0], parts[1] + parts[2] / 2, parts[2])
-        else:
-            values = np.array([float(v) for v in text.split(",") if v.strip()])
-    except ValueError:
-        raise DoeError(f"wavelengths {text!r}: use a list like 486,589,656 or a range like 400:700:10 (nm)") from None
-    if values.size == 0 or values.size > MAX_WAVELENGTHS:
-        raise DoeError(f"wavelengths {text!r}: need 1 to {MAX_WAVELENGTHS} wavelengths in nm")
-    if not np.all((values >= 100) & (values <= 20000)):
-        raise DoeError(f"wavelengths {text!r}: each must lie in 100..20000 nm")
-    return values * 1e-9
 
 
 def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9),
