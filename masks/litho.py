@@ -272,11 +272,12 @@ def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
     tap0 = -np.expm1(-0.5 / width_px)     # integral over the centre pixel
     tap = np.sinh(0.5 / width_px)         # tap m != 0 is tap * a**|m|
     out = np.asarray(coverage, dtype=np.float64)
-    for axis in (0, 1):
-        # First-order recursions sum a**m x[n -+ m] over m >= 0, the two halves of the kernel.
-        causal = lfilter([1.0], [1.0, -a], out, axis=axis)
-        anti = np.flip(lfilter([1.0], [1.0, -a], np.flip(out, axis), axis=axis), axis)
-        out = tap0 * out + tap * (causal + anti - 2.0 * out)
+    for _ in (0, 1):
+        # First-order recursions sum a**m x[n -+ m] over m >= 0, the two halves of the kernel,
+        # along the contiguous axis; the transpose brings the other axis there (and back).
+        causal = lfilter([1.0], [1.0, -a], out, axis=-1)
+        anti = lfilter([1.0], [1.0, -a], out[:, ::-1], axis=-1)[:, ::-1]
+        out = np.ascontiguousarray((tap0 * out + tap * (causal + anti - 2.0 * out)).T)
     return 2.0 * (1.0 - out)
 
 

@@ -51,7 +51,8 @@ from .decompose import levels_to_masks
 from .effects import EFFECTS
 from .process_params import ProcessParams, finite_float
 
-__all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "fine_upsample", "simulate_surface"]
+__all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
+           "mask_etch", "simulate_surface", "surface_key"]
 
 log = logging.getLogger(__name__)
 
@@ -157,73 +158,134 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
 
     margin = _margin_px(params, pitch_m, region, centre_design)
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
-    masks = levels_to_masks(_window(levels, window), n)
-    # Rotation centre in fine-pixel indices of the padded window.
-    centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
-                   (centre_design[1] - window[2] + 0.5) * u - 0.5)
-
     log.debug("process model: region %s + %d px margin, %d fine px per design px (step %.4g m)",
               region, margin, u, step)
-    depths = _depth_maps(levels, window, params, pitch_m, u)
-    gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design)
-    if gradient is not None:
-        depths = [d * gradient for d in depths]
-    crop = (slice(margin * u, (margin + row1 - row0) * u), slice(margin * u, (margin + col1 - col0) * u))
-    fine_shape = (masks.shape[1] * u, masks.shape[2] * u)
+    pad = margin * u
+    fine_shape = ((row1 - row0) * u + 2 * pad, (col1 - col0) * u + 2 * pad)
+    crop = (slice(pad, fine_shape[0] - pad), slice(pad, fine_shape[1] - pad))
     height = np.zeros(fine_shape)
-    etched = np.empty(fine_shape)
     printed = np.empty((n, (row1 - row0) * u, (col1 - col0) * u), dtype=np.float32)
     for j in range(n):
-        coverage = litho.upsample_mask(masks[j], u)
-        coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
-        dx, dy, rotation = params.mask_overlay[j]
-        rotation += math.radians(params.mask_rotation[j])
-        coverage = litho.move(coverage, (-dy / step, dx / step), rotation, centre_fine)
-        coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
+        coverage, etched = _print_and_etch(levels, window, params, j, pitch_m, u, centre_design)
         printed[j] = coverage[crop]
-        depth = depths[j]
-        trench_m, trench_width_m = params.microtrenching[j]
-        if trench_m > 0 and params.etch_depth[j] > 0:
-            foot = litho.edge_foot(coverage, trench_width_m / step)
-            depth = depth * (1.0 + trench_m / params.etch_depth[j] * foot)
-        # In float64, so that the ideal surface is exact to double precision.
-        np.multiply(coverage, depth, out=etched)
         height -= etched
-
-    if params.sidewall_slope > 0:
-        kernel = litho.box_kernel(params.sidewall_slope / step)
-        for axis in (0, 1):
-            height = ndi.correlate1d(height, kernel, axis=axis, mode="nearest")
-    height = np.ascontiguousarray(height[crop])
-    if params.roughness > 0:
-        rng = np.random.default_rng(params.seed)
-        height += params.roughness * rng.standard_normal(height.shape, dtype=np.float32)
+    height = finish_surface(height, params, step, pad)
     return SimulatedSurface(height_m=height, step_m=step, upsample=u, region=region,
                             masks_printed=printed)
 
 
-def _depth_maps(levels, window, params, pitch_m, u):
-    """Etch depth of each mask (m): a scalar, or a fine-grid map with etch loading."""
+def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: int, step_m: float = 0.25e-6,
+              region: tuple[int, int, int, int] | None = None, pad_px: int = 0) -> np.ndarray:
+    """Depth (m, >= 0) that one mask's etch removes, on the fine grid of a region.
+
+    :func:`simulate_surface` is ``finish_surface(-sum of mask_etch over the masks, ...)``; one
+    mask alone lets a caller recompute only the mask whose parameters changed.
+
+    Parameters
+    ----------
+    levels, pitch_m, params, step_m, region
+        As for :func:`simulate_surface`.
+    mask : int
+        Mask index.
+    pad_px : int
+        Fine pixels added on every side of the region (beyond the design: unetched).
+
+    Returns
+    -------
+    ndarray of float64, shape ``((row1 - row0) * u + 2 pad_px, (col1 - col0) * u + 2 pad_px)``
+    """
+    levels = _check_levels(levels, params.n_masks)
+    region = _check_region(region, levels.shape)
+    u = fine_upsample(_positive(pitch_m, "pitch_m"), _positive(step_m, "step_m"))
+    row0, row1, col0, col1 = region
+    centre_design = ((levels.shape[0] - 1) / 2.0, (levels.shape[1] - 1) / 2.0)
+    margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
+    window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
+    _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design)
+    a = margin * u - int(pad_px)
+    return etched[a:etched.shape[0] - a, a:etched.shape[1] - a]
+
+
+def finish_surface(height_m: np.ndarray, params: ProcessParams, step_m: float, pad_px: int) -> np.ndarray:
+    """The summed etches (negative heights, m) with the sidewall ramp, cropped by ``pad_px``
+    fine pixels on every side, plus roughness: the last stage of :func:`simulate_surface`."""
+    height = height_m
+    if params.sidewall_slope > 0:
+        kernel = litho.box_kernel(params.sidewall_slope / step_m)
+        for axis in (0, 1):
+            height = ndi.correlate1d(height, kernel, axis=axis, mode="nearest")
+    p = int(pad_px)
+    height = np.ascontiguousarray(height[p:height.shape[0] - p, p:height.shape[1] - p])
+    if params.roughness > 0:
+        rng = np.random.default_rng(params.seed)
+        height += params.roughness * rng.standard_normal(height.shape, dtype=np.float32)
+    return height
+
+
+def etch_key(params: ProcessParams, mask: int) -> tuple:
+    """Everything of ``params`` that :func:`mask_etch` of ``mask`` depends on, hashable: equal
+    keys give equal etches (for callers that cache one mask's etch)."""
+    j = int(mask)
+    return (params.n_masks, j, float(params.etch_depth[j]), tuple(params.mask_overlay[j]),
+            float(params.linewidth_bias[j]), float(params.mask_rotation[j]), tuple(params.microtrenching[j]),
+            params.proximity_blur, params.resist_threshold, params.etch_loading,
+            params.loading_radius if params.etch_loading else None, tuple(params.etch_gradient))
+
+
+def surface_key(params: ProcessParams) -> tuple:
+    """Everything of ``params`` that :func:`simulate_surface` depends on, hashable (with
+    ``roughness`` and no ``seed``, the noise is fresh each call: the key cannot tell)."""
+    return (tuple(etch_key(params, j) for j in range(params.n_masks)), params.sidewall_slope, params.roughness,
+            params.seed)
+
+
+def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design):
+    """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
+    of ``window`` (design pixels, may extend beyond the design)."""
+    step = pitch_m / u
+    mask = levels_to_masks(_window(levels, window), params.n_masks)[j]
+    # Rotation centre in fine-pixel indices of the window.
+    centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
+                   (centre_design[1] - window[2] + 0.5) * u - 0.5)
+    coverage = litho.upsample_mask(mask, u)
+    coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
+    dx, dy, rotation = params.mask_overlay[j]
+    rotation += math.radians(params.mask_rotation[j])
+    coverage = litho.move(coverage, (-dy / step, dx / step), rotation, centre_fine)
+    coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
+    depth = _depth_map(levels, window, params, j, pitch_m, u)
+    gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design)
+    if gradient is not None:
+        depth = depth * gradient
+    trench_m, trench_width_m = params.microtrenching[j]
+    if trench_m > 0 and params.etch_depth[j] > 0:
+        foot = litho.edge_foot(coverage, trench_width_m / step)
+        depth = depth * (1.0 + trench_m / params.etch_depth[j] * foot)
+    # In float64, so that the ideal surface is exact to double precision.
+    etched = np.empty(coverage.shape)
+    np.multiply(coverage, depth, out=etched)
+    return coverage, etched
+
+
+def _depth_map(levels, window, params, j, pitch_m, u):
+    """Etch depth of mask ``j`` (m): a scalar, or a fine-grid map with etch loading."""
     if params.etch_loading == 0:
-        return [np.float64(d) for d in params.etch_depth]
+        return np.float64(params.etch_depth[j])
     sigma_px = params.loading_radius / pitch_m
     reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
     wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
-    wide_masks = levels_to_masks(_window(levels, wide), params.n_masks).astype(np.float32)
+    wide_mask = levels_to_masks(_window(levels, wide), params.n_masks)[j].astype(np.float32)
     rows = window[1] - window[0]
     cols = window[3] - window[2]
     # Fine pixel a of the window sits at design coordinate (a + 0.5) / u - 0.5 from the window
     # start, i.e. at index reach + that in the wide array.
     fine_r = reach + (np.arange(rows * u) + 0.5) / u - 0.5
     fine_c = reach + (np.arange(cols * u) + 0.5) / u - 0.5
-    maps = []
-    for j in range(params.n_masks):
-        rho = ndi.gaussian_filter(wide_masks[j], sigma_px, mode="constant", cval=0.0, truncate=_TRUNCATE)
-        rho_fine = litho.interpolate_separable(rho, fine_r, fine_c)
-        rho_fine *= np.float32(-params.etch_loading * params.etch_depth[j])
-        rho_fine += np.float32(params.etch_depth[j])
-        maps.append(rho_fine)
-    return maps
+    rho = ndi.gaussian_filter(wide_mask, sigma_px, mode="constant", cval=0.0, truncate=_TRUNCATE)
+    rho_fine = litho.interpolate_separable(rho, fine_r, fine_c)
+    rho_fine *= np.float32(-params.etch_loading * params.etch_depth[j])
+    rho_fine += np.float32(params.etch_depth[j])
+    return rho_fine
 
 
 def _gradient_map(window, gradient, pitch_m, u, centre_design):
@@ -238,15 +300,16 @@ def _gradient_map(window, gradient, pitch_m, u, centre_design):
     return 1.0 + gradient[1] * y_m[:, None] + gradient[0] * x_m[None, :]
 
 
-def _margin_px(params, pitch_m, region, centre_design):
-    """Design pixels of padding so that no effect reaching the region is cut off."""
+def _margin_px(params, pitch_m, region, centre_design, masks=slice(None)):
+    """Design pixels of padding so that no effect of ``masks`` reaching the region is cut off."""
     row0, row1, col0, col1 = region
     corners = np.array([[r - 0.5, c - 0.5] for r in (row0, row1) for c in (col0, col1)])
     radius_m = np.max(np.hypot(corners[:, 0] - centre_design[0], corners[:, 1] - centre_design[1])) * pitch_m
-    rotation = np.abs(params.mask_overlay[:, 2]) + np.radians(np.abs(params.mask_rotation))
-    overlay = np.hypot(params.mask_overlay[:, 0], params.mask_overlay[:, 1]) + rotation * radius_m
-    trench = _TRENCH_REACH * np.max(params.microtrenching[:, 1] * (params.microtrenching[:, 0] > 0))
-    reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias))
+    ovl, rot, trenches = params.mask_overlay[masks], params.mask_rotation[masks], params.microtrenching[masks]
+    rotation = np.abs(ovl[:, 2]) + np.radians(np.abs(rot))
+    overlay = np.hypot(ovl[:, 0], ovl[:, 1]) + rotation * radius_m
+    trench = _TRENCH_REACH * np.max(trenches[:, 1] * (trenches[:, 0] > 0))
+    reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias[masks]))
              + _TRUNCATE * params.proximity_blur + params.sidewall_slope + trench)
     return _MARGIN_PX + int(math.ceil(reach / pitch_m))
 

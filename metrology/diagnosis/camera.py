@@ -22,12 +22,13 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
+from masks.process import surface_key
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
-from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
+from metrology.matching.instrument import (PLACEMENT_PARAMS, ArrayCache, InstrumentModel, Leveller, Placement,
                                            robust_valid)
 from metrology.matching.window import busiest_camera_window
 
@@ -42,6 +43,8 @@ __all__ = ["CAMERA", "SUBSUMED", "CameraHeightProblem", "diagnose_camera", "diag
 log = logging.getLogger(__name__)
 
 _UM = 1e-6
+# Memory kept for rendered camera maps (and a quarter of it for fine surfaces) between renders.
+RENDER_CACHE_BYTES = 400 * 2 ** 20
 
 
 def _no_op(*args):
@@ -84,6 +87,9 @@ class CameraHeightProblem(dg.Problem):
     noise : NoiseEstimate, optional
         The measurement's noise floor, when already estimated on a better model's residual
         (default: estimated here on the residual against ``base_params``).
+    instrument : InstrumentModel, optional
+        The measurement model of another problem on the same crop and placement, to share its
+        cached etches.
     """
 
     units = "m"
@@ -92,7 +98,7 @@ class CameraHeightProblem(dg.Problem):
     def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
                  curvature: bool = False, keep: np.ndarray | None = None,
-                 noise: NoiseEstimate | None = None) -> None:
+                 noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -100,7 +106,7 @@ class CameraHeightProblem(dg.Problem):
         self.measured = np.asarray(measured_height_m, float)
         self.placement = placement
         kw = {} if step_m is None else {"step_m": step_m}
-        self.instrument = InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
+        self.instrument = instrument or InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
         self.base = base_params
         self.effects = {e.name: e for e in effects if e.name not in SUBSUMED}
         self.effects[CAMERA.name] = CAMERA
@@ -110,7 +116,8 @@ class CameraHeightProblem(dg.Problem):
         if self.keep.sum() < 100:
             raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed field")
         self.leveller = Leveller(self.measured.shape, self.keep, curvature)
-        self._cache = {}
+        self._fine = ArrayCache(RENDER_CACHE_BYTES // 4)
+        self._coeffs = ArrayCache(RENDER_CACHE_BYTES)
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -146,32 +153,32 @@ class CameraHeightProblem(dg.Problem):
                 best = np.where(other & (d < best), d, best)
         return np.where(here, best, -best) * self.pitch_m
 
-    def _process_key(self, model):
-        return tuple((n, tuple(np.round(np.asarray(v, float), 15))) for n, v in sorted(model.items())
-                     if n != CAMERA.name and self.effects[n].stage == "process")
-
     def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model heights in the camera frame (before levelling)."""
         cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
         chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
                         key=lambda e: (("process", "surface").index(e.stage), e.order))
-        key = (self._process_key(model),
-               tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in chosen if e.stage == "surface"),
-               float(cam[5]))
-        coeffs = self._cache.get(key)
+        params = self.base
+        for e in chosen:
+            if e.stage == "process":
+                params = e.apply(params, e.check(model[e.name]))
+        # Keyed by the process the model amounts to (a candidate at its null start renders what
+        # the model without it does) and the surface effects.
+        key = (surface_key(params),
+               tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in chosen if e.stage == "surface"))
+        # By stage: the placement only resamples the camera map, the blur only remakes it from
+        # the fine surface, and only process parameters remake that surface.
+        coeffs = self._coeffs.get((key, float(cam[5])))
         if coeffs is None:
-            params = self.base
-            for e in chosen:
-                if e.stage == "process":
-                    params = e.apply(params, e.check(model[e.name]))
-            fine = self.instrument.fine_surface(params)
-            for e in chosen:
-                if e.stage == "surface":
-                    fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
+            fine = self._fine.get(key)
+            if fine is None:
+                fine = self.instrument.fine_surface(params)
+                for e in chosen:
+                    if e.stage == "surface":
+                        fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
+                self._fine.put(key, fine)
             coeffs = self.instrument.camera_map(fine, float(cam[5]))
-            if len(self._cache) > 64:
-                self._cache.clear()
-            self._cache[key] = coeffs
+            self._coeffs.put((key, float(cam[5])), coeffs)
         return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape))
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
@@ -255,8 +262,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         # (the comparison's fitted process when given), not on the ideal element's, whose
         # process errors would leak into the interiors and raise it.
         problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
-                                      noise=first.noise)
-        diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height")
+                                      noise=first.noise, instrument=first.instrument)
+        diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
+                                quick_screen=True)
         new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
                                 - _plane(problem, crop, diag.model), np.isfinite(crop))
         if np.array_equal(new_keep, keep):
@@ -264,7 +272,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         keep = new_keep
     diag.map_step_m = problem.pixel_m
     # The nuisance's uncertainties at the final model (only the camera parameters refitted).
-    _, _, errors = dg._fit(problem, diag.model, [CAMERA.name])
+    _, _, errors = dg.fit_effects(problem, diag.model, [CAMERA.name])
     diag.placement = problem.placement_report(diag.model, errors)
     diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
     diag.window_camera_px = [r0, r0 + size, c0, c0 + size]

@@ -42,7 +42,7 @@ from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.noise import NoiseEstimate
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
-           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "run_diagnosis"]
+           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis"]
 
 log = logging.getLogger(__name__)
 
@@ -216,19 +216,34 @@ class Problem:
         return []
 
 
-def _fit(problem, model, free, max_iter=None):
+def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],
+                max_iter: int | None = None,
+                central: bool = True) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
     """Least-squares fit of the ``free`` effects' parameters, others held at ``model``.
 
-    Central-difference Jacobians: area-coverage edges make the residual piecewise smooth with
-    kinks where an edge crosses a grid line (at zero shift or bias), where one-sided differences
-    stall the fit.
+    Central-difference Jacobians by default: area-coverage edges make the residual piecewise
+    smooth with kinks where an edge crosses a grid line (at zero shift or bias), where one-sided
+    differences stall a fit to convergence.
 
     Parameters
     ----------
+    problem : Problem
+    model : dict
+        Effect name -> parameter values; the free effects start from theirs.
+    free : list of str
+        Effects whose parameters are fitted.
     max_iter : int, optional
-        Cap on function evaluations outside the Jacobian (a short fit to screen candidates).
+        Cap on function evaluations outside the Jacobian (a short fit to screen candidates;
+        its standard errors are NaN: the Jacobian at its last point is not computed).
+    central : bool
+        Central differences (else forward ones: half the evaluations, for a short screening fit
+        whose score is conservative anyway).
 
-    Returns (values dict, rss, stderr dict).
+    Returns
+    -------
+    (dict, float, dict)
+        Fitted model, residual sum of squares (in the problem's units squared), and the
+        standard errors of the free effects' parameters (``cov = s^2 (J^T J)^-1 A``).
     """
     effs = [problem.effects[name] for name in free]
     scale = np.concatenate([e.scales() for e in effs])
@@ -245,11 +260,22 @@ def _fit(problem, model, free, max_iter=None):
             trial[e.name] = v
         return trial
 
-    def fun(x):
+    def residual(x):
         return problem.residual(unpack(x)) / sigma
 
+    sizes = []  # residual size of each solver evaluation
+
+    def fun(x):
+        r = residual(x)
+        sizes.append(r.size)
+        return r
+
     def jac(x):
-        return _central_jacobian(fun, x, lo, hi)
+        if max_iter and len(sizes) >= max_iter:
+            # The solver stops right after this Jacobian, which would only serve the errors.
+            sizes.append(-1)
+            return np.zeros((sizes[-2], x.size))
+        return _central_jacobian(residual, x, lo, hi) if central else _forward_jacobian(residual, x, lo, hi)
 
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
                         max_nfev=max_iter or 60)
@@ -261,6 +287,8 @@ def _fit(problem, model, free, max_iter=None):
         cov = np.linalg.pinv(jtj) * (np.sum(res.fun ** 2) / max(n - k, 1)) * problem.noise.corr_area_px
         err = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
     except np.linalg.LinAlgError:
+        err = np.full(k, np.nan)
+    if sizes and sizes[-1] < 0:
         err = np.full(k, np.nan)
     errors = {e.name: v for e, v in zip(effs, np.split(err, splits))}
     return fitted, rss, errors
@@ -276,6 +304,17 @@ def _central_jacobian(fun, x, lo, hi, step=JAC_STEP):
         up[i] = min(x[i] + step, hi[i])
         down[i] = max(x[i] - step, lo[i])
         cols.append((fun(up) - fun(down)) / (up[i] - down[i]))
+    return np.stack(cols, axis=1)
+
+
+def _forward_jacobian(fun, x, lo, hi, step=JAC_STEP):
+    """Forward differences with the same absolute step, backward against the upper bound."""
+    f0 = fun(x)
+    cols = []
+    for i in range(x.size):
+        other = x.copy()
+        other[i] = x[i] + step if x[i] + step <= hi[i] else max(x[i] - step, lo[i])
+        cols.append((fun(other) - f0) / (other[i] - x[i]))
     return np.stack(cols, axis=1)
 
 
@@ -322,7 +361,7 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
                 continue
             trial = {k: v for k, v in model.items() if k != st.effect}
             trial[alt] = problem.effects[alt].start_values()
-            fitted, rss, errs = _fit(problem, trial, list(trial))
+            fitted, rss, errs = fit_effects(problem, trial, list(trial))
             c_alt = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
             prefer = problem.effects[alt].kind == "artefact" and problem.effects[st.effect].kind != "artefact"
             if c_alt < crit - threshold or (prefer and c_alt <= crit + threshold):
@@ -339,7 +378,7 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
         if len(model) - len(nuisance) <= 1:
             break
         trial = {k: v for k, v in model.items() if k != st.effect}
-        fitted, rss, errs = _fit(problem, trial, list(trial))
+        fitted, rss, errs = fit_effects(problem, trial, list(trial))
         c_drop = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
         if c_drop < crit + threshold:
             log.info("revision: %s no longer needed (criterion %+.1f)", st.effect, c_drop - crit)
@@ -349,7 +388,7 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
 
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
-                  stop_at_floor: bool = True) -> Diagnosis:
+                  stop_at_floor: bool = True, quick_screen: bool = False) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Parameters
@@ -368,6 +407,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         chosen effect is then fitted to convergence jointly with all effects and nuisances.
     stop_at_floor : bool
         Stop as soon as the residual rms reaches the noise floor (else only the criterion stops).
+    quick_screen : bool
+        Screen with forward-difference Jacobians (half the model evaluations), and stop a
+        candidate's screening fit after one step that does not pay for its parameters (its
+        score stays that step's). The close candidates are refitted in full either way.
 
     Returns
     -------
@@ -378,7 +421,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
     model = {}
     if nuisance:
-        model, _, _ = _fit(problem, {n: problem.effects[n].start_values() for n in nuisance}, nuisance)
+        model, _, _ = fit_effects(problem, {n: problem.effects[n].start_values() for n in nuisance}, nuisance)
     r = problem.residual(model)
     n = r.size
     n_eff = max(n / problem.noise.corr_area_px, 2.0)
@@ -418,8 +461,13 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                 # The named effects refit with the candidate: partly degenerate effects (a blur
                 # and a sidewall ramp) must be able to share what one of them took alone.
                 free = [m for m in model if m not in nuisance] + [name]
-                fitted, rss_c, _ = _fit(screen, trial, free, max_iter=iters)
+                first = min(iters, 2) if quick_screen else iters
+                fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=not quick_screen)
                 scores[name] = (bic_eff(rss_c, n_s, n_eff_s, k_now + eff.n_params) - crit_s) * n_eff / n_eff_s
+                if first < iters and scores[name] < 0:
+                    # The first step paid for the candidate's parameters: finish the short fit.
+                    fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)
+                    scores[name] = (bic_eff(rss_c, n_s, n_eff_s, k_now + eff.n_params) - crit_s) * n_eff / n_eff_s
                 fits[name] = fitted
                 bar.update(1, status=f"{name} {scores[name]:+.1f}")
         if not scores:
@@ -435,7 +483,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         close = [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
         refits = {}
         for c in close:
-            refits[c] = _fit(problem, fits[c], list(model) + [c])
+            refits[c] = fit_effects(problem, fits[c], list(model) + [c])
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         best = min(close, key=scores.get)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
@@ -480,7 +528,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         if partial:
             dropped = {p["effect"] for p in partial}
             kept = {k: v for k, v in model.items() if k not in dropped}
-            model, _, errors = _fit(problem, kept, list(kept)) if kept else ({}, None, {})
+            model, _, errors = fit_effects(problem, kept, list(kept)) if kept else ({}, None, {})
             steps = [st for st in steps if st.effect not in dropped]
             for s in steps:
                 s.uncertainties = {p.name: float(v) for p, v in zip(problem.effects[s.effect].params,

@@ -96,6 +96,19 @@ class _MaskMaps:
         self.maps = [(model.camera_map(c, self.sigma_m), model.camera_map(db, self.sigma_m),
                       (model.camera_map(c, self.sigma_m + hs) - model.camera_map(c, self.sigma_m - hs))
                       / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
+        self._samples = {}
+
+    def sampled(self, model, j, placement):
+        """Mask ``j``'s three maps sampled under ``placement``; kept for the next calls, since a
+        Jacobian column of a depth, bias, blur or another mask's shift leaves them unchanged."""
+        key = (j, placement.matrix.tobytes(), placement.offset.tobytes())
+        out = self._samples.pop(key, None)
+        if out is None:
+            out = tuple(model.sample(m, placement) for m in self.maps[j])
+        self._samples[key] = out
+        while len(self._samples) > 8 * len(self.maps):
+            self._samples.pop(next(iter(self._samples)))
+        return out
 
     @staticmethod
     def _coverage(model, levels, pitch_m, bias_m):
@@ -175,9 +188,9 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             db = p[i_bias:i_blur] - maps.bias_m / _UM
             ds = p[i_blur] - maps.sigma_m / _UM
             total = np.zeros(crop.shape)
-            for j, (s0, s_b, s_s) in enumerate(maps.maps):
-                pj = Placement(place.matrix, place.offset - shifts[j])
-                total -= p[j] * (model.sample(s0, pj) + db[j] * model.sample(s_b, pj) + ds * model.sample(s_s, pj))
+            for j in range(n):
+                v0, v_b, v_s = maps.sampled(model, j, Placement(place.matrix, place.offset - shifts[j]))
+                total -= p[j] * (v0 + db[j] * v_b + ds * v_s)
             return total * _H
 
         def fun(p, render=render, leveller=leveller, keep=keep):

@@ -13,7 +13,8 @@ from scipy.special import erf
 from doedesign.errors import DoeError
 from masks import litho
 from masks.decompose import DEFAULT_DEPTHS_M
-from masks.process import EFFECTS, ProcessParams, SimulatedSurface, simulate_surface
+from masks.process import (EFFECTS, ProcessParams, SimulatedSurface, etch_key, finish_surface, mask_etch,
+                           simulate_surface, surface_key)
 
 PITCH = 4e-6
 STEP = 0.25e-6
@@ -349,6 +350,29 @@ def test_result_does_not_depend_on_the_crop():
     full = simulate_surface(levels, PITCH, params, STEP).height_m
     part = simulate_surface(levels, PITCH, params, STEP, region=(8, 14, 5, 12))
     np.testing.assert_allclose(part.height_m, full[8 * U:14 * U, 5 * U:12 * U], rtol=0, atol=1e-12)
+
+
+def test_surface_is_the_sum_of_the_masks_etches():
+    # What a caller caching one mask's etch relies on: each mask alone on a padded region,
+    # summed and finished (sidewall, crop), is the whole simulation, bit for bit; a mask's key
+    # changes with its own parameters only.
+    rng = np.random.default_rng(5)
+    levels = rng.integers(0, 16, (20, 20))
+    params = ProcessParams.ideal().copy(
+        mask_overlay=np.array([[0, 0, 0], [0.2e-6, -0.1e-6, 5e-4], [0, 0, 0], [0, 0.3e-6, 0]]),
+        linewidth_bias=np.array([0.1e-6, -0.1e-6, 0.2e-6, 0]), proximity_blur=1e-6, sidewall_slope=0.6e-6,
+        mask_rotation=np.array([0, 0, 0.02, 0]), microtrenching=np.array([[0, 0.4e-6], [8e-9, 0.3e-6], [0, 0.4e-6],
+                                                                          [0, 0.4e-6]]),
+        etch_gradient=np.array([3.0, -2.0]))
+    region, pad = (4, 15, 6, 17), 5
+    whole = simulate_surface(levels, PITCH, params, STEP, region=region).height_m
+    etches = [mask_etch(levels, PITCH, params, j, STEP, region=region, pad_px=pad) for j in range(4)]
+    assert etches[0].shape == (11 * U + 2 * pad, 11 * U + 2 * pad)
+    summed = finish_surface(-np.sum(etches, axis=0), params, PITCH / U, pad)
+    np.testing.assert_array_equal(summed, whole)
+    moved = params.copy(linewidth_bias=params.linewidth_bias + np.array([0, 0, 1e-8, 0]))
+    assert [etch_key(moved, j) == etch_key(params, j) for j in range(4)] == [True, True, False, True]
+    assert surface_key(moved) != surface_key(params) and surface_key(params.copy()) == surface_key(params)
 
 
 # ---------------------------------------------------------------- parameters and bad input

@@ -39,6 +39,59 @@ def test_kernel_moments_are_pixel_box_plus_blur(angle_deg, flip):
     assert np.allclose(cov, expect, rtol=2e-3, atol=1e-4 * 1.1e-6 ** 2)
 
 
+@pytest.mark.parametrize("sigma_m", [0.05e-6, 0.4e-6, 1.5e-6])
+def test_camera_map_is_the_kernel_correlation_then_the_spline_prefilter(sigma_m):
+    # The one-FFT map against the direct route: correlate with the footprint kernel (edge
+    # values beyond the window), then SciPy's cubic spline prefilter; equal where the camera
+    # samples (the window's margin aside), to float32 rounding of ~1 um heights.
+    from scipy import ndimage as ndi
+    from scipy.signal import correlate
+
+    from masks.process import ProcessParams
+
+    rng = np.random.default_rng(2)
+    levels = rng.integers(0, 16, (24, 24))
+    pl = Placement(np.array([[0.2, 0.01], [-0.01, 0.2]]), np.array([6.3, 7.1]))
+    model = InstrumentModel(levels, 5.4e-6, (40, 40), pl)
+    fine = model.fine_surface(ProcessParams.ideal().copy(linewidth_bias=np.array([0, 0.1e-6, 0, -0.2e-6])))
+    kernel = footprint_kernel(pl.matrix, 5.4e-6, model.step_m, sigma_m)
+    k = kernel.shape[0] // 2
+    direct = ndi.spline_filter(correlate(np.pad(fine, k, mode="edge"), kernel, mode="valid", method="direct"),
+                               order=3, mode="nearest")
+    fast = model.camera_map(fine, sigma_m)
+    m = 3 * model.upsample - k - 30
+    assert fast.shape == fine.shape
+    assert np.abs(fast - direct)[m:-m, m:-m].max() < 1e-12
+    np.testing.assert_allclose(model.sample(fast, pl), model.sample(direct, pl), rtol=0, atol=1e-12)
+
+
+def test_fine_surface_reuses_unchanged_masks_exactly():
+    # The cache of each mask's etch: a change of one mask's overlay gives the same surface as
+    # a fresh model (nothing stale), and the other masks' etches are not recomputed.
+    from masks.process import ProcessParams
+
+    rng = np.random.default_rng(4)
+    levels = rng.integers(0, 16, (20, 20))
+    pl = Placement(np.array([[0.2, 0.0], [0.0, 0.2]]), np.array([5.0, 5.0]))
+    model = InstrumentModel(levels, 5.4e-6, (40, 40), pl)
+    base = ProcessParams.ideal().copy(sidewall_slope=0.5e-6)
+    model.fine_surface(base)
+    overlay = np.zeros((4, 3))
+    overlay[2, :2] = [0.13e-6, -0.05e-6]
+    moved = base.copy(mask_overlay=overlay)
+    calls = []
+    import masks.process as mp
+    real = mp.mask_etch
+    try:
+        mp.mask_etch = lambda *a, **kw: calls.append(a[3]) or real(*a, **kw)
+        cached = model.fine_surface(moved)
+    finally:
+        mp.mask_etch = real
+    assert calls == [2]
+    fresh = InstrumentModel(levels, 5.4e-6, (40, 40), pl).fine_surface(moved)
+    np.testing.assert_array_equal(cached, fresh)
+
+
 def test_leveller_removes_plane_and_curvature_only():
     shape = (40, 50)
     rng = np.random.default_rng(0)
