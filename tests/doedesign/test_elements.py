@@ -91,3 +91,16 @@ def test_axicon_ring_follows_the_ray_optics_radius():
     # The radius moves with depth as the geometry says: 9.5 px from 1 to 4 m, against the 15 px the
     # seed's 25 - 5 d asks (out of reach: at most the rim's 14.3 px).
     assert mean[0] - mean[3] == pytest.approx(geometric[0] - geometric[3], abs=1.0)
+
+
+@pytest.mark.slow
+def test_depth_element_ring_radius_follows_its_schedule():
+    # doe demo --all's depth element (800 px, 30 it. + annealing): the brightest 1-px ring bin
+    # lies within 1 px of the ray-optics schedule at every depth (measured 19 / 13 / 11 / 9 px
+    # against 19.5 / 12.9 / 10.6 / 9.5); from the lens start and the seed's 25 - 5 d it was
+    # 8 / 1 / 1 / 1 against 20 / 15 / 10 / 5.
+    from doedesign.elements import depth_element
+
+    out = depth_element(800, 30)
+    np.testing.assert_allclose(out["radius_px"], out["target_radius_px"], atol=1.0)
+    assert out["radius_px"][0] - out["radius_px"][3] >= 8
