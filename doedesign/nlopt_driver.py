@@ -89,6 +89,8 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
     best = {"value": np.inf, "x": np.clip(x0.ravel(), lo, hi).copy()}
     x_start = best["x"].copy()
     first, scale = None, 1.0
+    # nlopt reports a ForcedStop raised in the objective as a generic failure: remember ours.
+    stopped = {"budget": False}
     if algorithm != requested:
         first = fun(x_start.reshape(shape))
         scale = _unit_gain_scale(np.asarray(first[1], float).ravel(), lo, hi)
@@ -99,6 +101,7 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
             # nlopt's L-BFGS can evaluate past maxeval (in a line search, or after a failure that
             # it retries): the budget is enforced here, before any further evaluation.
             if len(history) >= max_iter:
+                stopped["budget"] = True
                 raise nlopt.ForcedStop
             # The switched run evaluated the start already (for its scale): nlopt's first call is there.
             value, g = first if first is not None and not history and np.array_equal(x, x_start) else fun(x.reshape(shape))
@@ -123,12 +126,15 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
             log.info("%s: stopped by the callback or the evaluation budget", desc)
         except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
             # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
-            if len(history) <= 1:
+            if stopped["budget"]:
+                log.info("%s: stopped by the evaluation budget", desc)
+            elif len(history) <= 1:
                 # No step was taken: returning the start would pass an unoptimized design as a result.
                 raise DoeError(f"{desc}: nlopt {algorithm} failed after {len(history)} evaluation(s) with {n} "
                                f"variables, before any step ({exc})") from None
-            log.warning("%s: nlopt stopped with a failure after %d evaluations; keeping the best point",
-                        desc, len(history))
+            else:
+                log.warning("%s: nlopt stopped with a failure after %d evaluations; keeping the best point",
+                            desc, len(history))
         result = opt.last_optimize_result()
     log.info("%s: %d evaluations, loss %.6g -> %.6g (nlopt result %s)", desc, len(history),
              history[0] if history else np.nan, best["value"], result)

@@ -67,6 +67,18 @@ def test_switched_run_scales_a_small_objective(monkeypatch):
     assert len(history) == len(calls) <= 40
 
 
+def test_budget_stop_is_not_a_failure(caplog):
+    # L-BFGS's line search asks past maxeval; the driver's stop comes back from nlopt as a failure.
+    def fun(x):
+        return float(np.sum((x - 0.3) ** 2)), 2 * (x - 0.3)
+
+    with caplog.at_level(logging.INFO, logger="doedesign.nlopt_driver"):
+        _, history = minimize(fun, np.zeros(5), -1.0, 1.0, max_iter=2)
+    assert len(history) == 2
+    assert "stopped by the evaluation budget" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
 def test_failure_before_any_step_raises():
     # An infinite gradient makes nlopt's L-BFGS fail after its first evaluation: the start must
     # not come back as if it were a result.
