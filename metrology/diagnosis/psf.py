@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
+from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 
@@ -69,6 +70,7 @@ class PsfRenderer:
         self._lags = {}
         self.cache_size = cache_size
         self.calls = 0
+        self._last_height = None
 
     def _engine(self, wavelengths, depth_m):
         from doedesign.psf import PSFEngine
@@ -86,12 +88,20 @@ class PsfRenderer:
 
         wls = tuple(float(w) for w in np.round(np.asarray(wavelengths_m, dtype=float), 15))
         depth = float(depth_m)
-        hkey = hash(np.asarray(height_m).tobytes())
+        # Hashing a full-size map costs about as much as a small render: the last array's key is
+        # kept with the array (held, so its id is not reused); heights are never changed in place.
+        if self._last_height is None or self._last_height[0] is not height_m:
+            self._last_height = (height_m, hash(np.asarray(height_m).tobytes()))
+        hkey = self._last_height[1]
         found = {w: self._channels.get((hkey, w, depth)) for w in wls}
         missing = tuple(w for w in found if found[w] is None)
         if missing:
             self.calls += 1
-            fresh = self._engine(missing, depth).psf(height_m, views=VIEWS).psf[:, 0]
+            # One BLAS thread: the lag transform's products are mid-sized (a crop has 128 rows) and
+            # BLAS threads spin while they wait; measured on the full-size case at a load of 11-12
+            # on 2 cores, two threads took 2-2.5x the CPU time of one for each screening fit.
+            with threadpool_limits(limits=1, user_api="blas"):
+                fresh = self._engine(missing, depth).psf(height_m, views=VIEWS).psf[:, 0]
             for i, w in enumerate(missing):
                 found[w] = np.ascontiguousarray(fresh[:, i])
             size = fresh[:, 0].nbytes

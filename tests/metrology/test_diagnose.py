@@ -167,7 +167,9 @@ def test_psf_renderer_reuses_channels_and_matches_the_engine():
     for stack, w in ((first, wls), (second, shifted)):
         ref = PSFEngine(camera, design.pitch_m, design.shape, design.material, w, (d,)).psf(h).psf[:, 0]
         np.testing.assert_allclose(stack, ref, rtol=0, atol=1e-12 * ref.max())
-    # Another height or distance is rendered anew, not taken from the cache.
+    # An equal map in another array is found by content; another height or distance is rendered anew.
+    np.testing.assert_array_equal(render(h.copy(), wls, d), first)
+    assert render.calls == 2
     render(h * 1.01, wls, d)
     render(h, wls, 2.0)
     assert render.calls == 4
