@@ -31,10 +31,10 @@ demo: $(STAMP)
 	$(BIN)/doe demo --out demo-output
 
 test: $(STAMP_TEST)
-	$(BIN)/python -m pytest -m "not slow" -q
+	$(BIN)/python -m pytest -m "not slow" -q -n 2 --dist loadfile --durations=15
 
 test-all: $(STAMP_TEST)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP_BENCH)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results

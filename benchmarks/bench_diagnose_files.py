@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.fileio import json_ready
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "metrology"))
 import filegen  # noqa: E402  (the tests' independent generator)
 
@@ -168,9 +170,62 @@ def time_512():
                       f"{[s['effect'] for s in report['steps']]}")
 
 
-def run(quick=False):
-    cases = [run_case(names, seed) for names, seed in _cases(quick)]
+def _run_one(args):
+    return run_case(*args)
+
+
+def run(quick=False, workers=1, journal=None):
+    """The accuracy table's rows (and, unless ``quick``, the 512 x 512 timing).
+
+    ``workers`` processes run the cases side by side; ``journal`` (a ``.jsonl`` path) keeps each
+    finished case, so a stopped run resumes where it was.
+    """
+    planned = _cases(quick)
+    done = []
+    if journal is not None and Path(journal).exists():
+        done = [json.loads(line) for line in Path(journal).read_text().splitlines() if line.strip()]
+        for c in done:  # strict JSON wrote NaN as null
+            c["parameter_error"] = {k: np.nan if v is None else v for k, v in c["parameter_error"].items()}
+    seen = {(tuple(c["hidden"]), c["seed"]) for c in done}
+    todo = [(names, seed) for names, seed in planned if (tuple(names), seed) not in seen]
+    if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers)
+        results = pool.map(_run_one, todo)
+    else:
+        pool, results = None, map(_run_one, todo)
+    for row in results:
+        done.append(row)
+        if journal is not None:
+            with open(journal, "a") as f:
+                f.write(json.dumps(json_ready(row)) + "\n")
+    if pool is not None:
+        pool.shutdown()
+    order = {(tuple(n), s): k for k, (n, s) in enumerate(planned)}
+    cases = sorted((c for c in done if (tuple(c["hidden"]), c["seed"]) in order),
+                   key=lambda c: order[(tuple(c["hidden"]), c["seed"])])
     rows = summary_rows(cases)
     if not quick:
         rows.append(time_512())
     return rows
+
+
+if __name__ == "__main__":
+    import argparse
+
+    from benchmarks.run import markdown, machine
+    from doedesign.fileio import atomic_path, write_json
+
+    parser = argparse.ArgumentParser(description="the diagnosis accuracy table on generator files")
+    parser.add_argument("--out", default="benchmarks/results/diagnose_files", help="output folder")
+    parser.add_argument("--workers", type=int, default=1, help="cases run side by side")
+    parser.add_argument("--quick", action="store_true", help="4 cases, no 512 x 512 timing")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    got = run(args.quick, args.workers, out / "cases.jsonl")
+    write_json(out / "results.json", {"machine": machine(), "quick": args.quick, "rows": got})
+    with atomic_path(out / "results.md") as tmp:
+        tmp.write_text(markdown(got, machine()))

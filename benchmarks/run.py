@@ -2,12 +2,16 @@
 
 Each module exposes ``run(quick=False) -> list[dict]`` with rows holding ``benchmark``,
 ``figure``, ``value``, ``unit``, ``peer``, ``peer_value``, ``ratio``, ``limit``, ``notes``.
+
+With ``--only`` (or ``--rows FILE.json``, rows measured by a separate long run) the new rows
+replace, in place, every row of the same ``benchmark`` in the existing table; the other rows stay.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import os
 import platform
@@ -74,17 +78,38 @@ def run_all(names, quick):
     return rows
 
 
+def merge(old, new):
+    """``old`` with every row of a benchmark named in ``new`` replaced by ``new``'s rows, in place."""
+    names = {r["benchmark"] for r in new}
+    out, placed = [], set()
+    for row in old:
+        name = row.get("benchmark")
+        if name not in names:
+            out.append(row)
+        elif name not in placed:
+            out.extend(r for r in new if r["benchmark"] == name)
+            placed.add(name)
+    out.extend(r for r in new if r["benchmark"] not in placed)
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/results", help="output folder")
     parser.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
-    parser.add_argument("--only", nargs="*", help="benchmark module names (default: all)")
+    parser.add_argument("--only", nargs="*", help="benchmark module names (default: all); merged into the table")
+    parser.add_argument("--rows", help="JSON list of rows measured elsewhere, merged into the table (runs nothing)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-    names = args.only or discover()
-    rows = run_all(names, args.quick)
-    info = machine()
     out = Path(args.out)
+    if args.rows:
+        rows = [{c: r.get(c) for c in COLUMNS} for r in json.loads(Path(args.rows).read_text())]
+    else:
+        rows = run_all(args.only or discover(), args.quick)
+    info = machine()
+    old = out / "results.json"
+    if (args.only or args.rows) and old.exists():
+        rows = merge(json.loads(old.read_text())["rows"], rows)
     write_json(out / "results.json", {"machine": info, "quick": args.quick, "rows": rows})
     with atomic_path(out / "results.md") as tmp:
         tmp.write_text(markdown(rows, info))

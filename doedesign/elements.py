@@ -27,8 +27,9 @@ from numpy.typing import ArrayLike
 from . import targets
 from .bounds import spot_bound
 from .camera import Camera
+from .levels import N_LEVELS
 from .materials import get_material
-from .optimize import N_LEVELS, OptimizerSettings, design_doe
+from .optimize import OptimizerSettings, design_doe
 
 __all__ = ["AXIS", "PITCH_M", "WINDOW", "depth_element", "design_seed_elements", "hyperspectral_element",
            "ring_radius_px", "staircase_first_order", "streak_element"]

@@ -3,8 +3,8 @@
 Pipeline (:func:`design_doe`)
 -----------------------------
 1. Continuous stage: minimize the target loss (:mod:`doedesign.losses`) over the heights with
-   nlopt (``LD_LBFGS`` by default; ``LD_MMA`` or ``LD_CCSAQ``), gradients from
-   :meth:`doedesign.psf.PSFEngine.value_and_grad`. Heights are bounded, in the design file's
+   nlopt (:mod:`doedesign.nlopt_driver`; ``LD_LBFGS`` by default, ``LD_MMA`` or ``LD_CCSAQ``),
+   gradients from :meth:`doedesign.psf.PSFEngine.value_and_grad`. Heights are bounded, in the design file's
    convention (z up, 0 = unetched top, etched pixels negative):
    ``height_range="process"``: ``[-(N-1) step, 0]``, the deepest process level down to the top
    surface, so every height has a fabricable nearest level; ``"2pi"``: ``[-N step, 0]``, the
@@ -13,13 +13,14 @@ Pipeline (:func:`design_doe`)
    heights wrapped modulo the 2 pi height at the end. Bounds cut a linear phase ramp into a
    clipped one, so single-wavelength designs (gratings, spot arrays) converge best with
    "wrap"; the wrap is exact at the design wavelength and approximate elsewhere.
-2. Quantization-aware finish: penalty annealing toward the nearest level. The penalty
-   ``mean sin^2(pi h / step)`` (zero on every level) is added with a growing weight and the
-   heights re-optimized at each weight; finally each height is rounded (not floored) to the
+2. Quantization-aware finish: penalty annealing toward the nearest level (:mod:`doedesign.anneal`).
+   The penalty ``mean sin^2(pi h / step)`` (zero on every level) is added with a growing weight
+   and the heights re-optimized at each weight; finally each height is rounded (not floored) to the
    nearest level by the one level rule of :mod:`doedesign.levels` (the rule the masks,
    the comparison and the diagnosis use too). The plain rounding of the continuous optimum
    is evaluated as well and the better of the two is kept.
-3. Optional fabrication regularizer (``fab_weight``) against one-pixel pillars and holes.
+3. Optional fabrication regularizer (``fab_weight``) against one-pixel pillars and holes
+   (:mod:`doedesign.isolation`).
 
 Uniform multi-spot targets: ``reweight_rounds`` > 0 adds rounds after the continuous stage
 in which the target's pixel weights are updated from the current PSF,
@@ -32,17 +33,17 @@ in the report. On targets with one pixel per plane (Bayer) the update does nothi
 Robust design: ``perturbations`` (a list of functions ``h -> (h', vjp)``, e.g. process samples
 from the ``doe.perturbations`` entry points) makes every stage minimize the mean loss over the
 perturbed heights, or with ``robust_measure="cvar"`` the mean of the worst ``cvar_alpha`` share
-(CVaR), through the same adjoint gradient pulled back by each ``vjp``. The list is fixed for the
-whole run (common random numbers), so the objective stays deterministic for nlopt.
-
+(CVaR), through the same adjoint gradient pulled back by each ``vjp`` (:mod:`doedesign.robust_loss`).
+The list is fixed for the whole run (common random numbers), so the objective stays
+deterministic for nlopt.
 
 Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.losses.LossSpec`
 terms; ``"softmin"`` the negative soft minimum of the per-plane energies on target over their
 ``colour_weights``; ``"maxmin"`` runs the continuous stage as nlopt's auxiliary-variable max-min
 (:func:`doedesign.objectives.maximize_min`, LD_MMA or LD_CCSAQ) and anneals with the soft-min.
 ``init="router"`` starts from the coherent pupil model's max-min (:mod:`doedesign.router`);
-``starts`` adds initial designs for a multi-start (a short stage each, the best goes on; all
-are in the report).
+``starts`` adds initial designs for a multi-start (:mod:`doedesign.starts`: a short stage each,
+the best goes on; all are in the report).
 
 Metrics (energy on target per wavelength and depth, efficiency, L1, and each plane's energy
 beside its single-colour bound, :mod:`doedesign.bounds`) are reported for the continuous, the
@@ -51,53 +52,43 @@ plainly rounded and the final quantized design.
 
 from __future__ import annotations
 
-import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import ArrayLike
 
+from .anneal import ANNEAL_SCHEDULE, anneal, level_penalty
 from .bounds import bound_report, spot_bound
 from .design import Design
 from .errors import DoeError
-from .losses import LossSpec, make_loss, reweight_target, target_metrics
+from .isolation import isolated_pixels, isolation_penalty
 from .levels import N_LEVELS, level_step_m, quantize, wrap_height_m
-from .materials import get_material
+from .losses import LossSpec, make_loss, reweight_target, target_metrics
+from .nlopt_driver import ALGORITHMS, StageCallback, minimize
 from .objectives import maxmin_stage, plane_weights, softmin_loss
-from .progress import Progress
 from .psf import PSFEngine
+from .robust_loss import ROBUST_MEASURES, Perturbation, robust_value_and_grad
 from .router import router_start
+from .starts import INITS, initial_height, multistart
 
 if TYPE_CHECKING:
     from .camera import Camera
-    from .materials import Material
     from .targets import Target
 
-__all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OptimizerSettings",
+# The optimizer's public names, wherever they are defined (callers import them from here).
+__all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OBJECTIVES", "OptimizerSettings",
            "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
-           "isolation_penalty", "level_penalty", "minimize"]
+           "isolation_penalty", "level_penalty", "minimize", "robust_value_and_grad"]
 
-log = logging.getLogger(__name__)
-
-ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
-INITS = ("random", "zeros", "streak", "grating", "lens", "router")
 OBJECTIVES = ("loss", "softmin", "maxmin")
 HEIGHT_RANGES = ("process", "2pi", "wrap")
-ROBUST_MEASURES = ("mean", "cvar")
 # Bounds of the "wrap" range in 2 pi heights: wide enough never to bind, finite for nlopt.
 WRAP_SPAN = 8
-# Weights of the level penalty relative to the continuous loss, one re-optimization each.
-ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
-# callback(evaluation, loss, height_m); True stops the stage.
-StageCallback = Callable[[int, float, np.ndarray], bool | None]
-# h -> (h', vjp): a perturbed height map and the pullback of a gradient at h' to h.
-Perturbation = Callable[[np.ndarray], tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]
 
 
-# -- levels and bounds ---------------------------------------------------------------------------
+# -- bounds and settings ------------------------------------------------------------------------
 def height_bounds(step_m: float, n_levels: int = N_LEVELS, height_range: str = "process") -> tuple[float, float]:
     """(lower, upper) height bounds in metres for ``height_range`` (see the module docstring)."""
     if height_range == "process":
@@ -109,125 +100,6 @@ def height_bounds(step_m: float, n_levels: int = N_LEVELS, height_range: str = "
     raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {height_range!r}")
 
 
-def level_penalty(height_m: ArrayLike, step_m: float,
-                  support: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
-    h = np.asarray(height_m, dtype=float)
-    s = np.ones(h.shape, bool) if support is None else support
-    n = max(int(s.sum()), 1)
-    x = np.pi * h / step_m
-    value = float(np.sum(np.sin(x)[s] ** 2) / n)
-    grad = np.where(s, np.pi / step_m * np.sin(2 * x) / n, 0.0)
-    return value, grad
-
-
-def _neighbour_differences(h):
-    """``h - neighbour`` for the 4 neighbours (up, down, left, right), and where they exist.
-
-    Returns (4, rows, cols) differences and a mask that is False for neighbours outside the
-    array (an edge pixel is judged on the neighbours it has).
-    """
-    pad = np.pad(h, 1, mode="edge")
-    nb = np.stack([pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]])
-    inside = np.ones(nb.shape, dtype=bool)
-    inside[0, 0, :] = inside[1, -1, :] = inside[2, :, 0] = inside[3, :, -1] = False
-    return h[None] - nb, inside
-
-
-_OFFSETS = ((-1, 0), (1, 0), (0, -1), (0, 1))
-
-
-def isolation_penalty(height_m: ArrayLike, step_m: float) -> tuple[float, np.ndarray]:
-    """How far one-pixel pillars stick up and holes dig down, in levels, per pixel.
-
-    A pixel higher than all its neighbours contributes ``min(h - neighbour) / step`` (the
-    pillar's height above its tallest neighbour); one lower than all, ``min(neighbour - h) / step``.
-    Returns the mean over pixels and its (sub)gradient.
-    """
-    h = np.asarray(height_m, dtype=float)
-    d, inside = _neighbour_differences(h)
-    d = d / step_m
-    n = h.size
-    kmin = np.where(inside, d, np.inf).argmin(axis=0)
-    kmax = np.where(inside, d, -np.inf).argmax(axis=0)
-    dmin = np.take_along_axis(d, kmin[None], 0)[0]
-    dmax = np.take_along_axis(d, kmax[None], 0)[0]
-    pillar, hole = dmin > 0, dmax < 0
-    value = float((dmin[pillar].sum() - dmax[hole].sum()) / n)
-    grad = (pillar.astype(float) - hole) / (step_m * n)
-    for k, (dr, dc) in enumerate(_OFFSETS):
-        # Neighbour k of pixel (i, j) is (i + dr, j + dc); never outside the array (masked above).
-        c = -(pillar & (kmin == k)).astype(float) + (hole & (kmax == k))
-        grad += np.roll(c, (dr, dc), axis=(0, 1)) / (step_m * n)
-    return value, grad
-
-
-def isolated_pixels(levels: ArrayLike) -> int:
-    """Number of one-pixel pillars and holes: pixels above (or below) all their in-array neighbours."""
-    d, inside = _neighbour_differences(np.asarray(levels, dtype=float))
-    up = np.all(np.where(inside, d > 0, True), axis=0)
-    down = np.all(np.where(inside, d < 0, True), axis=0)
-    return int(np.count_nonzero(up | down))
-
-
-# -- initial height maps ------------------------------------------------------------------------
-def _wrap_into(h, lower, step_m, n_levels):
-    """Wrap heights modulo the 2 pi height into [lower, 0] (nearest end for the process gap)."""
-    h = wrap_height_m(h, step_m, n_levels)
-    return np.where(h < lower, np.where(h < lower - step_m / 2, 0.0, lower), h)
-
-
-def initial_height(kind: str, shape: tuple[int, int], step_m: float, lower: float, rng: np.random.Generator,
-                   n_levels: int = N_LEVELS, period_px: int = 16, arms: str = "+", pitch_m: float = 5.4e-6,
-                   camera: Camera | None = None, design_wavelength_m: float = 550e-9,
-                   material: str | Material = "fused_silica", focus_depth_m: float | None = None) -> np.ndarray:
-    """A starting height map.
-
-    Parameters
-    ----------
-    kind : {"random", "zeros", "streak", "grating", "lens"}
-        ``random``: uniform in the bounds; ``zeros``: flat; ``streak``: rank-1 maps varying along
-        one axis only (each spreads light along that axis), along columns in the top half and
-        along rows in the bottom half for a "+" cross; ``grating``: a blazed staircase of
-        ``period_px`` along columns, phase rising with column (first order toward higher
-        column); ``lens``: the phase that refocuses the camera from its focus distance to
-        ``focus_depth_m`` (a lens difference), wrapped into the bounds.
-    """
-    rows, cols = shape
-    if kind == "random":
-        return rng.uniform(lower, 0.0, shape)
-    if kind == "zeros":
-        return np.zeros(shape)
-    if kind == "streak":
-        along_cols = np.broadcast_to(rng.uniform(lower, 0.0, cols), shape)
-        along_rows = np.broadcast_to(rng.uniform(lower, 0.0, rows)[:, None], shape)
-        if arms == "h":
-            return along_cols.copy()
-        if arms == "v":
-            return along_rows.copy()
-        return np.where((np.arange(rows) < rows // 2)[:, None], along_cols, along_rows)
-    if kind == "grating":
-        level = (np.arange(cols) % period_px) * n_levels // period_px
-        return np.tile(-(n_levels - 1 - level) * step_m, (rows, 1)).astype(float)
-    if kind == "lens":
-        if camera is None or focus_depth_m is None:
-            raise DoeError("the lens initialization needs the camera and a depth to focus")
-        y = (np.arange(rows) - (rows - 1) / 2) * pitch_m
-        x = (np.arange(cols) - (cols - 1) / 2) * pitch_m
-        r2 = y[:, None] ** 2 + x[None, :] ** 2
-
-        def sag(d):
-            return np.zeros_like(r2) if np.isinf(d) else r2 / (np.sqrt(r2 + d * d) + d)
-
-        # The DOE cancels the defocus path of a point at focus_depth_m: that point comes to focus.
-        opd = -(sag(focus_depth_m) - sag(camera.focus_distance_m))
-        mat = get_material(material)
-        h = opd / (mat.n(design_wavelength_m) - 1.0)
-        return _wrap_into(h, lower, step_m, n_levels)
-    raise DoeError(f"unknown initialization {kind!r}; choose from {', '.join(INITS)} or give a height map")
-
-
-# -- the nlopt driver -----------------------------------------------------------------------------
 @dataclass
 class OptimizerSettings:
     """Settings of :func:`design_doe` (see the module docstring)."""
@@ -283,98 +155,6 @@ class OptimizerSettings:
         if self.robust_measure not in ROBUST_MEASURES or not 0 < self.cvar_alpha <= 1:
             raise DoeError(f"robust_measure must be one of {ROBUST_MEASURES} and cvar_alpha in (0, 1], got "
                            f"{self.robust_measure!r} and {self.cvar_alpha}")
-
-
-def robust_value_and_grad(value_and_grad, h, perturbations, measure="mean", cvar_alpha=0.25):
-    """Mean (or CVaR) of ``value_and_grad`` over perturbed heights, and its gradient in ``h``.
-
-    Each perturbation maps ``h -> (h', vjp)``; the loss gradient at ``h'`` is pulled back by ``vjp``.
-    CVaR averages the worst ``ceil(cvar_alpha K)`` of the K losses (a subgradient at ties).
-    """
-    values, grads = [], []
-    for perturb in perturbations:
-        hp, vjp = perturb(h)
-        v, g = value_and_grad(hp)
-        values.append(v)
-        grads.append(vjp(g))
-    values = np.asarray(values, float)
-    weights = np.full(values.size, 1.0 / values.size)
-    if measure == "cvar":
-        k = int(np.ceil(cvar_alpha * values.size))
-        weights = np.zeros(values.size)
-        weights[np.argsort(values)[::-1][:k]] = 1.0 / k
-    return float(weights @ values), sum(w * g for w, g in zip(weights, grads) if w)
-
-
-def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarray, lower: ArrayLike,
-             upper: ArrayLike, algorithm: str = "LD_LBFGS", max_iter: int = 100, ftol_rel: float = 1e-7,
-             max_time_s: float | None = None, callback: StageCallback | None = None,
-             desc: str = "optimize") -> tuple[np.ndarray, list[float]]:
-    """Minimize ``fun(x) -> (value, grad)`` over a bounded array with nlopt.
-
-    Parameters
-    ----------
-    callback : callable, optional
-        ``callback(evaluation, value, x)``; returning True stops the run.
-
-    Returns
-    -------
-    x_best : ndarray, the best point evaluated
-    history : list of float, the objective at every evaluation
-    """
-    import nlopt
-
-    shape = x0.shape
-    n = x0.size
-    opt = nlopt.opt(getattr(nlopt, algorithm), n)
-    lo = np.broadcast_to(np.asarray(lower, float), shape).ravel()
-    hi = np.broadcast_to(np.asarray(upper, float), shape).ravel()
-    opt.set_lower_bounds(lo)
-    opt.set_upper_bounds(hi)
-    opt.set_maxeval(int(max_iter))
-    if ftol_rel:
-        opt.set_ftol_rel(float(ftol_rel))
-    if max_time_s:
-        opt.set_maxtime(float(max_time_s))
-    history = []
-    best = {"value": np.inf, "x": np.clip(x0.ravel(), lo, hi).copy()}
-
-    with Progress(max_iter, desc=desc) as bar:
-        def objective(x, grad):
-            # nlopt's L-BFGS can evaluate past maxeval (in a line search, or after a failure that
-            # it retries): the budget is enforced here, before any further evaluation.
-            if len(history) >= max_iter:
-                raise nlopt.ForcedStop
-            value, g = fun(x.reshape(shape))
-            if not np.isfinite(value):
-                raise DoeError(f"{desc}: the loss became {value}")
-            history.append(float(value))
-            if value < best["value"]:
-                best["value"], best["x"] = float(value), x.copy()
-            if grad.size:
-                grad[:] = np.asarray(g, dtype=float).ravel()
-            bar.update(1, status=f"loss {value:.5g}")
-            if callback is not None and callback(len(history), float(value), x.reshape(shape)):
-                opt.force_stop()
-            return float(value)
-
-        opt.set_min_objective(objective)
-        try:
-            opt.optimize(best["x"].copy())
-        except nlopt.RoundoffLimited:
-            log.info("%s: stopped by round-off; keeping the best point", desc)
-        except nlopt.ForcedStop:
-            log.info("%s: stopped by the callback or the evaluation budget", desc)
-        except (RuntimeError, getattr(nlopt, "runtime_error", RuntimeError)) as exc:
-            # nlopt's generic failure (e.g. a line search that cannot progress): keep the best point.
-            if not history:
-                raise DoeError(f"{desc}: nlopt failed before the first evaluation ({exc})") from None
-            log.warning("%s: nlopt stopped with a failure after %d evaluations; keeping the best point",
-                        desc, len(history))
-        result = opt.last_optimize_result()
-    log.info("%s: %d evaluations, loss %.6g -> %.6g (nlopt result %s)", desc, len(history),
-             history[0] if history else np.nan, best["value"], result)
-    return best["x"].reshape(shape), history
 
 
 # -- the whole design run --------------------------------------------------------------------------
@@ -470,8 +250,9 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
 
     def objective(h, extra=None):
         if perturbations:
-            value, grad = robust_value_and_grad(lambda x: engine.value_and_grad(x, state["loss"], full_window=full_window), h, perturbations,
-                                                settings.robust_measure, settings.cvar_alpha)
+            value, grad = robust_value_and_grad(
+                lambda x: engine.value_and_grad(x, state["loss"], full_window=full_window), h, perturbations,
+                settings.robust_measure, settings.cvar_alpha)
         else:
             value, grad = engine.value_and_grad(h, state["loss"], full_window=full_window)
         if settings.fab_weight:
@@ -519,18 +300,13 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
 
     starts = list(dict.fromkeys((settings.init, *settings.starts))) if init_height_m is None else ["user"]
     if len(starts) > 1:
-        # Multi-start: a short stage from each initial design, the best one goes on.
-        start_iter = settings.start_iter or max(settings.max_iter // 4, 3)
-        tried = []
-        for kind in starts:
-            hs, hist = run_stage(objective, h0 if kind == settings.init else np.where(support, start_height(kind), 0.0),
-                                 start_iter, settings.max_time_s, f"start {kind}")
-            tried.append({"init": kind, "loss": min(hist), "height": hs,
-                          "energy_on_target": metrics(hs)["energy_on_target"]})
-        best = min(tried, key=lambda r: r["loss"])
-        h0 = best["height"]
-        report["multistart"] = [{k: v for k, v in r.items() if k != "height"} for r in tried]
-        report["multistart_best"] = best["init"]
+        def start(kind, first=h0):
+            return first if kind == settings.init else np.where(support, start_height(kind), 0.0)
+
+        h0, report["multistart"], report["multistart_best"] = multistart(
+            starts, start, lambda h, n, t, desc: run_stage(objective, h, n, t, desc),
+            lambda h: metrics(h)["energy_on_target"], settings.start_iter or max(settings.max_iter // 4, 3),
+            settings.max_time_s)
     if settings.objective == "maxmin":
         h_cont, hist_cont = maxmin_stage(engine, target, weights, h0, support, lower, upper, settings)
     else:
@@ -548,20 +324,9 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     q = quantize(h_cont, step, settings.n_levels)
     levels, h_final = q.levels, q.height_m
     if settings.quantize:
-        h = h_cont
         scale = max(report["continuous"]["loss"], 1e-6)
-        history["anneal"] = []
-        # The annealing stages together get at most half the continuous stage's time limit.
-        stage_time = settings.max_time_s / (2 * len(ANNEAL_SCHEDULE)) if settings.max_time_s else None
-        for mu in ANNEAL_SCHEDULE:
-            def penalized(x, mu=mu):
-                v, g = level_penalty(x, step, support)
-                return scale * mu * v, scale * mu * g
-
-            reweight(h)
-            h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, settings.anneal_iter, stage_time,
-                                f"anneal x{mu:g}")
-            history["anneal"].extend(hist)
+        h, history["anneal"] = anneal(run_stage, objective, h_cont, step, support, scale, settings.anneal_iter,
+                                      settings.max_time_s, before_stage=reweight)
         q = quantize(h, step, settings.n_levels)
         lev_a, h_a = q.levels, q.height_m
         # Both candidates are scored with the same (final) weights.

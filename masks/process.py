@@ -49,7 +49,7 @@ from doedesign.errors import DoeError
 from . import litho
 from .decompose import levels_to_masks
 from .effects import EFFECTS
-from .process_params import ProcessParams
+from .process_params import ProcessParams, finite_float
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "fine_upsample", "simulate_surface"]
 
@@ -296,10 +296,7 @@ def _check_region(region, shape):
 
 
 def _positive(value, name):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise DoeError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
+    value = finite_float(value, name)
+    if not value > 0:
         raise DoeError(f"{name} must be a positive length in metres, got {value}")
     return value

@@ -21,7 +21,7 @@ from doedesign.errors import DoeError
 
 from .decompose import DEFAULT_DEPTHS_M
 
-__all__ = ["ProcessParams"]
+__all__ = ["ProcessParams", "finite_float"]
 
 # Array-valued fields (copied, never shared) and those holding one row per mask.
 _ARRAY_FIELDS = ("etch_depth", "mask_overlay", "linewidth_bias", "mask_rotation", "microtrenching",
@@ -129,14 +129,7 @@ class ProcessParams:
                            f"got shape {self.etch_gradient.shape}")
         for name in ("proximity_blur", "resist_threshold", "sidewall_slope", "etch_loading",
                      "loading_radius", "roughness"):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise DoeError(f"process parameter {name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise DoeError(f"process parameter {name} must be finite, got {value}")
-            setattr(self, name, value)
+            setattr(self, name, finite_float(getattr(self, name), f"process parameter {name}"))
         if np.any(self.etch_depth < 0):
             raise DoeError(f"process parameter etch_depth must be >= 0 m, got {self.etch_depth.tolist()}")
         for name in ("proximity_blur", "sidewall_slope", "roughness"):
@@ -224,6 +217,21 @@ class ProcessParams:
         if unknown:
             raise DoeError(f"unknown process parameter(s) {unknown}; known: {sorted(known)}")
         return cls(**d)
+
+
+def finite_float(value: Any, what: str) -> float:
+    """``value`` as a finite float, or a :class:`DoeError` that names ``what`` and the value.
+
+    The one check of a scalar process or tolerance number (masks.tolerance reads its spec
+    files with it too).
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise DoeError(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise DoeError(f"{what} must be finite, got {number}")
+    return number
 
 
 def _float_array(value, name):

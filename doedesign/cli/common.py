@@ -28,7 +28,7 @@ class Number:
     kind : type
         ``int`` or ``float``.
     lo, hi : float, optional
-        Inclusive bounds (``lo_open`` makes the lower bound exclusive, e.g. "positive").
+        Inclusive bounds (``lo_open`` / ``hi_open`` make them exclusive, e.g. "positive").
     allow_inf : bool
         Accept ``inf`` (a focus distance at infinity).
     unit : str
@@ -39,8 +39,9 @@ class Number:
     """
 
     def __init__(self, kind: type = float, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-                 allow_inf: bool = False, unit: str = "") -> None:
+                 allow_inf: bool = False, unit: str = "", hi_open: bool = False) -> None:
         self.kind, self.lo, self.hi, self.lo_open, self.allow_inf, self.unit = kind, lo, hi, lo_open, allow_inf, unit
+        self.hi_open = hi_open
         self.__name__ = kind.__name__
 
     def describe(self) -> str:
@@ -48,7 +49,7 @@ class Number:
         if self.lo is not None:
             parts.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
         if self.hi is not None:
-            parts.append(f"<= {self.hi:g}")
+            parts.append(f"{'<' if self.hi_open else '<='} {self.hi:g}")
         what = "an integer" if self.kind is int else "a number"
         return f"{what} {' and '.join(parts)}{' ' + self.unit if self.unit else ''}".rstrip()
 
@@ -60,7 +61,8 @@ class Number:
         if math.isnan(value) or (math.isinf(value) and not self.allow_inf):
             raise argparse.ArgumentTypeError(f"{text!r} is not {self.describe()}")
         too_low = self.lo is not None and (value <= self.lo if self.lo_open else value < self.lo)
-        too_high = self.hi is not None and value > self.hi and not (self.allow_inf and math.isinf(value))
+        too_high = (self.hi is not None and (value >= self.hi if self.hi_open else value > self.hi)
+                    and not (self.allow_inf and math.isinf(value)))
         if too_low or too_high:
             raise argparse.ArgumentTypeError(f"{text} is out of range: need {self.describe()}")
         return value

@@ -20,7 +20,7 @@ RGB_WAVELENGTHS_M = (656e-9, 589e-9, 486e-9)
 HYPERSPECTRAL_WAVELENGTHS_M = tuple(np.arange(400, 701, 10) * 1e-9)
 SEED_GRATING_PERIOD_M = 86.4e-6
 KINDS = ("bayer", "hdr-streak", "hyperspectral", "depth", "spots", "image")
-# The optimizer's start for each kind (names from doedesign.optimize.INITS).
+# The optimizer's start for each kind (names from doedesign.starts.INITS).
 DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
                 "spots": "random", "image": "random"}
 # L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a

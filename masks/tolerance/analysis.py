@@ -26,7 +26,7 @@ from .report import (default_thresholds, metric_summary, plot_distributions, plo
                      yield_summary)
 from .runner import make_client, n_workers, open_store, run_jobs, run_key
 from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
-from .spec import ToleranceSpec, nominal_process
+from .spec import ToleranceSpec, check_yield_goal, nominal_process
 
 __all__ = ["build_evaluator", "design_wavelengths_depths", "nominal_depths", "sampling_description",
            "tolerance_analysis"]
@@ -87,8 +87,14 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
                        workers: int | None = None, oversample: int = 2, process_upsample: int | None = None,
                        wavelengths_m: np.ndarray | None = None, sobol_base: int = 8,
                        one_at_a_time: bool = True, thresholds: dict | None = None,
-                       metric_script: str | None = None) -> dict:
+                       metric_script: str | None = None, yield_goal: float | None = None) -> dict:
     """Run the study and write ``report.json``, ``report.md``, ``distributions.png``, ``tornado.png``.
+
+    Parameters
+    ----------
+    yield_goal : float, optional
+        Share of elements that must meet every threshold, in (0, 1); default the spec's
+        (``[yield] goal``, else 0.9).
 
     Returns
     -------
@@ -99,6 +105,7 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
         raise DoeError(f"--samples {n_samples}: need at least one sample")
     if sobol_base < 0:
         raise DoeError(f"--sobol-base {sobol_base}: must be >= 0")
+    goal = spec.yield_goal if yield_goal is None else check_yield_goal(yield_goal, "yield goal")
     t_start = time.perf_counter()
     ev, nominal, t_nominal = build_evaluator(design, spec, design_name, oversample, process_upsample,
                                              wavelengths_m, metric_script)
@@ -147,7 +154,7 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
         "primary_metric": primary,
         "nominal": nominal,
         "metrics": metric_summary(samples, nominal, directions),
-        "yield": yield_summary(samples, thresholds),
+        "yield": yield_summary(samples, thresholds, goal),
         "sensitivity": sensitivity,
         "samples": samples,
         "timing": {"seconds_per_sample": float(np.median([r["seconds"] for r in results.values()])),

@@ -17,7 +17,8 @@ measures the design's figure of merit. Finished samples are written to OUT/sampl
 complete; rerunning with the same --out resumes. Without --spec the built-in default (overlay
 sigma 0.25 um per axis, etch depth sigma 2 %, linewidth bias sigma 0.1 um) is used and printed
 in the report. --spec may also be a `doe compare` report.json (measured values, standard errors
-as sigma). Spec schema: python -c "import masks.tolerance.spec as s; help(s)".
+as sigma). The yield is judged against --yield-goal, else the spec's [yield] goal, else 0.9.
+Spec schema: python -c "import masks.tolerance.spec as s; help(s)".
 Writes OUT/report.json (samples, nominal, metrics, yield, sensitivity), report.md,
 distributions.png and tornado.png.
 """
@@ -40,6 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--wavelengths", help="nm, e.g. 486,589,656 or 400:700:10 (default: the design's target)")
     p.add_argument("--threshold", action="append", default=[],
                    help="yield threshold 'metric>=value' (repeatable; default: primary metric >= 90 %% of nominal)")
+    p.add_argument("--yield-goal", type=Number(float, 0, 1, lo_open=True, hi_open=True),
+                   help="share of elements that must meet the thresholds (default: the spec's [yield] goal, else 0.9)")
     p.add_argument("--metric-script", help="Python file defining metric_<name>(psf, info) functions")
     p.add_argument("--sobol-base", type=Number(int, 0, 100_000), default=8,
                    help="Saltelli base N for Sobol indices (N (groups + 2) extra runs; 0 = off; default 8)")
@@ -69,7 +72,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
                                 scheduler=args.scheduler, workers=args.workers, oversample=args.oversample,
                                 process_upsample=args.process_upsample, wavelengths_m=wls,
                                 sobol_base=args.sobol_base, one_at_a_time=not args.no_oat, thresholds=thresholds,
-                                metric_script=args.metric_script)
+                                metric_script=args.metric_script, yield_goal=args.yield_goal)
     primary = report["primary_metric"]
     m = report["metrics"][primary]
     print_json({"report": f"{args.out}/report.json", "spec": report["spec"]["source"], "primary_metric": primary,

@@ -1,7 +1,8 @@
 """Summaries, yield, plots and report.md of a tolerance run.
 
 Yield is the fraction of Monte Carlo samples meeting every threshold, with an exact
-(Clopper-Pearson) 95 % binomial interval, judged against :data:`YIELD_GOAL`: met when the
+(Clopper-Pearson) 95 % binomial interval, judged against a goal (the spec's ``[yield] goal``,
+``doe tolerance --yield-goal``, default :data:`~masks.tolerance.spec.YIELD_GOAL`): met when the
 interval lies above it, missed when it lies below, undecided (more samples needed) when it
 straddles it. ``report.md`` is built from the shared blocks of :mod:`doedesign.report_md`
 like every other page: a summary first, tables with units, verdicts in words, figures
@@ -21,7 +22,7 @@ from doedesign import report_md as md
 from doedesign.fileio import save_figure
 
 from .metrics import metric_unit
-from .spec import meets
+from .spec import YIELD_GOAL, meets
 
 __all__ = ["YIELD_GOAL", "clopper_pearson", "default_thresholds", "meets_goal", "metric_summary", "most_important",
            "plot_distributions", "plot_tornado", "samples_to_show", "tolerance_page", "tolerance_sections",
@@ -31,8 +32,6 @@ CONFIDENCE = 0.95
 # Without user thresholds, the primary metric must keep this share of its nominal value
 # (or, for a lower-is-better metric, stay below nominal / this).
 DEFAULT_KEEP = 0.9
-# The yield a process is judged against: nine elements in ten within the thresholds.
-YIELD_GOAL = 0.9
 
 
 def clopper_pearson(k: int, n: int, confidence: float = CONFIDENCE) -> list[float]:
@@ -70,8 +69,8 @@ def default_thresholds(primary: str, nominal: dict, direction: str) -> dict:
     return {primary: (">=", value * DEFAULT_KEEP)}
 
 
-def yield_summary(samples: list[dict], thresholds: dict) -> dict:
-    """Fraction of samples meeting every threshold, with its interval and per-threshold pass rates."""
+def yield_summary(samples: list[dict], thresholds: dict, goal: float = YIELD_GOAL) -> dict:
+    """Fraction of samples meeting every threshold, with its interval, per-threshold pass rates and the goal."""
     n = len(samples)
     passed = [all(meets(s["metrics"][m], t) for m, t in thresholds.items()) for s in samples]
     k = int(sum(passed))
@@ -80,8 +79,8 @@ def yield_summary(samples: list[dict], thresholds: dict) -> dict:
     ci95 = clopper_pearson(k, n)
     return {"thresholds": {m: f"{op} {v:.6g}" for m, (op, v) in thresholds.items()}, "samples": n, "passed": k,
             "fraction": k / n if n else 0.0, "ci95": ci95, "per_threshold": per,
-            "interval": "Clopper-Pearson exact binomial, 95 %", "goal": YIELD_GOAL,
-            "meets_goal": meets_goal(ci95)}
+            "interval": "Clopper-Pearson exact binomial, 95 %", "goal": goal,
+            "meets_goal": meets_goal(ci95, goal)}
 
 
 def metric_summary(samples: list[dict], nominal: dict, directions: dict) -> dict:

@@ -26,6 +26,8 @@ TOML schema (every table optional; lengths in the unit named by the key)::
     sigma_percent_per_mm = 0.5
     [thresholds]            # yield: every threshold must hold
     on_target_mean = ">= 0.15"
+    [yield]                 # the share of elements that must meet them (default 0.9);
+    goal = 0.95             # doe tolerance --yield-goal overrides it
 
 Distributions: ``normal`` (``mean_*``, ``sigma_*``), ``uniform`` (``low_*``, ``high_*``),
 ``fixed`` (``value_*``). ``masks = [1, 2]`` restricts a per-mask effect to some masks.
@@ -36,7 +38,6 @@ it does not depend on which worker or scheduler computes it.
 
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -47,9 +48,15 @@ from scipy import stats
 from doedesign.errors import DoeError
 
 from ..process import ProcessParams
+from ..process_params import finite_float
 
-__all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "build_spec", "default_spec", "load_spec",
-           "meets", "nominal_process", "parse_threshold", "sample_seed", "spec_from_compare"]
+__all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "YIELD_GOAL", "build_spec", "check_yield_goal",
+           "default_spec", "load_spec", "meets", "nominal_process", "parse_threshold", "sample_seed",
+           "spec_from_compare"]
+
+# The yield a process is judged against unless the spec or the command says otherwise: nine
+# elements in ten within the thresholds.
+YIELD_GOAL = 0.9
 
 # The effects of masks.effects, as a tolerance spec names them (mask_rotation in urad here,
 # applied as the rotation in ProcessParams.mask_overlay).
@@ -158,12 +165,15 @@ class ToleranceSpec:
         Where the spec came from (file, compare report or built-in default).
     table : dict
         The spec as given (for the report).
+    yield_goal : float
+        Share of elements that must meet every threshold, in (0, 1).
     """
 
     params: list
     thresholds: dict = field(default_factory=dict)
     source: str = "built-in default"
     table: dict = field(default_factory=dict)
+    yield_goal: float = YIELD_GOAL
 
     @property
     def random_params(self) -> list[Param]:
@@ -218,7 +228,8 @@ class ToleranceSpec:
                 row[f"{k}_{p.unit}" if p.unit else k] = p.to_report(v)
             rows.append(row)
         return {"source": self.source, "given": self.table, "parameters": rows,
-                "thresholds": {k: f"{op} {v:g}" for k, (op, v) in self.thresholds.items()}}
+                "thresholds": {k: f"{op} {v:g}" for k, (op, v) in self.thresholds.items()},
+                "yield_goal": self.yield_goal}
 
 
 def sample_seed(seed_root: int, index: int) -> int:
@@ -238,6 +249,14 @@ def parse_threshold(text: str, source: str = "threshold") -> tuple[str, tuple[st
     return (m.group(1) or "").strip(), (m.group(2), value)
 
 
+def check_yield_goal(value: object, what: str) -> float:
+    """``value`` as a yield goal: a share strictly between 0 and 1 (1 can never be shown by sampling)."""
+    goal = finite_float(value, what)
+    if not 0 < goal < 1:
+        raise DoeError(f"{what} must lie strictly between 0 and 1 (a share of elements), got {goal:g}")
+    return goal
+
+
 def meets(value: float, threshold: tuple[str, float]) -> bool:
     op, limit = threshold
     return bool(_OPS[op](value, limit))
@@ -248,7 +267,7 @@ def build_spec(table: dict, nominal_depths_m: np.ndarray, source: str = "spec") 
     if not isinstance(table, dict):
         raise DoeError(f"{source}: the spec must be a table")
     n = len(nominal_depths_m)
-    params, thresholds = [], {}
+    params, thresholds, goal = [], {}, YIELD_GOAL
     for effect, entry in table.items():
         if effect == "thresholds":
             if not isinstance(entry, dict):
@@ -256,12 +275,17 @@ def build_spec(table: dict, nominal_depths_m: np.ndarray, source: str = "spec") 
             for metric, text in entry.items():
                 _, thresholds[metric] = parse_threshold(f"{metric} {text}", source)
             continue
+        if effect == "yield":
+            if not isinstance(entry, dict) or set(entry) != {"goal"}:
+                raise DoeError(f"{source}: [yield] must hold one key, goal = a share in (0, 1), e.g. goal = 0.9")
+            goal = check_yield_goal(entry["goal"], f"{source}: [yield] goal")
+            continue
         if effect not in EFFECTS:
             raise DoeError(f"{source}: unknown effect {effect!r}; known: {', '.join(EFFECTS)}")
         if not isinstance(entry, dict):
             raise DoeError(f"{source}: [{effect}] must be a table")
         params.extend(_effect_params(effect, entry, n, nominal_depths_m, source))
-    return ToleranceSpec(params=params, thresholds=thresholds, source=source, table=table)
+    return ToleranceSpec(params=params, thresholds=thresholds, source=source, table=table, yield_goal=goal)
 
 
 def _effect_params(effect, entry, n, nominal_depths_m, source):
@@ -322,12 +346,7 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
         if base not in DISTRIBUTIONS[dist] or unit not in units:
             allowed = [f"{b}_{u}" if u else b for b in DISTRIBUTIONS[dist] for u in units]
             raise DoeError(f"{source}: {where}: unknown key {key!r} for dist {dist!r}; use {', '.join(allowed)}")
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise DoeError(f"{source}: {where}: {key} must be a number, got {value!r}") from None
-        if not math.isfinite(value):
-            raise DoeError(f"{source}: {where}: {key} must be finite")
+        value = finite_float(value, f"{source}: {where}: {key}")
         if base in got:
             raise DoeError(f"{source}: {where}: give {base} once (in one unit), got {sorted(values)}")
         factor = units[unit] if units[unit] is not None else nominal_depth_m

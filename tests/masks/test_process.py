@@ -393,6 +393,8 @@ def test_bad_levels(levels, match):
     (dict(proximity_blur=-1e-6), "proximity_blur"),
     (dict(resist_threshold=1.2), "resist_threshold"),
     (dict(roughness=float("nan")), "roughness"),
+    (dict(roughness="rough"), "^process parameter roughness must be a number, got 'rough'$"),
+    (dict(etch_loading=float("inf")), "^process parameter etch_loading must be finite, got inf$"),
     (dict(etch_depth=[1e-7, -1e-7, 1e-7, 1e-7]), "etch_depth"),
     (dict(loading_radius=0.0), "loading_radius"),
 ])

@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -59,6 +60,10 @@ def test_spec_errors_name_the_problem():
         build_spec({"etch_depth": {"sigma_nm": 2, "sigma_rel": 0.01}}, DEPTHS, "p.toml")
     with pytest.raises(DoeError, match="unknown key 'sigma_mm'"):
         build_spec({"mask_overlay": {"sigma_mm": 0.2}}, DEPTHS, "p.toml")
+    with pytest.raises(DoeError, match=r"^p.toml: \[etch_depth\] mask 0: sigma_nm must be a number, got 'two'$"):
+        build_spec({"etch_depth": {"sigma_nm": "two"}}, DEPTHS, "p.toml")
+    with pytest.raises(DoeError, match=r"^p.toml: \[roughness\]: sigma_nm must be finite, got inf$"):
+        build_spec({"roughness": {"sigma_nm": float("inf")}}, DEPTHS, "p.toml")
 
 
 def test_spec_units_and_per_mask_override():
@@ -229,3 +234,68 @@ def test_every_process_effect_can_be_toleranced():
     params = spec.params_for(values, ProcessParams.ideal(depths_m=DEPTHS))
     assert params.microtrenching[3].tolist() == pytest.approx([4e-9, 0.5e-6])
     assert params.etch_gradient.tolist() == pytest.approx([0.0, 2.0])
+
+
+def _tolerance_cli(tmp_path, name, *extra):
+    """``doe tolerance`` on the tiny element, 5 samples that all pass (on_target_R >= 0)."""
+    from doedesign.cli import main
+
+    design = tmp_path / "d.npz"
+    if not design.exists():
+        tiny_bayer().save(design)
+    out = tmp_path / name
+    code = main(["tolerance", str(design), "--out", str(out), "--samples", "5", "--scheduler", "inline",
+                 "--sobol-base", "0", "--no-oat", "--threshold", "on_target_R>=0", *extra])
+    return code, out
+
+
+def test_yield_goal_comes_from_the_spec_file_and_the_option_overrides_it(tmp_path):
+    # 5 of 5 passing: the Clopper-Pearson lower bound is 0.025 ** (1 / 5) = 0.4782 (closed form),
+    # above a goal of 0.4 (met) and below 0.5 (undecided: 6 passing samples are needed, since
+    # 0.025 ** (1 / 6) = 0.541 >= 0.5 > 0.025 ** (1 / 5)).
+    spec = tmp_path / "spec.toml"
+    spec.write_text("[etch_depth]\nsigma_rel = 0.02\n[yield]\ngoal = 0.4\n")
+    code, out = _tolerance_cli(tmp_path, "from_file", "--spec", str(spec))
+    assert code == 0
+    y = json.loads((out / "report.json").read_text())["yield"]
+    assert y["passed"] == 5 and y["ci95"][0] == pytest.approx(0.025 ** 0.2, rel=1e-9)
+    assert y["goal"] == 0.4 and y["meets_goal"] is True
+    verdict = [line for line in (out / "report.md").read_text().splitlines() if line.startswith("- Verdict")]
+    assert len(verdict) == 1 and "at least 40 % of elements meet the thresholds" in verdict[0]
+
+    code, out = _tolerance_cli(tmp_path, "from_option", "--spec", str(spec), "--yield-goal", "0.5")
+    assert code == 0
+    y = json.loads((out / "report.json").read_text())["yield"]
+    assert y["goal"] == 0.5 and y["meets_goal"] is None
+    verdict = [line for line in (out / "report.md").read_text().splitlines() if line.startswith("- Verdict")]
+    assert "cannot tell whether the yield reaches 50 %" in verdict[0] and "at least 6 samples" in verdict[0]
+
+
+def test_yield_goal_defaults_to_nine_in_ten():
+    assert build_spec({"etch_depth": {"sigma_rel": 0.02}}, DEPTHS, "t").yield_goal == 0.9
+    assert default_spec(np.array(DEPTHS)).yield_goal == 0.9
+
+
+@pytest.mark.parametrize("table, match", [
+    ("[yield]\ngoal = 1.0\n", r"spec.toml: \[yield\] goal must lie strictly between 0 and 1 .*got 1$"),
+    ("[yield]\ngoal = 0\n", r"spec.toml: \[yield\] goal must lie strictly between 0 and 1 .*got 0$"),
+    ("[yield]\ngoal = 'most'\n", r"spec.toml: \[yield\] goal must be a number, got 'most'$"),
+    ("[yield]\ngoal = nan\n", r"spec.toml: \[yield\] goal must be finite, got nan$"),
+    ("[yield]\nshare = 0.9\n", r"spec.toml: \[yield\] must hold one key, goal"),
+])
+def test_a_bad_yield_goal_in_the_spec_file_exits_2_with_one_line(tmp_path, capsys, table, match):
+    spec = tmp_path / "spec.toml"
+    spec.write_text(table)
+    code, out = _tolerance_cli(tmp_path, "o", "--spec", str(spec))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and "Traceback" not in err
+    assert re.search(match, err), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["1", "0", "1.5", "-0.1", "nan"])
+def test_a_bad_yield_goal_option_exits_2_with_one_error_line(tmp_path, capsys, value):
+    code, out = _tolerance_cli(tmp_path, "o", "--yield-goal", value)
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert code == 2 and len(errors) == 1 and "argument --yield-goal" in errors[0] and "< 1" in errors[0]
+    assert not out.exists()

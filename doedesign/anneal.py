@@ -1,0 +1,75 @@
+"""The quantization-aware finish: penalty annealing toward the nearest process level.
+
+The penalty ``mean sin^2(pi h / step)`` (zero on every level) is added to the loss with the
+growing weights of :data:`ANNEAL_SCHEDULE`, relative to the continuous loss, and the heights are
+re-optimized at each weight; :func:`doedesign.optimize.design_doe` then rounds the result to the
+nearest level and keeps it or the plainly rounded continuous optimum, whichever scores better.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["ANNEAL_SCHEDULE", "anneal", "level_penalty"]
+
+# Weights of the level penalty relative to the continuous loss, one re-optimization each.
+ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
+
+ValueAndGrad = Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+
+def level_penalty(height_m: ArrayLike, step_m: float,
+                  support: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
+    h = np.asarray(height_m, dtype=float)
+    s = np.ones(h.shape, bool) if support is None else support
+    n = max(int(s.sum()), 1)
+    x = np.pi * h / step_m
+    value = float(np.sum(np.sin(x)[s] ** 2) / n)
+    grad = np.where(s, np.pi / step_m * np.sin(2 * x) / n, 0.0)
+    return value, grad
+
+
+def anneal(run_stage: Callable[..., tuple[np.ndarray, list[float]]],
+           objective: Callable[[np.ndarray, ValueAndGrad | None], tuple[float, np.ndarray]],
+           height_m: np.ndarray, step_m: float, support: np.ndarray, scale: float, iterations: int,
+           max_time_s: float | None = None,
+           before_stage: Callable[[np.ndarray], None] | None = None) -> tuple[np.ndarray, list[float]]:
+    """Re-optimize ``height_m`` once per weight of :data:`ANNEAL_SCHEDULE` with the level penalty added.
+
+    Parameters
+    ----------
+    run_stage : callable
+        ``run_stage(fun, h_start, max_iter, max_time_s, desc) -> (h, history)``, one nlopt stage.
+    objective : callable
+        ``objective(h, extra) -> (value, grad)``: the design loss plus ``extra(h)``.
+    scale : float
+        The continuous loss, so the penalty weights are relative to it.
+    iterations : int
+        Evaluations per stage.
+    max_time_s : float, optional
+        Time limit of the continuous stage; the annealing stages together get at most half of it.
+    before_stage : callable, optional
+        ``before_stage(h)``, e.g. a target reweighting, before each stage.
+
+    Returns
+    -------
+    height_m : ndarray, the annealed (still continuous) heights
+    history : list of float, the objective at every evaluation of every stage
+    """
+    history = []
+    stage_time = max_time_s / (2 * len(ANNEAL_SCHEDULE)) if max_time_s else None
+    h = height_m
+    for mu in ANNEAL_SCHEDULE:
+        def penalized(x, mu=mu):
+            v, g = level_penalty(x, step_m, support)
+            return scale * mu * v, scale * mu * g
+
+        if before_stage is not None:
+            before_stage(h)
+        h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, iterations, stage_time, f"anneal x{mu:g}")
+        history.extend(hist)
+    return h, history
