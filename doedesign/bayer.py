@@ -10,6 +10,10 @@ mosaic is clipped to [0, 1] like a sensor. Reconstruction:
   (1, 1) pixel) are given to all four pixels of the cell. With the proposed PSF (R to the
   axis pixel, G one row down, B one row down and one column right) these three samples come
   from the SAME scene point -- the cell's top-left pixel -- which is why chroma improves.
+  The cell's G is the mean of its two green pixels, (1, 0) and (0, 1), weighted by the light
+  the green PSF carries from the top-left scene point to each (:func:`green_weights`, the
+  matched filter): (1, 0) alone for Eq. (1), both for the RGGB target and balanced designs
+  that put green on either of them.
 - ``bilinear``: the standard bilinear demosaicing (normalized convolution of each channel's
   samples), used for the ideal-PSF baseline.
 
@@ -32,11 +36,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage, signal
 
+from . import targets
+from .camera import Camera
+from .design import Design
 from .errors import DoeError
 
 __all__ = ["IMAGES", "Method", "NOISE_SIGMA", "PAPER_TABLE1", "TARGET_OFFSETS", "apply_psf",
-           "bilinear_demosaic", "delta_kernels", "evaluate", "figure", "load_images", "mosaic",
-           "nearest_neighbour", "psf_kernels", "psnr_scores", "rggb_masks", "standard_methods"]
+           "bilinear_demosaic", "delta_kernels", "design_psf", "design_target", "evaluate", "figure", "green_weights", "load_images", "mosaic",
+           "nearest_neighbour", "psf_kernels", "psnr_scores", "rggb_masks", "rggb_target_kernels",
+           "standard_methods"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +97,12 @@ def delta_kernels(offsets: Sequence[tuple[int, int]]) -> np.ndarray:
     return k
 
 
+def rggb_target_kernels() -> np.ndarray:
+    """Kernels (3, 3, 3) of the RGGB target (:func:`doedesign.targets.bayer` with ``rggb=True``):
+    green split evenly between (1, 0) and (0, 1)."""
+    return targets.bayer(Camera(window_shape=(3, 3), axis_pixel=(1, 1)), rggb=True).intensity[0]
+
+
 def psf_kernels(psf: ArrayLike, axis_pixel: tuple[int, int], radius_px: int | None = None) -> np.ndarray:
     """Per-channel convolution kernels (3, 2r+1, 2r+1) centred on the axis from PSFs (3, rows, cols).
 
@@ -131,12 +145,28 @@ def mosaic(sensor_rgb: np.ndarray, rng: np.random.Generator, sigma: float = NOIS
     return np.clip(raw + rng.normal(0.0, sigma, raw.shape), 0.0, 1.0)
 
 
-def nearest_neighbour(raw: np.ndarray) -> np.ndarray:
-    """Cell-wise reconstruction: R from (0, 0), G from (1, 0), B from (1, 1) of each 2 x 2 cell."""
+def green_weights(kernel_g: np.ndarray) -> tuple[float, float]:
+    """Weights of a cell's green pixels (1, 0) and (0, 1) for the nearest-neighbour reconstruction.
+
+    Each weight is the light the green kernel (centred, odd size) carries from the cell's
+    top-left scene point to that pixel, normalized to a sum of 1: the matched filter of the two
+    samples, so a flat field keeps its level. A kernel with no light on either gives (1, 0).
+    """
+    k = np.asarray(kernel_g, dtype=float)
+    m = k.shape[0] // 2
+    if k.shape[0] < 3 or k.shape[1] < 3:
+        return 1.0, 0.0
+    a, b = max(float(k[m + 1, m]), 0.0), max(float(k[m, m + 1]), 0.0)
+    return (a / (a + b), b / (a + b)) if a + b > 0 else (1.0, 0.0)
+
+
+def nearest_neighbour(raw: np.ndarray, green: tuple[float, float] = (1.0, 0.0)) -> np.ndarray:
+    """Cell-wise reconstruction: R from (0, 0), G from (1, 0) and (0, 1) weighted by ``green``
+    (see :func:`green_weights`), B from (1, 1) of each 2 x 2 cell."""
     rows, cols = raw.shape
     if rows % 2 or cols % 2:
         raise DoeError(f"mosaic of {rows} x {cols} pixels: nearest-neighbour needs even sizes")
-    cells = [raw[0::2, 0::2], raw[1::2, 0::2], raw[1::2, 1::2]]
+    cells = [raw[0::2, 0::2], green[0] * raw[1::2, 0::2] + green[1] * raw[0::2, 1::2], raw[1::2, 1::2]]
     return np.stack([np.repeat(np.repeat(c, 2, axis=0), 2, axis=1) for c in cells], axis=-1)
 
 
@@ -198,21 +228,64 @@ class Method:
         if np.any(gain <= 0):
             raise DoeError(f"{self.name}: a channel's PSF holds no light")
         raw = mosaic(apply_psf(img, self.kernels), rng)
-        rec = nearest_neighbour(raw) if self.reconstruct == "nearest" else bilinear_demosaic(raw)
+        rec = (nearest_neighbour(raw, green_weights(self.kernels[1])) if self.reconstruct == "nearest"
+               else bilinear_demosaic(raw))
         # Undo the channel's light loss (white balance); noise is amplified with it.
         return rec / gain
 
 
 def standard_methods(doe_psf: np.ndarray | None = None, axis_pixel: tuple[int, int] = (256, 256),
                      rggb: bool = False) -> list[Method]:
-    """The rows of Table 1; ``doe_psf`` (3, rows, cols) R, G, B adds ``proposed_doe``."""
+    """The rows of Table 1; ``doe_psf`` (3, rows, cols) R, G, B adds ``proposed_doe``.
+
+    ``rggb`` adds ``proposed_target_rggb``, the target PSF of a design made for the RGGB
+    geometry (green on either Bayer pixel), beside the seed's Eq. (1) ``proposed_target``.
+    """
     ideal = delta_kernels(((0, 0),) * 3)
     target = delta_kernels(TARGET_OFFSETS)
     methods = [Method("ideal_demosaic", ideal, "bilinear"), Method("ideal_nearest", ideal),
                Method("proposed_target", target)]
+    if rggb:
+        methods.append(Method("proposed_target_rggb", rggb_target_kernels()))
     if doe_psf is not None:
         methods.append(Method("proposed_doe", psf_kernels(doe_psf, axis_pixel)))
     return methods
+
+
+def design_target(design: Design, camera: Camera | None = None) -> targets.Target:
+    """The Bayer target a design was made for: its R, G, B wavelengths (656/589/486 nm when the
+    metadata has none) and its geometry (Eq. (1), or RGGB when the metadata says ``rggb``)."""
+    meta = design.metadata.get("target")
+    meta = meta if isinstance(meta, dict) else {}
+    wls = meta.get("wavelengths_nm")
+    wls = np.asarray(wls, dtype=float) * 1e-9 if wls and len(wls) == 3 else targets.RGB_WAVELENGTHS_M
+    return targets.bayer(camera or design.camera(), wls, rggb=bool(meta.get("rggb", False)))
+
+
+def design_psf(design: Design, source: str = "design") -> tuple[np.ndarray, Camera, dict]:
+    """Coded-view R, G, B PSFs (3, rows, cols) of a Bayer design in its camera, and its figures.
+
+    The figures (``info``) are the light on each colour's target pixels of :func:`design_target`
+    (summed over both green pixels for RGGB) beside the single-colour bound, the green split
+    between (1, 0) and (0, 1) and the reconstruction's :func:`green_weights`.
+    """
+    from .bounds import bound_report, spot_bound
+    from .psf import compute_psf
+
+    camera = design.camera()
+    target = design_target(design, camera)
+    res = compute_psf(design, camera, wavelengths_m=target.wavelengths_m, depths_m=[np.inf], views=("coded",))
+    psf, (r0, c0) = res.psf[0, 0], camera.axis_pixel
+    energy = np.sum(psf * target.mask[0], axis=(-2, -1)).tolist()
+    bound = spot_bound(camera, design.pitch_m, design.shape, target, design.material)[0]
+    info = {"source": source, "geometry": "rggb" if target.meta["rggb"] else "eq1",
+            "energy_in_window": res.energy_in_window[0, 0].tolist(), "energy_on_target_pixel": energy,
+            "green_on_10_01": [float(psf[1, r0 + 1, c0]), float(psf[1, r0, c0 + 1])],
+            "green_weights": list(green_weights(psf_kernels(psf, camera.axis_pixel, 1)[1])),
+            "quantized": design.levels is not None,
+            "objective": design.metadata.get("optimizer", {}).get("objective", "loss"),
+            "bound": bound_report([energy], [bound])}
+    return psf, camera, info
 
 
 def evaluate(images: dict[str, np.ndarray], methods: Sequence[Method], seed: int = 0
@@ -248,7 +321,7 @@ def figure(images: dict[str, np.ndarray], recs: dict[str, dict[str, np.ndarray]]
 
     name = image_name or next(iter(images))
     ref = images[name]
-    methods = [m for m in ("ideal_nearest", "proposed_target", "proposed_doe") if m in recs]
+    methods = [m for m in ("ideal_nearest", "proposed_target", "proposed_target_rggb", "proposed_doe") if m in recs]
     fig, axes = plt.subplots(2, len(methods) + 1, figsize=(3.2 * (len(methods) + 1), 6.4))
     axes[0, 0].imshow(ref)
     axes[0, 0].set_title("scene")

@@ -10,7 +10,11 @@ from doedesign.progress import Progress
 
 log = logging.getLogger(__name__)
 
-__all__ = ["cmd_demo", "register", "seed_elements"]
+__all__ = ["ELEMENTS_ITERATIONS", "ELEMENTS_PX", "cmd_demo", "register", "seed_elements"]
+
+# --all designs the three elements at this DOE size (5.4 um pixels, a spot twice the camera's;
+# about 160 s of CPU); --quick at 48 px.
+ELEMENTS_PX, ELEMENTS_ITERATIONS = 800, 30
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -38,7 +42,9 @@ def seed_elements(args: argparse.Namespace) -> None:
     from doedesign.elements import design_seed_elements
     from doedesign.fileio import write_json
 
-    size, iterations = (48, 4) if args.quick else (160, 30)
+    size, iterations = (48, 4) if args.quick else (ELEMENTS_PX, ELEMENTS_ITERATIONS)
+    if args.elements_px is not None:
+        size = args.elements_px
     write_json(Path(args.out) / "elements.json", design_seed_elements(size, iterations))
 
 
@@ -52,6 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="small sizes (about a minute)")
     p.add_argument("--all", action="store_true",
                    help="also design the seed's HDR streak, hyperspectral and depth elements (OUT/elements.json)")
+    p.add_argument("--elements-px", type=Number(int, 16, 4096, unit="px"), default=None,
+                   help=f"DOE size of the --all elements (aperture = size x 5.4 um; default {ELEMENTS_PX}, --quick 48)")
     p.add_argument("--iterations", type=Number(int, 1, 10**6), default=None, help="optimizer iterations")
     p.add_argument("--doe-px", type=Number(int, 16, 4096, unit="px"), default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
     p.set_defaults(func=cmd_demo)

@@ -29,3 +29,38 @@ def test_ring_radius():
     rr, cc = np.meshgrid(np.arange(64) - 32, np.arange(64) - 30, indexing="ij")
     ring = np.exp(-((np.hypot(rr, cc) - 12.0) ** 2) / 2)
     assert ring_radius_px(ring, (32, 30)) == 12
+
+
+def test_seed_elements_report_each_figure_beside_its_bound():
+    from doedesign.elements import design_seed_elements
+
+    out = design_seed_elements(size_px=32, iterations=2)
+    streak, hyper, depth = out["elements"]
+    assert [e["element"] for e in out["elements"]] == ["hdr-streak", "hyperspectral", "depth"]
+    assert 0 < streak["value"] <= streak["envelope_bound"] == 1.0
+    np.testing.assert_allclose(hyper["staircase_limit"], staircase_first_order(np.array(hyper["wavelengths_nm"]) * 1e-9))
+    np.testing.assert_allclose(hyper["bound"], np.multiply(hyper["staircase_limit"], hyper["spot_on_order"]))
+    np.testing.assert_allclose(hyper["fraction_of_bound"], np.divide(hyper["value"], hyper["bound"]))
+    # The seed's schedule: 25 - 5 d px at 1, 2, 3, 4 m.
+    assert depth["target_radius_px"] == [20, 15, 10, 5] and len(depth["radius_px"]) == 4
+    assert all(e["cpu_time_s"] > 0 for e in out["elements"]) and out["cpu_time_s"] > 0
+
+
+def test_cylinder_streak_start_spreads_each_half_over_one_arm():
+    # Geometric optics: a quadratic phase of focal length f over width w draws a line z w / f long,
+    # set to the arm's 2 L; half the light goes to each arm, nearly all of it within +-L, and
+    # spread along it (a spot would put nearly all within L / 2, a uniform line half).
+    from doedesign import elements
+    from doedesign.camera import Camera
+    from doedesign.psf import PSFEngine
+
+    n, arm = 320, 48
+    cam = Camera(aperture_diameter_m=n * elements.PITCH_M, window_shape=elements.WINDOW, axis_pixel=elements.AXIS)
+    h = elements.cylinder_streak_start(cam, n, arm)
+    psf = PSFEngine(cam, elements.PITCH_M, (n, n), wavelengths_m=[550e-9]).psf(h, views=("coded",)).psf[0, 0, 0]
+    r0, c0 = cam.axis_pixel
+    for band in (psf[r0 - 6:r0 + 6].sum(axis=0), psf[:, c0 - 6:c0 + 6].sum(axis=1)):
+        d = np.abs(np.arange(band.size) - c0)
+        assert band.sum() == pytest.approx(0.5, abs=0.03)
+        assert band[d <= arm].sum() / band.sum() > 0.93
+        assert 0.5 < band[d <= arm // 2].sum() / band.sum() < 0.75
