@@ -174,7 +174,7 @@ def _run_one(args):
     return run_case(*args)
 
 
-def run(quick=False, workers=1, journal=None):
+def run(quick=False, workers=1, journal=None, time512=True):
     """The accuracy table's rows (and, unless ``quick``, the 512 x 512 timing).
 
     ``workers`` processes run the cases side by side; ``journal`` (a ``.jsonl`` path) keeps each
@@ -206,7 +206,7 @@ def run(quick=False, workers=1, journal=None):
     cases = sorted((c for c in done if (tuple(c["hidden"]), c["seed"]) in order),
                    key=lambda c: order[(tuple(c["hidden"]), c["seed"])])
     rows = summary_rows(cases)
-    if not quick:
+    if time512 and not quick:
         rows.append(time_512())
     return rows
 
@@ -221,11 +221,12 @@ if __name__ == "__main__":
     parser.add_argument("--out", default="benchmarks/results/diagnose_files", help="output folder")
     parser.add_argument("--workers", type=int, default=1, help="cases run side by side")
     parser.add_argument("--quick", action="store_true", help="4 cases, no 512 x 512 timing")
+    parser.add_argument("--no-512", action="store_true", help="skip the 512 x 512 timing")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    got = run(args.quick, args.workers, out / "cases.jsonl")
+    got = run(args.quick, args.workers, out / "cases.jsonl", not args.no_512)
     write_json(out / "results.json", {"machine": machine(), "quick": args.quick, "rows": got})
     with atomic_path(out / "results.md") as tmp:
         tmp.write_text(markdown(got, machine()))

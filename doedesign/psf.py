@@ -82,11 +82,16 @@ class PSFEngine:
         Arithmetic of :meth:`psf`'s transforms. "single" (complex64) is about twice as fast for
         long wavelength stacks, at a few 1e-7 of the peak (benchmarks/bench_psf.py measures
         it); gradients are always computed in double precision.
+    lag_cache : dict, optional
+        Where the autocorrelation lags of the uncoded view in focus are kept. Its pupil has no
+        phase, so its lags do not depend on the wavelength: engines of one camera, pitch, shape
+        and ``doe_oversample`` that pass the same dict compute them once between them.
     """
 
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
                  material: str | Material = "fused_silica", wavelengths_m: ArrayLike = (550e-9,),
-                 depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double") -> None:
+                 depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double",
+                 lag_cache: dict | None = None) -> None:
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
         self.camera = camera
@@ -122,11 +127,12 @@ class PSFEngine:
                 raise DoeError(f"the {name} view has no clear aperture")
             box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
             self._views[name] = (box, amp[box[0]:box[1], box[2]:box[3]])
+        self._energy = {name: float(np.sum(amp ** 2)) for name, (_, amp) in self._views.items()}
         self._opd = {float(d): self._defocus_opd(d) for d in self.depths_m}
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
         self._kernel_cache = {}
-        self._lag_cache = {}
+        self._lag_cache = {} if lag_cache is None else lag_cache
         self._work = {}
 
     # -- geometry -----------------------------------------------------------------------------
@@ -277,7 +283,7 @@ class PSFEngine:
         lags = self._lag_cache.get(key)
         if lags is None:
             t = self._pupil(view, height_m, wavelength, depth)
-            energy = float(np.sum(t.real ** 2 + t.imag ** 2))
+            energy = self._energy[view]  # a phase does not change it
             if precision == "single":
                 t = t.astype(np.complex64)
             lags = paired_lags(t) + (energy,)

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
+from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 
@@ -34,7 +35,7 @@ log = logging.getLogger(__name__)
 
 # Windows larger than twice this square (pixels per side) screen candidates on a crop of it.
 SCREEN_WINDOW_PX = 128
-# Rendered stacks kept for reuse (a full-size stack of 5 wavelengths is 21 MB).
+# Rendered channels kept for reuse (a full-size channel, both views, is 4 MB).
 RESULT_CACHE_BYTES = 512 * 2 ** 20
 
 __all__ = ["PsfProblem", "PsfRenderer", "diagnose_psf", "psf_forward"]
@@ -46,41 +47,68 @@ RenderFn = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 class PsfRenderer:
     """Ideal PSFs of a design for any wavelengths and source distance, engines and results cached.
 
-    ``cache_size`` engines are kept (each holds its kernels); rendered stacks up to
-    ``RESULT_CACHE_BYTES``.
-
     ``render(height_m, wavelengths_m, depth_m)`` returns (views, wavelengths, rows, cols) for
-    the views ``("coded", "uncoded")``.
+    the views ``("coded", "uncoded")``. Rendered channels (one wavelength, both views) are kept
+    up to ``RESULT_CACHE_BYTES`` and only the wavelengths not yet rendered for that height and
+    distance are computed: a wavelength-averaged model reuses the channels at the nominal
+    wavelengths. ``cache_size`` engines are kept (each holds its kernels); they share the
+    uncoded view's lags, which do not depend on the wavelength in focus.
+
+    Parameters
+    ----------
+    precision : {"double", "single"}
+        Arithmetic of the transforms (:class:`doedesign.psf.PSFEngine`); "single" for screening.
     """
 
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
-                 material: str | Material = "fused_silica", doe_oversample: int = 1, cache_size: int = 4) -> None:
+                 material: str | Material = "fused_silica", doe_oversample: int = 1, cache_size: int = 4,
+                 precision: str = "double") -> None:
         self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
-        self.material, self.q = material, int(doe_oversample)
+        self.material, self.q, self.precision = material, int(doe_oversample), precision
         self._engines = {}
-        self._results = {}
+        self._channels = {}
+        self._lags = {}
         self.cache_size = cache_size
         self.calls = 0
+        self._last_height = None
+
+    def _engine(self, wavelengths, depth_m):
+        from doedesign.psf import PSFEngine
+
+        key = (wavelengths, depth_m)
+        if key not in self._engines:
+            if len(self._engines) >= self.cache_size:
+                self._engines.pop(next(iter(self._engines)))
+            self._engines[key] = PSFEngine(self.camera, self.pitch_m, self.shape, self.material, wavelengths,
+                                           (depth_m,), self.q, precision=self.precision, lag_cache=self._lags)
+        return self._engines[key]
 
     def __call__(self, height_m, wavelengths_m, depth_m):
-        from doedesign.psf import VIEWS, PSFEngine
+        from doedesign.psf import VIEWS
 
-        wls = tuple(np.round(np.asarray(wavelengths_m, dtype=float), 15))
-        key = (hash(np.asarray(height_m).tobytes()), wls, float(depth_m))
-        if key in self._results:
-            return self._results[key]
-        ekey = (wls, float(depth_m))
-        if ekey not in self._engines:
-            if len(self._engines) > self.cache_size:
-                self._engines.pop(next(iter(self._engines)))
-            self._engines[ekey] = PSFEngine(self.camera, self.pitch_m, self.shape, self.material, wls,
-                                            (float(depth_m),), self.q)
-        self.calls += 1
-        out = self._engines[ekey].psf(height_m, views=VIEWS).psf[:, 0]
-        while self._results and sum(v.nbytes for v in self._results.values()) + out.nbytes > RESULT_CACHE_BYTES:
-            self._results.pop(next(iter(self._results)))
-        self._results[key] = out
-        return out
+        wls = tuple(float(w) for w in np.round(np.asarray(wavelengths_m, dtype=float), 15))
+        depth = float(depth_m)
+        # Hashing a full-size map costs about as much as a small render: the last array's key is
+        # kept with the array (held, so its id is not reused); heights are never changed in place.
+        if self._last_height is None or self._last_height[0] is not height_m:
+            self._last_height = (height_m, hash(np.asarray(height_m).tobytes()))
+        hkey = self._last_height[1]
+        found = {w: self._channels.get((hkey, w, depth)) for w in wls}
+        missing = tuple(w for w in found if found[w] is None)
+        if missing:
+            self.calls += 1
+            # One BLAS thread: the lag transform's products are mid-sized (a crop has 128 rows) and
+            # BLAS threads spin while they wait; measured on the full-size case at a load of 11-12
+            # on 2 cores, two threads took 2-2.5x the CPU time of one for each screening fit.
+            with threadpool_limits(limits=1, user_api="blas"):
+                fresh = self._engine(missing, depth).psf(height_m, views=VIEWS).psf[:, 0]
+            for i, w in enumerate(missing):
+                found[w] = np.ascontiguousarray(fresh[:, i])
+            size = fresh[:, 0].nbytes
+            while self._channels and (len(self._channels) + len(missing)) * size > RESULT_CACHE_BYTES:
+                self._channels.pop(next(iter(self._channels)))
+            self._channels.update({(hkey, w, depth): found[w] for w in missing})
+        return np.stack([found[w] for w in wls], axis=1)
 
 
 def psf_forward(model: dict[str, np.ndarray], effects: dict[str, Effect], render: RenderFn, height_m: np.ndarray,
@@ -205,9 +233,12 @@ class PsfProblem(Problem):
         camera = dataclasses.replace(self.camera, window_shape=(h, w),
                                      axis_pixel=(self.axis_pixel[0] - r0, self.axis_pixel[1] - c0))
         log.info("candidates screened on the %d x %d window at (%d, %d)", h, w, r0, c0)
+        # Single precision there: a few 1e-7 of the peak, far below any measured noise.
+        render = PsfRenderer(camera, self.pitch_m, self.height_m.shape, self.material, self.doe_oversample,
+                             precision="single")
         return PsfProblem(self.height_m, self.pitch_m, camera, self.measured[..., r0:r0 + h, c0:c0 + w], self.views,
                           self.wavelengths_m, self.depth_m, self._effect_list, self.material, self.doe_oversample,
-                          noise=self.noise)
+                          renderer=render, noise=self.noise)
 
     def stack(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return psf_forward(model, self.effects, self.render, self.height_m, self.wavelengths_m, self.depth_m,

@@ -267,3 +267,21 @@ def test_single_precision_stays_within_a_few_1e7_of_the_peak():
     assert np.abs(single - double).max() > 0  # it is really computed in single precision
     with pytest.raises(DoeError, match="precision"):
         PSFEngine(cam, PITCH, (n, n), precision="half")
+
+
+def test_shared_lag_cache_reuses_only_the_wavelength_free_uncoded_lags():
+    """Engines sharing a lag cache give the PSFs of engines that do not; the uncoded view in focus
+    (no phase in its pupil) is transformed once for all wavelengths and engines, a defocused one
+    is not reused (its pupil depends on the wavelength and the distance)."""
+    cam = Camera(aperture_diameter_m=1.0e-3, window_shape=(48, 48), axis_pixel=(24, 24), doe_side="left")
+    h = blazed_grating(160, period_px=16)
+    shared = {}
+    a = PSFEngine(cam, PITCH, h.shape, wavelengths_m=[500e-9], lag_cache=shared).psf(h)
+    b = PSFEngine(cam, PITCH, h.shape, wavelengths_m=[600e-9, 650e-9], lag_cache=shared).psf(h)
+    c = PSFEngine(cam, PITCH, h.shape, wavelengths_m=[600e-9], depths_m=[0.5], lag_cache=shared).psf(h)
+    assert [k[1] for k in shared] == ["uncoded"]
+    for res, wls, depths in ((a, [500e-9], None), (b, [600e-9, 650e-9], None), (c, [600e-9], [0.5])):
+        ref = PSFEngine(cam, PITCH, h.shape, wavelengths_m=wls, depths_m=depths).psf(h)
+        np.testing.assert_array_equal(res.psf, ref.psf)
+    # The defocused uncoded PSF really differs from the in-focus one (the check above can fail).
+    assert np.abs(c.psf[1, 0, 0] - b.psf[1, 0, 0]).max() > 0.1 * b.psf[1, 0, 0].max()

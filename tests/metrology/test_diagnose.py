@@ -149,6 +149,34 @@ def test_screening_crop_holds_the_most_light_and_shares_the_noise():
     assert small.screening is None
 
 
+
+def test_psf_renderer_reuses_channels_and_matches_the_engine():
+    """The renderer computes only the wavelengths it has not rendered for that height and distance
+    (a wavelength-averaged model reuses the nominal ones), and its stacks are the engine's."""
+    from doedesign.psf import PSFEngine
+    from metrology.diagnosis.psf import PsfRenderer
+    from metrology.diagnosis.synthetic import psf_test_setup
+
+    design, camera, wls = psf_test_setup(3)
+    render = PsfRenderer(camera, design.pitch_m, design.shape, design.material)
+    h, d = design.height_m, camera.focus_distance_m
+    first = render(h, wls, d)
+    shifted = np.array([wls[1], wls[1] + 7e-9, wls[2]])
+    second = render(h, shifted, d)
+    assert render.calls == 2 and [len(k[0]) for k in render._engines] == [3, 1]
+    for stack, w in ((first, wls), (second, shifted)):
+        ref = PSFEngine(camera, design.pitch_m, design.shape, design.material, w, (d,)).psf(h).psf[:, 0]
+        np.testing.assert_allclose(stack, ref, rtol=0, atol=1e-12 * ref.max())
+    # An equal map in another array is found by content; another height or distance is rendered anew.
+    np.testing.assert_array_equal(render(h.copy(), wls, d), first)
+    assert render.calls == 2
+    render(h * 1.01, wls, d)
+    render(h, wls, 2.0)
+    assert render.calls == 4
+    # Single precision (screening) stays within 1e-6 of the peak of the double-precision stack.
+    single = PsfRenderer(camera, design.pitch_m, design.shape, design.material, precision="single")(h, wls, d)
+    assert np.abs(single - first).max() < 1e-6 * first.max()
+
 UNSEPARABLE_AT_MODEL_GRID = {"instrument_blur", "sidewall_slope"}
 
 
