@@ -38,11 +38,14 @@ if TYPE_CHECKING:
     from metrology.formats.measurement import Measurement
     from metrology.matching.compare import Comparison
 
-__all__ = ["CAMERA", "SUBSUMED", "CameraHeightProblem", "diagnose_camera", "diagnose_camera_measurement"]
+__all__ = ["CAMERA", "SCREEN_WINDOW_PX", "SUBSUMED", "CameraHeightProblem", "diagnose_camera",
+           "diagnose_camera_measurement"]
 
 log = logging.getLogger(__name__)
 
 _UM = 1e-6
+# Camera pixels per side above which candidates are screened on a crop of the window.
+SCREEN_WINDOW_PX = 128
 # Memory kept for rendered camera maps (and a quarter of it for fine surfaces) between renders.
 RENDER_CACHE_BYTES = 400 * 2 ** 20
 
@@ -90,6 +93,9 @@ class CameraHeightProblem(dg.Problem):
     instrument : InstrumentModel, optional
         The measurement model of another problem on the same crop and placement, to share its
         cached etches.
+    centre_px : (float, float), optional
+        Camera pixel about which the placement is refined (default: the crop's centre; a
+        screening crop uses its whole window's, so both read the same nuisance values alike).
     """
 
     units = "m"
@@ -98,13 +104,16 @@ class CameraHeightProblem(dg.Problem):
     def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
                  curvature: bool = False, keep: np.ndarray | None = None,
-                 noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None) -> None:
+                 noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
+                 centre_px: Sequence[float] | None = None) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
         self.pitch_m = float(pitch_m)
         self.measured = np.asarray(measured_height_m, float)
         self.placement = placement
+        self.centre_px = (np.asarray(self.measured.shape, float) - 1) / 2 if centre_px is None else centre_px
+        self.screening = None
         kw = {} if step_m is None else {"step_m": step_m}
         self.instrument = instrument or InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
         self.base = base_params
@@ -179,10 +188,23 @@ class CameraHeightProblem(dg.Problem):
                 self._fine.put(key, fine)
             coeffs = self.instrument.camera_map(fine, float(cam[5]))
             self._coeffs.put((key, float(cam[5])), coeffs)
-        return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape))
+        return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape, self.centre_px))
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
+
+    def crop(self, size_px: int) -> CameraHeightProblem:
+        """The same problem on the ``size_px`` square of its window with the most design edges
+        (same process, effects, noise floor and placement frame), to screen candidates on."""
+        r0, c0 = busiest_camera_window(self.levels, self.placement, self.measured.shape, size_px)
+        size = min(size_px, *self.measured.shape)
+        part = (slice(r0, r0 + size), slice(c0, c0 + size))
+        start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
+        log.info("candidates screened on the %d px camera window at (%d, %d)", size, r0, c0)
+        return CameraHeightProblem(self.levels, self.pitch_m, self.measured[part], start, self.base,
+                                   [e for n, e in self.effects.items() if n != CAMERA.name],
+                                   step_m=self.instrument.step_m, curvature=self.curvature, keep=self.keep[part],
+                                   noise=self.noise, centre_px=np.asarray(self.centre_px, float) - [r0, c0])
 
     def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)
@@ -203,7 +225,7 @@ class CameraHeightProblem(dg.Problem):
         cam = np.asarray(model[CAMERA.name], float)
         err = np.asarray((errors or {}).get(CAMERA.name, np.full(6, np.nan)), float)
         px_per_design = self.pitch_m / self.pixel_m
-        final = self.placement.refined(cam[:5], self.measured.shape)
+        final = self.placement.refined(cam[:5], self.measured.shape, self.centre_px)
         return {"refinement": {name: float(v) for name, v in zip(PLACEMENT_PARAMS, cam[:5])},
                 "shift_uncertainty_camera_px": [float(e * px_per_design) for e in err[:2]],
                 "rotation_uncertainty_deg": float(np.degrees(err[2])),
@@ -216,8 +238,8 @@ class CameraHeightProblem(dg.Problem):
 def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                     depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
-                    step_m: float | None = None,
-                    screen: tuple[ProcessParams, float] | None = None) -> dg.Diagnosis:
+                    step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
+                    screen_window_px: int = SCREEN_WINDOW_PX) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -235,6 +257,10 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         Process and objective blur whose residual the robust rule first screens for spikes
         (e.g. the comparison's camera-frame fit). Default: the ideal process, whose residual
         also flags real edge signal, so the fit reruns once those pixels are re-admitted.
+    screen_window_px : int
+        A window larger than this screens the candidates on its busiest square of this size
+        (each model evaluation there costs a fraction); the close ones are refitted on the
+        whole window.
 
     Returns
     -------
@@ -263,6 +289,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         # process errors would leak into the interiors and raise it.
         problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
                                       noise=first.noise, instrument=first.instrument)
+        if size > screen_window_px:
+            problem.screening = problem.crop(screen_window_px)
         diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
                                 quick_screen=True)
         new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)

@@ -57,6 +57,9 @@ __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMEN
 FINE_STEP_M = 0.125e-6
 # Extra design pixels around the camera footprint: kernel reach plus any placement refinement.
 MARGIN_PX = 3
+# FFT threads for camera maps of at least FFT_THREADS_MIN_PX samples.
+FFT_WORKERS = 2
+FFT_THREADS_MIN_PX = 2 ** 22
 # Memory kept for the masks' etches between renders (enough for a Jacobian's columns).
 ETCH_CACHE_BYTES = 600 * 2 ** 20
 # Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
@@ -87,15 +90,18 @@ class Placement:
         m, t = self.matrix, self.offset
         return m[0, 0] * rows + m[0, 1] * cols + t[0], m[1, 0] * rows + m[1, 1] * cols + t[1]
 
-    def refined(self, values: Sequence[float], shape: tuple[int, int]) -> Placement:
+    def refined(self, values: Sequence[float], shape: tuple[int, int],
+                centre_px: Sequence[float] | None = None) -> Placement:
         """This placement moved by nuisance ``values`` (see :data:`PLACEMENT_PARAMS`).
 
         ``shift_row_px``, ``shift_col_px``: design pixels, of the field centre;
         ``rotation_rad``: counter-clockwise (y up) about the field centre; ``scale_row``,
         ``scale_col``: relative change of the camera pixel size along its rows and columns.
+        The field centre is that of ``shape`` unless ``centre_px`` (camera row, col) is given
+        (a crop refined as the field it was cut from).
         """
         dr, dc, a, sr, sc = (float(v) for v in values)
-        centre = (np.asarray(shape, float) - 1) / 2
+        centre = (np.asarray(shape, float) - 1) / 2 if centre_px is None else np.asarray(centre_px, float)
         rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
         matrix = rot @ self.matrix @ np.diag([1.0 + sr, 1.0 + sc])
         centre_design = self.matrix @ centre + self.offset + np.array([dr, dc])
@@ -250,9 +256,12 @@ class InstrumentModel:
         shape = (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
         padded = np.pad(fine_m.astype(np.float32), ((h, shape[0] - rows - h), (h, shape[1] - cols - h)),
                         mode="edge")
-        spectrum = sfft.rfft2(padded)
+        # Both cores on a large window (a whole 512 px field); one on a small one, whose many
+        # maps are cheaper without the threads' overhead.
+        workers = FFT_WORKERS if padded.size >= FFT_THREADS_MIN_PX else 1
+        spectrum = sfft.rfft2(padded, workers=workers)
         spectrum *= self._transfer(kernel, shape, sigma_m)
-        return np.ascontiguousarray(sfft.irfft2(spectrum, s=shape)[h:h + rows, h:h + cols])
+        return np.ascontiguousarray(sfft.irfft2(spectrum, s=shape, workers=workers)[h:h + rows, h:h + cols])
 
     def _transfer(self, kernel, shape, sigma_m):
         """Fourier transfer of correlation with ``kernel`` followed by the spline prefilter."""

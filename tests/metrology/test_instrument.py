@@ -159,3 +159,24 @@ def test_generator_is_independent_of_the_model():
     names = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     names |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert not any(m.startswith(("masks", "metrology.diagnosis", "metrology.matching")) for m in names)
+
+
+def test_screening_crop_renders_the_whole_windows_pixels_under_the_same_nuisance():
+    # A crop refined about its whole window's centre reads the same nuisance values alike:
+    # under a rotated, shifted, rescaled placement, its pixels are the whole window's.
+    from masks.process import ProcessParams
+    from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
+    from metrology.diagnosis.effects import effects_for
+
+    case = filegen.make_case(["mask_overlay"], 5, design_px=36, field_px=100)
+    inst = case.instrument
+    pl = Placement(np.array(inst["matrix"]), np.array(inst["offset"]))
+    whole = CameraHeightProblem(case.levels, filegen.PITCH_M, case.height_m, pl, ProcessParams.ideal(),
+                                effects_for("height", ["mask_overlay"]))
+    part = whole.crop(48)
+    model = {CAMERA.name: np.array([0.3, -0.2, 2e-3, 1e-3, -2e-3, 0.45e-6]),
+             "mask_overlay": np.array([0, 0, 0.1e-6, 0, 0, -0.2e-6])}
+    r0 = int(np.rint((part.placement.offset - pl.offset) @ np.linalg.inv(pl.matrix).T)[0])
+    c0 = int(np.rint((part.placement.offset - pl.offset) @ np.linalg.inv(pl.matrix).T)[1])
+    assert part.measured.shape == (48, 48)
+    np.testing.assert_allclose(part.render(model), whole.render(model)[r0:r0 + 48, c0:c0 + 48], rtol=0, atol=1e-12)
