@@ -36,13 +36,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="Python file that registers user effects (metrology.diagnosis.register_effect); "
                         "they join the candidates (repeatable)")
     p.add_argument("--region-px", type=Number(int, 8, 4096, unit="px"), default=40,
-                   help="design pixels per side of the window diagnosed (height maps; default 40)")
+                   help="design pixels per side of the window diagnosed with --frame design (default 40)")
     p.add_argument("--upsample", type=Number(int, 1, 32), default=5,
-                   help="model samples per design pixel per axis (height maps; default 5)")
-    p.add_argument("--frame", choices=("design", "camera"), default="design",
-                   help="height maps: fit on the design's model grid after resampling the data (design, "
-                        "the default), or render the model into the profilometer's own pixels with blur, "
-                        "pixel integration and placement fitted as nuisances (camera)")
+                   help="model samples per design pixel per axis with --frame design (default 5)")
+    p.add_argument("--frame", choices=("design", "camera"), default="camera",
+                   help="height maps: render the model into the profilometer's own pixels with blur, pixel "
+                        "integration and placement fitted as nuisances (camera, the default: the data are never "
+                        "resampled), or fit on the design's model grid after resampling the data (design; "
+                        "faster, for maps already on the design grid)")
     p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
                    help="camera pixels per side of the window diagnosed with --frame camera (default 160)")
     p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),

@@ -105,5 +105,6 @@ def test_masks_compare_and_diagnose_see_the_same_levels(tmp_path, monkeypatch):
     meas_path = tmp_path / "wafer.npz"
     write_measurement(meas_path, wafer, pixel_size_m=PIXEL)
     with pytest.raises(_Seen):
-        main(["diagnose", "--design", str(path), "--measured", str(meas_path), "--out", str(tmp_path / "g")])
+        main(["diagnose", "--design", str(path), "--measured", str(meas_path), "--frame", "design",
+              "--out", str(tmp_path / "g")])
     np.testing.assert_array_equal(got["levels"], expected)

@@ -43,3 +43,15 @@ def test_hidden_overlay_in_a_file_is_named_alone_within_ten_percent(tmp_path):
     fit = np.array([step["params"][f"dx_mask{j}_m"], step["params"][f"dy_mask{j}_m"]])
     assert np.hypot(*(fit - truth["shift_m"])) < 0.1 * np.hypot(*truth["shift_m"])
     assert report["final_residual_rms"] < 1.3 * report["noise_floor"]
+
+
+def test_profilometer_files_are_diagnosed_in_the_camera_frame_by_default():
+    """Issue 11: a profilometer file is compared in its own pixels unless the user asks otherwise."""
+    import argparse
+
+    from metrology.cli.diagnose import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["diagnose", "--design", "d.npz", "--measured", "m.datx", "--out", "o"])
+    assert args.frame == "camera"
