@@ -244,14 +244,16 @@ def interpolate_separable(coarse: np.ndarray, row_coords: np.ndarray, col_coords
 
 
 def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
-    """Profile of a microtrench: ``exp(-s / w)`` at distance ``s`` inside an opening's edge.
+    """Profile of a microtrench: ``exp(-s / w)`` at distance ``s`` from the nearest sidewall.
 
-    The closed fraction around each pixel is averaged with a separable two-sided exponential
-    of decay length ``w`` (each tap the kernel's integral over its pixel); at distance ``s``
-    inside a straight opening edge that average is ``exp(-s / w) / 2``, so twice it is the
-    trench profile at the pixel centres exactly, continuous in the edge position. At a
-    convex corner the two edges' feet combine as ``e_x + e_y - e_x e_y / 2``; in openings
-    narrower than ``w`` the feet of both edges add. Outside the array is closed.
+    ``s`` is the chessboard (L-infinity) distance from a pixel centre to the nearest closed
+    pixel, corrected by that pixel's closed fraction ``c`` (its edge sits ``0.5 - c`` pixels
+    before its far side), so a straight edge gives the exact profile at the pixel centres and
+    the profile moves continuously with the edge: when a pixel starts to close, the distance
+    falls from ``n + 0.5`` (the fully closed pixel beyond) to ``n + 0.5 - c``. Trenches of two
+    nearby sidewalls do not add: the nearest one sets the depth, at an opening's corner as
+    along its edges (ions reflected from the nearer wall dominate). SciPy's chessboard distance
+    transform finds the nearest closed pixel; outside the array is closed.
 
     Parameters
     ----------
@@ -263,22 +265,16 @@ def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
     Returns
     -------
     ndarray of float64
-        0 deep inside wide openings, 1 at the foot of a straight edge; meaningful where
-        the coverage is non-zero (the caller multiplies by it).
+        0 deep inside wide openings, 1 at the foot of a straight edge (capped at 1);
+        meaningful where the coverage is non-zero (the caller multiplies by it).
     """
-    from scipy.signal import lfilter  # only when microtrenching is on
+    from scipy.ndimage import distance_transform_cdt
 
-    a = np.exp(-1.0 / width_px)
-    tap0 = -np.expm1(-0.5 / width_px)     # integral over the centre pixel
-    tap = np.sinh(0.5 / width_px)         # tap m != 0 is tap * a**|m|
-    out = np.asarray(coverage, dtype=np.float64)
-    for _ in (0, 1):
-        # First-order recursions sum a**m x[n -+ m] over m >= 0, the two halves of the kernel,
-        # along the contiguous axis; the transpose brings the other axis there (and back).
-        causal = lfilter([1.0], [1.0, -a], out, axis=-1)
-        anti = lfilter([1.0], [1.0, -a], out[:, ::-1], axis=-1)[:, ::-1]
-        out = np.ascontiguousarray((tap0 * out + tap * (causal + anti - 2.0 * out)).T)
-    return 2.0 * (1.0 - out)
+    closed = 1.0 - np.asarray(coverage, dtype=np.float64)
+    padded = np.pad(closed, 1, constant_values=1.0)
+    dist, (ri, ci) = distance_transform_cdt(padded <= 0.0, metric="chessboard", return_indices=True)
+    s = dist + 0.5 - padded[ri, ci]
+    return np.minimum(np.exp(-s[1:-1, 1:-1] / width_px), 1.0)
 
 
 def box_kernel(width_px: float) -> np.ndarray:
