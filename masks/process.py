@@ -27,10 +27,11 @@ Approximations, in words:
   step's sidewall does depend on it;
 - the local open fraction that drives etch loading is taken from the *designed* mask at
   design-pixel resolution (Gaussian-averaged over ``loading_radius``), not the printed one;
-- microtrenching is an extra depth ``t exp(-s / w)`` at distance ``s`` inside a straight
-  edge, made from the printed coverage with a separable two-sided exponential filter
-  (exact for straight Manhattan edges; at corners and in openings narrower than ``w`` the
-  feet of neighbouring edges add up); it scales with the local etch depth of its mask;
+- microtrenching is an extra depth ``t exp(-s / w)`` at distance ``s`` from the nearest
+  sidewall, made from the printed coverage by a chessboard distance transform (exact for
+  straight Manhattan edges; at corners and in openings narrower than ``w`` the nearest wall
+  sets the depth, the feet of two walls do not add); it scales with the local etch depth of
+  its mask;
 - the etch gradient multiplies every mask's depth by ``1 + g . r``, r from the field centre;
 - outside the design array the wafer is unetched (masks closed).
 """
