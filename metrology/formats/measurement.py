@@ -8,7 +8,6 @@ rotation of the part under the instrument.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 from doedesign.fileio import json_ready
+from masks.process_params import finite_float
 
 __all__ = ["Measurement", "MeasurementFileError", "read_head"]
 
@@ -65,12 +65,9 @@ class Measurement:
         self.height_m = np.asarray(self.height_m, dtype=np.float64)
         if self.height_m.ndim != 2 or self.height_m.size == 0:
             raise DoeError(f"height_m must be a non-empty 2-D array, got shape {self.height_m.shape}")
-        try:
-            self.pixel_size_m = float(self.pixel_size_m)
-        except (TypeError, ValueError):
-            raise DoeError(f"pixel_size_m must be a number, got {self.pixel_size_m!r}") from None
-        if not (math.isfinite(self.pixel_size_m) and self.pixel_size_m > 0):
-            raise DoeError(f"pixel_size_m must be positive and finite, got {self.pixel_size_m}")
+        self.pixel_size_m = finite_float(self.pixel_size_m, "pixel_size_m")
+        if self.pixel_size_m <= 0:
+            raise DoeError(f"pixel_size_m must be positive, got {self.pixel_size_m}")
         self.metadata = dict(self.metadata)
 
     @property
