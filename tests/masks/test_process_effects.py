@@ -227,3 +227,21 @@ def test_microtrench_inside_an_opening_corner_and_beside_a_closed_corner():
     for k in range(1, 4):
         s = (k + 0.5) * STEP
         assert diff[8 * U + k, 8 * U] == pytest.approx(-t * np.exp(-s / w), rel=1e-9)
+
+
+def test_microtrench_sees_no_wall_inside_a_moved_blurred_opening():
+    """The trench counts any partly closed pixel as a wall: a shifted, rotated, biased and
+    proximity-blurred opening must print exactly open in its interior, so the trench there is
+    exp(-s / w) of the true walls only (here far below 1e-6 of t)."""
+    levels = np.zeros((24, 24), dtype=int)
+    levels[4:20, 4:20] = 8                         # 64 um opening of mask 3
+    t, w = 30e-9, 0.5e-6
+    trench = np.zeros((4, 2))
+    trench[3] = (t, w)
+    moved = dict(mask_overlay=np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0.37e-6, -0.21e-6, 0.0]]),
+                 mask_rotation=np.array([0, 0, 0, 0.01]), linewidth_bias=np.array([0, 0, 0, 0.13e-6]),
+                 proximity_blur=0.3e-6)
+    diff = simulate(levels, microtrenching=trench, **moved) - simulate(levels, **moved)
+    interior = diff[8 * U:16 * U, 8 * U:16 * U]    # >= 14 um (28 w) from every wall
+    assert np.abs(interior).max() < 1e-6 * t
+    assert diff.min() < -0.5 * t                    # the trench is there at the walls
