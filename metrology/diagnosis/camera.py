@@ -100,6 +100,7 @@ class CameraHeightProblem(dg.Problem):
 
     units = "m"
     judges_partial_matches = True
+    parallel_screening = True
 
     def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
@@ -291,8 +292,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                       noise=first.noise, instrument=first.instrument)
         if size > screen_window_px:
             problem.screening = problem.crop(screen_window_px)
+        # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
+        # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
+        # parameters after the residual has reached it.
         diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
-                                quick_screen=True)
+                                quick_screen=True, stop_at_floor=False, prior=diag.model if diag else None)
         new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
                                 - _plane(problem, crop, diag.model), np.isfinite(crop))
         if np.array_equal(new_keep, keep):

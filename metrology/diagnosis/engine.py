@@ -28,7 +28,10 @@ A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) 
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +59,11 @@ JAC_STEP = 0.02
 # Fraction of the noise floor above which a final residual is reported unexplained even when
 # no binned pattern earns its parameters (the noise-floor estimate itself is good to ~5 %).
 UNEXPLAINED_RATIO = 1.25
+# Worker processes that screen candidates side by side (problems with ``parallel_screening``).
+SCREEN_WORKERS = min(2, os.cpu_count() or 1)
+# The screening round a forked worker reads (set in the parent just before the fork, so the
+# problem reaches the workers by copy-on-write memory, not by pickling).
+_ROUND: dict[str, Any] = {}
 
 
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
@@ -200,6 +208,10 @@ class Problem:
     # footprint and a fabrication effect that does not may be withheld as a partial match. The
     # design-frame height fit resamples the data and does not close to the floor (issue 11).
     judges_partial_matches = False
+    # Whether candidates may be screened side by side in forked worker processes (each worker
+    # holds a copy-on-write view of the problem and its own render caches). Off where a
+    # problem's working arrays would double the peak memory (the full-size PSF stack).
+    parallel_screening = False
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         raise NotImplementedError
@@ -279,6 +291,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
 
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
                         max_nfev=max_iter or 60)
+    log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
     fitted = unpack(res.x)
     rss = float(np.sum(res.fun ** 2)) * sigma ** 2
     n, k = res.fun.size, res.x.size
@@ -316,6 +329,45 @@ def _forward_jacobian(fun, x, lo, hi, step=JAC_STEP):
         other[i] = x[i] + step if x[i] + step <= hi[i] else max(x[i] - step, lo[i])
         cols.append((fun(other) - f0) / (other[i] - x[i]))
     return np.stack(cols, axis=1)
+
+
+def _screen_one(name):
+    """Screen candidate ``name`` in the round of :data:`_ROUND`: (name, fitted model, score).
+
+    The named effects refit with the candidate: partly degenerate effects (a blur and a
+    sidewall ramp) must be able to share what one of them took alone. The criterion change on
+    a screening crop is scaled by the ratio of effective sample counts.
+    """
+    rd = _ROUND
+    screen = rd["screen"]
+    eff = rd["effects"][name]
+    trial = dict(rd["model"])
+    trial[name] = rd["prior"].get(name, eff.start_values())
+    free = rd["named"] + [name]
+    iters = rd["iters"]
+    first = min(iters, 2) if rd["quick"] else iters
+
+    def score(rss):
+        return (bic_eff(rss, rd["n_s"], rd["n_eff_s"], rd["k_now"] + eff.n_params) - rd["crit_s"]) \
+            * rd["n_eff"] / rd["n_eff_s"]
+
+    fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=not rd["quick"])
+    if first < iters and score(rss_c) < 0:
+        # The first step paid for the candidate's parameters: finish the short fit.
+        fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)
+    return name, fitted, score(rss_c)
+
+
+def _screen_all(pending, workers):
+    """Yield :func:`_screen_one` of every pending candidate, in ``workers`` forked processes
+    when more than one (results as they finish)."""
+    if workers <= 1:
+        for name in pending:
+            yield _screen_one(name)
+        return
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        for fut in as_completed([pool.submit(_screen_one, name) for name in pending]):
+            yield fut.result()
 
 
 def _rms(r):
@@ -388,8 +440,12 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
 
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
-                  stop_at_floor: bool = True, quick_screen: bool = False) -> Diagnosis:
+                  stop_at_floor: bool = True, quick_screen: bool = False,
+                  prior: dict[str, np.ndarray] | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
+
+    Candidates of a problem with ``parallel_screening`` are screened in up to
+    :data:`SCREEN_WORKERS` forked processes (the same fits, so the same result as one process).
 
     Parameters
     ----------
@@ -411,6 +467,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         Screen with forward-difference Jacobians (half the model evaluations), and stop a
         candidate's screening fit after one step that does not pay for its parameters (its
         score stays that step's). The close candidates are refitted in full either way.
+    prior : dict, optional
+        A model of the same data from an earlier pass (e.g. before the robust rule re-admitted
+        pixels): the nuisances and each candidate start from its values instead of the null
+        ones. The selection itself is made afresh.
 
     Returns
     -------
@@ -421,7 +481,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
     model = {}
     if nuisance:
-        model, _, _ = fit_effects(problem, {n: problem.effects[n].start_values() for n in nuisance}, nuisance)
+        model, _, _ = fit_effects(problem, {n: (prior or {}).get(n, problem.effects[n].start_values())
+                                            for n in nuisance}, nuisance)
     r = problem.residual(model)
     n = r.size
     n_eff = max(n / problem.noise.corr_area_px, 2.0)
@@ -453,23 +514,16 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             n_s = r_s.size
             n_eff_s = max(n_s / screen.noise.corr_area_px, 2.0)
             crit_s = bic_eff(float(np.sum(r_s ** 2)), n_s, n_eff_s, k_now)
+        _ROUND.update(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
+                      iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now,
+                      n_eff=n_eff, prior=prior or {})
+        workers = min(SCREEN_WORKERS if problem.parallel_screening else 1, len(pending))
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
-            for name in pending:
-                eff = problem.effects[name]
-                trial = dict(model)
-                trial[name] = eff.start_values()
-                # The named effects refit with the candidate: partly degenerate effects (a blur
-                # and a sidewall ramp) must be able to share what one of them took alone.
-                free = [m for m in model if m not in nuisance] + [name]
-                first = min(iters, 2) if quick_screen else iters
-                fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=not quick_screen)
-                scores[name] = (bic_eff(rss_c, n_s, n_eff_s, k_now + eff.n_params) - crit_s) * n_eff / n_eff_s
-                if first < iters and scores[name] < 0:
-                    # The first step paid for the candidate's parameters: finish the short fit.
-                    fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)
-                    scores[name] = (bic_eff(rss_c, n_s, n_eff_s, k_now + eff.n_params) - crit_s) * n_eff / n_eff_s
-                fits[name] = fitted
-                bar.update(1, status=f"{name} {scores[name]:+.1f}")
+            for name, fitted, score in _screen_all(pending, workers):
+                scores[name], fits[name] = score, fitted
+                bar.update(1, status=f"{name} {score:+.1f}")
+        _ROUND.clear()
+        scores = {c: scores[c] for c in pending}  # in the candidates' order, however they finished
         if not scores:
             break
         best = min(scores, key=scores.get)
