@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import resource
 import sys
 import tempfile
 import time
@@ -49,6 +50,13 @@ def _diagnose(case, tmp, window_px):
     if code != 0:
         raise RuntimeError(f"doe diagnose exited {code}")
     return json.loads((out / "report.json").read_text()), dt
+
+
+def _cpu_s():
+    """CPU seconds of this process and of its finished children (the diagnosis screens
+    candidates in forked workers)."""
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + kids.ru_utime + kids.ru_stime
 
 
 def parameter_error(name, truth, params):
@@ -103,9 +111,9 @@ def run_case(names, seed, window_px=WINDOW_PX):
     """Diagnose one generated file case; return its row of the accuracy table."""
     case = filegen.make_case(names, seed, design_px=40, field_px=130)
     with tempfile.TemporaryDirectory() as tmp:
-        t_cpu = time.process_time()
+        t_cpu = _cpu_s()
         report, dt = _diagnose(case, tmp, window_px)
-        cpu = time.process_time() - t_cpu
+        cpu = _cpu_s() - t_cpu
     fab = {s["effect"]: s["params"] for s in report["steps"] if not s["measurement_artefact"]}
     errs = {n: parameter_error(n, case.truth[n], fab[n]) for n in names if n in fab}
     row = {"hidden": list(names), "seed": seed, "named": sorted(fab),
@@ -161,9 +169,9 @@ def time_512():
     """One 512 x 512 camera-frame diagnosis (whole field, all candidates)."""
     case = filegen.make_case(["mask_overlay"], 9003, design_px=110, field_px=512)
     with tempfile.TemporaryDirectory() as tmp:
-        t_cpu = time.process_time()
+        t_cpu = _cpu_s()
         report, dt = _diagnose(case, tmp, 512)
-        cpu = time.process_time() - t_cpu
+        cpu = _cpu_s() - t_cpu
     return dict(benchmark="diagnose_files", figure="time, 512 x 512 camera-frame diagnosis", value=dt,
                 unit="s", peer=None, peer_value=None, ratio=None, limit=30.0,
                 notes=f"whole field fitted, all candidates; {cpu:.0f} s CPU; named "
