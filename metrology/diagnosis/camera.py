@@ -28,6 +28,7 @@ from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
+from metrology.diagnosis.tiles import TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (PLACEMENT_PARAMS, ArrayCache, InstrumentModel, Leveller, Placement,
                                            robust_valid)
 from metrology.matching.window import busiest_camera_window
@@ -198,14 +199,28 @@ class CameraHeightProblem(dg.Problem):
         """The same problem on the ``size_px`` square of its window with the most design edges
         (same process, effects, noise floor and placement frame), to screen candidates on."""
         r0, c0 = busiest_camera_window(self.levels, self.placement, self.measured.shape, size_px)
+        log.info("candidates screened on the %d px camera window at (%d, %d)", min(size_px, *self.measured.shape),
+                 r0, c0)
+        return self.sub(r0, c0, size_px)
+
+    def sub(self, r0: int, c0: int, size_px: int, margin_px: int | None = None,
+            transfers: ArrayCache | None = None) -> CameraHeightProblem:
+        """The same problem on the ``size_px`` square of its window from camera pixel (r0, c0):
+        same process, effects, noise floor and placement frame (a refinement of the whole field
+        places the part alike). ``margin_px``: design pixels its instrument renders around it;
+        ``transfers``: a Fourier-transfer store shared with the field's other parts."""
         size = min(size_px, *self.measured.shape)
         part = (slice(r0, r0 + size), slice(c0, c0 + size))
         start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
-        log.info("candidates screened on the %d px camera window at (%d, %d)", size, r0, c0)
+        instrument = None
+        if margin_px is not None:
+            instrument = InstrumentModel(self.levels, self.pitch_m, (size, size), start, step_m=self.instrument.step_m,
+                                         margin_px=margin_px, transfers=transfers)
         return CameraHeightProblem(self.levels, self.pitch_m, self.measured[part], start, self.base,
                                    [e for n, e in self.effects.items() if n != CAMERA.name],
                                    step_m=self.instrument.step_m, curvature=self.curvature, keep=self.keep[part],
-                                   noise=self.noise, centre_px=np.asarray(self.centre_px, float) - [r0, c0])
+                                   noise=self.noise, instrument=instrument,
+                                   centre_px=np.asarray(self.centre_px, float) - [r0, c0])
 
     def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)
@@ -261,7 +276,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     screen_window_px : int
         A window larger than this screens the candidates on its busiest square of this size
         (each model evaluation there costs a fraction); the close ones are refitted on the
-        whole window.
+        whole window. A window larger than
+        :data:`~metrology.diagnosis.tiles.TILED_WINDOW_PX` is fitted on tiles spread over it
+        (:mod:`metrology.diagnosis.tiles`); its maps and final residual are the whole window's.
 
     Returns
     -------
@@ -283,19 +300,20 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     camera0 = np.array(CAMERA.start_values(), float)
     camera0[5] = screen_blur
     keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
-    diag = problem = None
+    diag = problem = fit = None
     for _ in range(3):
         # The floor is the measurement's: estimated once, on the screening model's residual
         # (the comparison's fitted process when given), not on the ideal element's, whose
         # process errors would leak into the interiors and raise it.
         problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
                                       noise=first.noise, instrument=first.instrument)
+        fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
         if size > screen_window_px:
-            problem.screening = problem.crop(screen_window_px)
+            fit.screening = problem.crop(screen_window_px)
         # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
         # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
         # parameters after the residual has reached it.
-        diag = dg.run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
+        diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                 quick_screen=True, stop_at_floor=False, prior=diag.model if diag else None)
         new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
                                 - _plane(problem, crop, diag.model), np.isfinite(crop))
@@ -303,8 +321,12 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             break
         keep = new_keep
     diag.map_step_m = problem.pixel_m
+    if fit is not problem:
+        # What the user reads is the whole window's (the counts stay the fitted tiles').
+        diag.initial_residual_rms, diag.final_residual_rms = (
+            float(np.sqrt(np.nanmean(m ** 2))) for m in (diag.residual_maps[0], diag.residual_maps[-1]))
     # The nuisance's uncertainties at the final model (only the camera parameters refitted).
-    _, _, errors = dg.fit_effects(problem, diag.model, [CAMERA.name])
+    _, _, errors = dg.fit_effects(fit, diag.model, [CAMERA.name])
     diag.placement = problem.placement_report(diag.model, errors)
     diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
     diag.window_camera_px = [r0, r0 + size, c0, c0 + size]

@@ -212,6 +212,10 @@ class Problem:
     # holds a copy-on-write view of the problem and its own render caches). Off where a
     # problem's working arrays would double the peak memory (the full-size PSF stack).
     parallel_screening = False
+    # Whether the problem fits a part of what its residual maps show (a large window fitted on
+    # tiles): the structure test then counts the map's own samples, and the close candidates
+    # are fitted to convergence on the screening crop before their fit on the problem.
+    fits_part_of_map = False
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         raise NotImplementedError
@@ -377,6 +381,9 @@ def _rms(r):
 def _structure_test(problem, r_map, n_eff, n):
     """Most negative criterion change of a binned (piecewise-constant) model of the residual
     over the problem's groupings; below -threshold a structured residual remains."""
+    if problem.fits_part_of_map:
+        n = int(np.count_nonzero(np.isfinite(r_map)))
+        n_eff = max(n / problem.noise.corr_area_px, 2.0)
     best = np.inf
     for groups in problem.structure_groups():
         valid = np.isfinite(r_map) & (groups > 0)
@@ -537,7 +544,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         close = [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
         refits = {}
         for c in close:
-            refits[c] = fit_effects(problem, fits[c], list(model) + [c])
+            start = fits[c]
+            if problem.fits_part_of_map and screen is not problem:
+                start, _, _ = fit_effects(screen, start, list(model) + [c])
+            refits[c] = fit_effects(problem, start, list(model) + [c])
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         best = min(close, key=scores.get)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful

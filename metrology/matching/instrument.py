@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from metrology.matching.register import Registration
 
 __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMENT_PARAMS", "Placement", "footprint_kernel",
+           "kernel_half_width",
            "levelling_basis", "robust_valid"]
 
 # Fine-grid spacing requested from the process model (m).
@@ -139,6 +140,13 @@ def _cell_gaussian(x_m, step_m, sigma_m):
     return 0.5 * (erf((x_m + step_m / 2) / s) - erf((x_m - step_m / 2) / s))
 
 
+def kernel_half_width(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float) -> int:
+    """Half width ``k`` (fine cells) of :func:`footprint_kernel`: the footprint's half extent
+    plus four blur sigmas."""
+    side = max(np.abs(np.asarray(matrix, float) * pitch_m).sum(axis=1))
+    return int(math.ceil((side / 2 + 4.0 * sigma_m) / step_m)) + 1
+
+
 def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float) -> np.ndarray:
     """Blur-and-pixel kernel on the fine grid (see the module docstring, step 2).
 
@@ -162,7 +170,7 @@ def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m:
     sub = (np.arange(q) + 0.5) / q - 0.5
     u, v = np.meshgrid(sub, sub, indexing="ij")
     y = m @ np.stack([u.ravel(), v.ravel()])  # footprint points (row, col offsets, m)
-    k = int(math.ceil((side / 2 + 4.0 * sigma_m) / step_m)) + 1
+    k = kernel_half_width(matrix, pitch_m, step_m, sigma_m)
     x = np.arange(-k, k + 1) * step_m
     # Each point stands for a 1/q sub-pixel: widen its Gaussian by that sub-pixel's variance so
     # the kernel's second moments are exact (the midpoint rule alone loses 1/q^2 of them).
@@ -188,10 +196,17 @@ class InstrumentModel:
         Starting placement; it sets the fine region and the footprint's shape.
     step_m : float
         Requested fine-grid spacing.
+    margin_px : int
+        Design pixels rendered around the camera footprint (the blur kernel's reach plus the
+        largest placement refinement expected).
+    transfers : ArrayCache, optional
+        Store of Fourier transfers to share with other models of the same placement matrix,
+        pitch and fine step (tiles of one field), so each blur's transfer is computed once.
     """
 
     def __init__(self, levels: np.ndarray, pitch_m: float, shape: tuple[int, int], placement: Placement,
-                 step_m: float = FINE_STEP_M) -> None:
+                 step_m: float = FINE_STEP_M, margin_px: int = MARGIN_PX,
+                 transfers: ArrayCache | None = None) -> None:
         from masks.process import fine_upsample
 
         self.levels = np.asarray(levels)
@@ -202,15 +217,22 @@ class InstrumentModel:
         self.step_m = self.pitch_m / self.upsample
         corners = np.array([[r, c] for r in (-0.5, self.shape[0] - 0.5) for c in (-0.5, self.shape[1] - 0.5)])
         rr, cc = placement.to_design(corners[:, 0], corners[:, 1])
-        self.window = (int(math.floor(rr.min())) - MARGIN_PX, int(math.ceil(rr.max())) + MARGIN_PX + 1,
-                       int(math.floor(cc.min())) - MARGIN_PX, int(math.ceil(cc.max())) + MARGIN_PX + 1)
+        m = int(margin_px)
+        self.window = (int(math.floor(rr.min())) - m, int(math.ceil(rr.max())) + m + 1,
+                       int(math.floor(cc.min())) - m, int(math.ceil(cc.max())) + m + 1)
         rows, cols = self.levels.shape
         r0, r1, c0, c1 = self.window
         self.region = (max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols))
         if self.region[0] >= self.region[1] or self.region[2] >= self.region[3]:
             raise DoeError("the camera field does not overlap the design under this placement")
         self._etches = ArrayCache(ETCH_CACHE_BYTES)
-        self._transfers = ArrayCache(2 * ETCH_CACHE_BYTES // 3, max_items=4)
+        self._transfers = transfers if transfers is not None else self.transfer_cache()
+
+    @staticmethod
+    def transfer_cache(max_items: int = 4) -> ArrayCache:
+        """An empty store of Fourier transfers (one per blur value and padded shape; the
+        default holds a Jacobian's blur values)."""
+        return ArrayCache(2 * ETCH_CACHE_BYTES // 3, max_items=max_items)
 
     def fine_surface(self, params: ProcessParams) -> np.ndarray:
         """Model heights (m) on the fine grid of the window (0 outside the design).
@@ -250,9 +272,8 @@ class InstrumentModel:
         """
         fine_m = np.asarray(fine_m, float)
         rows, cols = fine_m.shape
-        kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
         # The kernel's reach plus the prefilter's decay (pole 2 - sqrt(3): 0.268^24 ~ 2e-14).
-        h = kernel.shape[0] // 2 + 24
+        h = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 24
         shape = (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
         padded = np.pad(fine_m.astype(np.float32), ((h, shape[0] - rows - h), (h, shape[1] - cols - h)),
                         mode="edge")
@@ -260,13 +281,15 @@ class InstrumentModel:
         # maps are cheaper without the threads' overhead.
         workers = FFT_WORKERS if padded.size >= FFT_THREADS_MIN_PX else 1
         spectrum = sfft.rfft2(padded, workers=workers)
-        spectrum *= self._transfer(kernel, shape, sigma_m)
+        spectrum *= self._transfer(shape, sigma_m)
         return np.ascontiguousarray(sfft.irfft2(spectrum, s=shape, workers=workers)[h:h + rows, h:h + cols])
 
-    def _transfer(self, kernel, shape, sigma_m):
-        """Fourier transfer of correlation with ``kernel`` followed by the spline prefilter."""
+    def _transfer(self, shape, sigma_m):
+        """Fourier transfer of correlation with the footprint kernel followed by the spline
+        prefilter."""
         key = (shape, float(sigma_m))
         if self._transfers.get(key) is None:
+            kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
             k = kernel.shape[0] // 2
             wrapped = np.zeros(shape)
             # Correlation: value[a] = sum_d kernel[k + d] fine[a + d], i.e. convolution with the
