@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-__all__ = ["blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable", "move",
-           "upsample_mask"]
+__all__ = ["blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable", "inverse_motion",
+           "move", "upsample_mask"]
 
 
 def upsample_mask(mask: np.ndarray, upsample: int) -> np.ndarray:
@@ -100,14 +100,27 @@ def move(coverage: np.ndarray, shift_rc: tuple[float, float], rotation_rad: floa
         for axis in (0, 1):
             out = _translate_axis(out, shift_rc[axis], axis)
         return out
-    cos, sin = np.cos(rotation_rad), np.sin(rotation_rad)
-    # Output pixel o samples the input at R^-1 (o - c - t) + c. With row pointing down,
-    # a counter-clockwise rotation in (x, y-up) is [[cos, -sin], [sin, cos]] on (row, col).
-    inverse = np.array([[cos, sin], [-sin, cos]])
-    centre = np.asarray(centre_rc, dtype=float)
-    offset = centre - inverse @ (centre + shift_rc)
+    inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
     return ndi.affine_transform(coverage, inverse, offset=offset, order=1, mode="grid-constant",
                                 cval=0.0, prefilter=False)
+
+
+def inverse_motion(shift_rc: tuple[float, float], rotation_rad: float,
+                   centre_rc: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Where a point of the moved image was before :func:`move` moved it.
+
+    A point ``o`` of the image after the motion (translation ``t``, then a counter-clockwise
+    rotation about ``c``) shows what stood at ``R^-1 (o - c - t) + c``, returned as the affine
+    map ``(matrix, offset)``: ``matrix @ o + offset``. Any length unit, as long as ``shift_rc``
+    and ``centre_rc`` share it (fine pixels here, design pixels for a camera sampling a moved
+    mask, :meth:`metrology.matching.instrument.Placement.in_frame_of`).
+    """
+    cos, sin = np.cos(rotation_rad), np.sin(rotation_rad)
+    # With row pointing down, a counter-clockwise rotation in (x, y-up) is
+    # [[cos, -sin], [sin, cos]] on (row, col); its inverse is the transpose.
+    inverse = np.array([[cos, sin], [-sin, cos]])
+    centre = np.asarray(centre_rc, dtype=float)
+    return inverse, centre - inverse @ (centre + np.asarray(shift_rc, dtype=float))
 
 
 def _translate_axis(image, shift, axis):

@@ -53,7 +53,7 @@ from .effects import EFFECTS
 from .process_params import ProcessParams, finite_float
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
-           "mask_etch", "simulate_surface", "surface_key"]
+           "mask_etch", "mask_motion", "simulate_surface", "surface_key", "without_motion"]
 
 log = logging.getLogger(__name__)
 
@@ -240,6 +240,21 @@ def surface_key(params: ProcessParams) -> tuple:
             params.seed)
 
 
+def mask_motion(params: ProcessParams, mask: int, pitch_m: float) -> tuple[tuple[float, float], float]:
+    """The rigid motion with which mask ``mask`` was printed: the shift (design pixels along
+    row and column, row down) and the counter-clockwise rotation (rad) about the design's centre
+    that its overlay and its rotation amount to (see :func:`masks.litho.move`)."""
+    dx, dy, rotation = (float(v) for v in params.mask_overlay[mask])
+    return (-dy / pitch_m, dx / pitch_m), rotation + math.radians(float(params.mask_rotation[mask]))
+
+
+def without_motion(params: ProcessParams) -> ProcessParams:
+    """``params`` with every mask printed in place (no overlay, no rotation): each mask's etch
+    then differs from the real one only by :func:`mask_motion`."""
+    return params.copy(mask_overlay=np.zeros_like(params.mask_overlay),
+                       mask_rotation=np.zeros_like(params.mask_rotation))
+
+
 def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design):
     """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
     of ``window`` (design pixels, may extend beyond the design)."""
@@ -250,9 +265,8 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design):
                    (centre_design[1] - window[2] + 0.5) * u - 0.5)
     coverage = litho.upsample_mask(mask, u)
     coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
-    dx, dy, rotation = params.mask_overlay[j]
-    rotation += math.radians(params.mask_rotation[j])
-    coverage = litho.move(coverage, (-dy / step, dx / step), rotation, centre_fine)
+    shift_px, rotation = mask_motion(params, j, pitch_m)
+    coverage = litho.move(coverage, (shift_px[0] * u, shift_px[1] * u), rotation, centre_fine)
     coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
     depth = _depth_map(levels, window, params, j, pitch_m, u)
     gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design)

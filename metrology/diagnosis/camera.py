@@ -20,17 +20,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.ndimage as ndi
+from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
-from masks.process import surface_key
+from masks.process import etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.tiles import TILED_WINDOW_PX, TiledCameraProblem
-from metrology.matching.instrument import (PLACEMENT_PARAMS, ArrayCache, InstrumentModel, Leveller, Placement,
-                                           robust_valid)
+from metrology.matching.instrument import (ETCH_CACHE_BYTES, MAX_BLUR_M, PLACEMENT_PARAMS, ArrayCache,
+                                           InstrumentModel, Leveller, Placement, robust_valid)
 from metrology.matching.window import busiest_camera_window
 
 if TYPE_CHECKING:
@@ -61,7 +62,7 @@ CAMERA = Effect(
     [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
      Parameter("rotation_rad", "rad", -0.01, 0.01, 2e-5), Parameter("scale_row", "1", -0.03, 0.03, 2e-4),
      Parameter("scale_col", "1", -0.03, 0.03, 2e-4),
-     Parameter("blur_sigma_m", "m", 0.05 * _UM, 1.5 * _UM, 0.05 * _UM, 0.4 * _UM)],
+     Parameter("blur_sigma_m", "m", 0.05 * _UM, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM)],
     _no_op, "Placement of the camera field on the design and the objective's blur (nuisance).",
     kind="artefact", order=-1)
 # Effects the camera model already holds (the blur is part of its kernel).
@@ -97,17 +98,20 @@ class CameraHeightProblem(dg.Problem):
     centre_px : (float, float), optional
         Camera pixel about which the placement is refined (default: the crop's centre; a
         screening crop uses its whole window's, so both read the same nuisance values alike).
+    cache_bytes : int
+        Memory kept for rendered camera maps, as much for the masks' spectra, and a quarter of
+        it for fine surfaces; the tiles of a field share one budget.
     """
 
     units = "m"
     judges_partial_matches = True
-    parallel_screening = True
+    parallel_fits = True
 
     def __init__(self, levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
                  curvature: bool = False, keep: np.ndarray | None = None,
                  noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
-                 centre_px: Sequence[float] | None = None) -> None:
+                 centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -127,8 +131,9 @@ class CameraHeightProblem(dg.Problem):
         if self.keep.sum() < 100:
             raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed field")
         self.leveller = Leveller(self.measured.shape, self.keep, curvature)
-        self._fine = ArrayCache(RENDER_CACHE_BYTES // 4)
-        self._coeffs = ArrayCache(RENDER_CACHE_BYTES)
+        self._fine = ArrayCache(cache_bytes // 4)
+        self._coeffs = ArrayCache(cache_bytes)
+        self._spectra = ArrayCache(cache_bytes)
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -165,7 +170,16 @@ class CameraHeightProblem(dg.Problem):
         return np.where(here, best, -best) * self.pitch_m
 
     def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
-        """Model heights in the camera frame (before levelling)."""
+        """Model heights in the camera frame (before levelling).
+
+        Each mask's etch is rendered in place and sampled under the camera's placement taken
+        into that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of`): a
+        change of placement or of a mask's motion costs a spline sampling, not a new surface.
+        Blur, pixel box, sidewall ramp and linear surface effects commute with the sum of the
+        masks and with their motions, so this is the process model's surface; a non-linear
+        surface effect, roughness, or a motion that would sample beyond the rendered window
+        sends the render through the summed fine surface instead.
+        """
         cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
         chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
                         key=lambda e: (("process", "surface").index(e.stage), e.order))
@@ -173,24 +187,60 @@ class CameraHeightProblem(dg.Problem):
         for e in chosen:
             if e.stage == "process":
                 params = e.apply(params, e.check(model[e.name]))
+        surface = [e for e in chosen if e.stage == "surface"]
+        surface_values = tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in surface)
+        blur = float(cam[5])
+        placement = self.placement.refined(cam[:5], self.measured.shape, self.centre_px)
+        if params.roughness == 0 and all(e.linear for e in surface):
+            centre = ((self.levels.shape[0] - 1) / 2.0, (self.levels.shape[1] - 1) / 2.0)
+            motions = [mask_motion(params, j, self.pitch_m) for j in range(params.n_masks)]
+            moved = {m: placement.in_frame_of(*m, centre) for m in motions}
+            if all(self.instrument.covers(pl, blur) for pl in moved.values()):
+                return self._render_masks(without_motion(params), surface, model, surface_values, blur, motions,
+                                          moved)
         # Keyed by the process the model amounts to (a candidate at its null start renders what
         # the model without it does) and the surface effects.
-        key = (surface_key(params),
-               tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in chosen if e.stage == "surface"))
+        key = (surface_key(params), surface_values)
         # By stage: the placement only resamples the camera map, the blur only remakes it from
         # the fine surface, and only process parameters remake that surface.
-        coeffs = self._coeffs.get((key, float(cam[5])))
+        coeffs = self._coeffs.get((key, blur))
         if coeffs is None:
             fine = self._fine.get(key)
             if fine is None:
                 fine = self.instrument.fine_surface(params)
-                for e in chosen:
-                    if e.stage == "surface":
-                        fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
+                for e in surface:
+                    fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
                 self._fine.put(key, fine)
-            coeffs = self.instrument.camera_map(fine, float(cam[5]))
-            self._coeffs.put((key, float(cam[5])), coeffs)
-        return self.instrument.sample(coeffs, self.placement.refined(cam[:5], self.measured.shape, self.centre_px))
+            coeffs = self.instrument.camera_map(fine, blur)
+            self._coeffs.put((key, blur), coeffs)
+        return self.instrument.sample(coeffs, placement)
+
+    def _render_masks(self, still, surface, model, surface_values, blur, motions, placements):
+        """The masks printed in place (``still``), each group that shares a motion summed in
+        the Fourier domain into one camera map, sampled under that motion's placement. Spectra
+        are kept per mask and maps per group and blur: a change of blur costs one inverse FFT
+        per group, a change of motion only a sampling."""
+        step = self.instrument.step_m
+        out = np.zeros(self.measured.shape)
+        for motion in dict.fromkeys(motions):
+            group = [j for j, m in enumerate(motions) if m == motion]
+            keys = tuple((etch_key(still, j), still.sidewall_slope, surface_values) for j in group)
+            coeffs = self._coeffs.get((keys, blur))
+            if coeffs is None:
+                total = None
+                for j, key in zip(group, keys):
+                    spectrum = self._spectra.get(key)
+                    if spectrum is None:
+                        fine = self.instrument.mask_surface(still, j)
+                        for e in surface:
+                            fine = e.apply(fine, e.check(model[e.name]), step)
+                        spectrum = self.instrument.spectrum(fine)
+                        self._spectra.put(key, spectrum)
+                    total = spectrum.copy() if total is None else np.add(total, spectrum, out=total)
+                coeffs = self.instrument.map_of(total, blur)
+                self._coeffs.put((keys, blur), coeffs)
+            out += self.instrument.sample(coeffs, placements[motion])
+        return out
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
@@ -204,23 +254,26 @@ class CameraHeightProblem(dg.Problem):
         return self.sub(r0, c0, size_px)
 
     def sub(self, r0: int, c0: int, size_px: int, margin_px: int | None = None,
-            transfers: ArrayCache | None = None) -> CameraHeightProblem:
+            transfers: ArrayCache | None = None, share: int = 1) -> CameraHeightProblem:
         """The same problem on the ``size_px`` square of its window from camera pixel (r0, c0):
         same process, effects, noise floor and placement frame (a refinement of the whole field
         places the part alike). ``margin_px``: design pixels its instrument renders around it;
-        ``transfers``: a Fourier-transfer store shared with the field's other parts."""
+        ``transfers``: a Fourier-transfer store shared with the field's other parts; ``share``:
+        how many parts share the memory budgets of its caches."""
         size = min(size_px, *self.measured.shape)
         part = (slice(r0, r0 + size), slice(c0, c0 + size))
         start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
         instrument = None
         if margin_px is not None:
             instrument = InstrumentModel(self.levels, self.pitch_m, (size, size), start, step_m=self.instrument.step_m,
-                                         margin_px=margin_px, transfers=transfers)
+                                         margin_px=margin_px, transfers=transfers,
+                                         cache_bytes=ETCH_CACHE_BYTES // max(share, 1))
         return CameraHeightProblem(self.levels, self.pitch_m, self.measured[part], start, self.base,
                                    [e for n, e in self.effects.items() if n != CAMERA.name],
                                    step_m=self.instrument.step_m, curvature=self.curvature, keep=self.keep[part],
                                    noise=self.noise, instrument=instrument,
-                                   centre_px=np.asarray(self.centre_px, float) - [r0, c0])
+                                   centre_px=np.asarray(self.centre_px, float) - [r0, c0],
+                                   cache_bytes=RENDER_CACHE_BYTES // max(share, 1))
 
     def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)
@@ -287,50 +340,53 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     """
     from masks.process import ProcessParams
 
-    meas = np.asarray(measured_height_m, float)
-    r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
-    size = min(window_px, *meas.shape)
-    crop = meas[r0:r0 + size, c0:c0 + size]
-    start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
-    base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
-    effects = effects_for("height", candidates)
-    finite = np.isfinite(crop)
-    screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
-    first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m)
-    camera0 = np.array(CAMERA.start_values(), float)
-    camera0[5] = screen_blur
-    keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
-    diag = problem = fit = None
-    for _ in range(3):
-        # The floor is the measurement's: estimated once, on the screening model's residual
-        # (the comparison's fitted process when given), not on the ideal element's, whose
-        # process errors would leak into the interiors and raise it.
-        problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
-                                      noise=first.noise, instrument=first.instrument)
-        fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
-        if size > screen_window_px:
-            fit.screening = problem.crop(screen_window_px)
-        # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
-        # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
-        # parameters after the residual has reached it.
-        diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
-                                quick_screen=True, stop_at_floor=False, prior=diag.model if diag else None)
-        new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
-                                - _plane(problem, crop, diag.model), np.isfinite(crop))
-        if np.array_equal(new_keep, keep):
-            break
-        keep = new_keep
-    diag.map_step_m = problem.pixel_m
-    if fit is not problem:
-        # What the user reads is the whole window's (the counts stay the fitted tiles').
-        diag.initial_residual_rms, diag.final_residual_rms = (
-            float(np.sqrt(np.nanmean(m ** 2))) for m in (diag.residual_maps[0], diag.residual_maps[-1]))
-    # The nuisance's uncertainties at the final model (only the camera parameters refitted).
-    _, _, errors = dg.fit_effects(fit, diag.model, [CAMERA.name])
-    diag.placement = problem.placement_report(diag.model, errors)
-    diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
-    diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
-    return diag
+    # The fits' linear algebra is small (levelling, a few columns): BLAS threads would only spin
+    # beside the renders and the forked workers.
+    with threadpool_limits(limits=1, user_api="blas"):
+        meas = np.asarray(measured_height_m, float)
+        r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
+        size = min(window_px, *meas.shape)
+        crop = meas[r0:r0 + size, c0:c0 + size]
+        start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
+        base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
+        effects = effects_for("height", candidates)
+        finite = np.isfinite(crop)
+        screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
+        first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m)
+        camera0 = np.array(CAMERA.start_values(), float)
+        camera0[5] = screen_blur
+        keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
+        diag = problem = fit = None
+        for _ in range(3):
+            # The floor is the measurement's: estimated once, on the screening model's residual
+            # (the comparison's fitted process when given), not on the ideal element's, whose
+            # process errors would leak into the interiors and raise it.
+            problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
+                                          noise=first.noise, instrument=first.instrument)
+            fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
+            if size > screen_window_px:
+                fit.screening = problem.crop(screen_window_px)
+            # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
+            # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
+            # parameters after the residual has reached it.
+            diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
+                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else None)
+            new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
+                                    - _plane(problem, crop, diag.model), np.isfinite(crop))
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        diag.map_step_m = problem.pixel_m
+        if fit is not problem:
+            # What the user reads is the whole window's (the counts stay the fitted tiles').
+            diag.initial_residual_rms, diag.final_residual_rms = (
+                float(np.sqrt(np.nanmean(m ** 2))) for m in (diag.residual_maps[0], diag.residual_maps[-1]))
+        # The nuisance's uncertainties at the final model (only the camera parameters refitted).
+        _, _, errors = dg.fit_effects(fit, diag.model, [CAMERA.name])
+        diag.placement = problem.placement_report(diag.model, errors)
+        diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
+        diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
+        return diag
 
 
 def _plane(problem, crop, model):

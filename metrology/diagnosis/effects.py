@@ -113,6 +113,11 @@ class Effect:
         ``"artefact"`` marks a measurement artefact, never to be blamed on fabrication.
     order : int
         Order within a stage (lower first).
+    linear : bool
+        A ``"surface"`` effect that is a linear, shift-invariant filter of the heights (a blur,
+        a batwing): it may then act on each mask's etch alone, so that the camera model can move
+        masks by sampling (:meth:`metrology.diagnosis.camera.CameraHeightProblem.render`).
+        False, the safe default, for any other effect.
     """
 
     name: str
@@ -125,6 +130,7 @@ class Effect:
     order: int = 0
     start: tuple | None = field(default=None)
     per_channel: bool = False
+    linear: bool = False
 
     def __post_init__(self):
         if self.domain not in DOMAINS:
@@ -403,13 +409,13 @@ _BUILTIN_HEIGHT = [
     Effect("instrument_blur", "height", "surface",
            [Parameter("sigma_m", "m", 0.0, 3 * _UM, 0.2 * _UM)], _instrument_blur,
            "Measurement artefact: the profilometer's finite lateral resolution (about 0.8 um at NA 0.4) "
-           "smooths every step.", kind="artefact", order=20, start=(0.4 * _UM,)),
+           "smooths every step.", kind="artefact", order=20, start=(0.4 * _UM,), linear=True),
     Effect("batwing", "height", "surface",
            [Parameter("amplitude", "1", -1.0, 1.0, 0.05), Parameter("sigma_m", "m", 0.1 * _UM, 3 * _UM, 0.2 * _UM, 0.1 * _UM)],
            _batwing,
            "Measurement artefact: a white-light interferometer overshoots at steps shorter than its coherence "
            "length, a signed edge spike proportional to the step height.", kind="artefact", order=10,
-           start=(0.05, 0.6 * _UM)),
+           start=(0.05, 0.6 * _UM), linear=True),
 ]
 for _e in _BUILTIN_HEIGHT:
     register_effect(_e)

@@ -28,10 +28,7 @@ A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) 
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import os
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +38,7 @@ from scipy.optimize import least_squares
 
 from doedesign.progress import Progress
 
+from metrology.diagnosis.forked import WORKERS, forked_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.noise import NoiseEstimate
 
@@ -59,11 +57,6 @@ JAC_STEP = 0.02
 # Fraction of the noise floor above which a final residual is reported unexplained even when
 # no binned pattern earns its parameters (the noise-floor estimate itself is good to ~5 %).
 UNEXPLAINED_RATIO = 1.25
-# Worker processes that screen candidates side by side (problems with ``parallel_screening``).
-SCREEN_WORKERS = min(2, os.cpu_count() or 1)
-# The screening round a forked worker reads (set in the parent just before the fork, so the
-# problem reaches the workers by copy-on-write memory, not by pickling).
-_ROUND: dict[str, Any] = {}
 
 
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
@@ -208,10 +201,11 @@ class Problem:
     # footprint and a fabrication effect that does not may be withheld as a partial match. The
     # design-frame height fit resamples the data and does not close to the floor (issue 11).
     judges_partial_matches = False
-    # Whether candidates may be screened side by side in forked worker processes (each worker
-    # holds a copy-on-write view of the problem and its own render caches). Off where a
-    # problem's working arrays would double the peak memory (the full-size PSF stack).
-    parallel_screening = False
+    # Whether candidates are screened, and Jacobian columns computed, side by side in forked
+    # workers (:mod:`metrology.diagnosis.forked`; each holds a copy-on-write view of the problem
+    # and its own render caches). Off where a problem's working arrays would double the peak
+    # memory (the full-size PSF stack).
+    parallel_fits = False
     # Whether the problem fits a part of what its residual maps show (a large window fitted on
     # tiles): the structure test then counts the map's own samples, and the close candidates
     # are fitted to convergence on the screening crop before their fit on the problem.
@@ -291,7 +285,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
             # The solver stops right after this Jacobian, which would only serve the errors.
             sizes.append(-1)
             return np.zeros((sizes[-2], x.size))
-        return _central_jacobian(residual, x, lo, hi) if central else _forward_jacobian(residual, x, lo, hi)
+        return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1)
 
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
                         max_nfev=max_iter or 60)
@@ -311,38 +305,35 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     return fitted, rss, errors
 
 
-def _central_jacobian(fun, x, lo, hi, step=JAC_STEP):
-    """Central differences with an absolute step (in units of each parameter's scale),
-    one-sided against a bound. SciPy's relative steps vanish at a parameter of exactly zero,
-    where most effects start."""
-    cols = []
-    for i in range(x.size):
-        up, down = x.copy(), x.copy()
-        up[i] = min(x[i] + step, hi[i])
-        down[i] = max(x[i] - step, lo[i])
-        cols.append((fun(up) - fun(down)) / (up[i] - down[i]))
-    return np.stack(cols, axis=1)
+def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP):
+    """Finite differences with an absolute step (in units of each parameter's scale); SciPy's
+    relative steps vanish at a parameter of exactly zero, where most effects start.
 
+    Central differences are one-sided against a bound; forward ones go backward against the
+    upper bound. The columns are computed in ``workers`` forked processes when more than one.
+    """
+    f0 = None if central else fun(x)
 
-def _forward_jacobian(fun, x, lo, hi, step=JAC_STEP):
-    """Forward differences with the same absolute step, backward against the upper bound."""
-    f0 = fun(x)
-    cols = []
-    for i in range(x.size):
+    def column(i):
+        if central:
+            up, down = x.copy(), x.copy()
+            up[i] = min(x[i] + step, hi[i])
+            down[i] = max(x[i] - step, lo[i])
+            return (fun(up) - fun(down)) / (up[i] - down[i])
         other = x.copy()
         other[i] = x[i] + step if x[i] + step <= hi[i] else max(x[i] - step, lo[i])
-        cols.append((fun(other) - f0) / (other[i] - x[i]))
-    return np.stack(cols, axis=1)
+        return (fun(other) - f0) / (other[i] - x[i])
+
+    return np.stack(list(forked_map(column, range(x.size), workers)), axis=1)
 
 
-def _screen_one(name):
-    """Screen candidate ``name`` in the round of :data:`_ROUND`: (name, fitted model, score).
+def _screen_one(rd, name):
+    """Screen candidate ``name`` in the round ``rd``: (name, fitted model, score).
 
     The named effects refit with the candidate: partly degenerate effects (a blur and a
     sidewall ramp) must be able to share what one of them took alone. The criterion change on
     a screening crop is scaled by the ratio of effective sample counts.
     """
-    rd = _ROUND
     screen = rd["screen"]
     eff = rd["effects"][name]
     trial = dict(rd["model"])
@@ -360,18 +351,6 @@ def _screen_one(name):
         # The first step paid for the candidate's parameters: finish the short fit.
         fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)
     return name, fitted, score(rss_c)
-
-
-def _screen_all(pending, workers):
-    """Yield :func:`_screen_one` of every pending candidate, in ``workers`` forked processes
-    when more than one (results as they finish)."""
-    if workers <= 1:
-        for name in pending:
-            yield _screen_one(name)
-        return
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        for fut in as_completed([pool.submit(_screen_one, name) for name in pending]):
-            yield fut.result()
 
 
 def _rms(r):
@@ -451,8 +430,9 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                   prior: dict[str, np.ndarray] | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
-    Candidates of a problem with ``parallel_screening`` are screened in up to
-    :data:`SCREEN_WORKERS` forked processes (the same fits, so the same result as one process).
+    Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
+    in up to :data:`~metrology.diagnosis.forked.WORKERS` forked processes (the same fits, so
+    the same result as in one process).
 
     Parameters
     ----------
@@ -521,15 +501,14 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             n_s = r_s.size
             n_eff_s = max(n_s / screen.noise.corr_area_px, 2.0)
             crit_s = bic_eff(float(np.sum(r_s ** 2)), n_s, n_eff_s, k_now)
-        _ROUND.update(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
-                      iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now,
-                      n_eff=n_eff, prior=prior or {})
-        workers = min(SCREEN_WORKERS if problem.parallel_screening else 1, len(pending))
+        rd = dict(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
+                  iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
+                  prior=prior or {})
+        workers = WORKERS if problem.parallel_fits else 1
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
-            for name, fitted, score in _screen_all(pending, workers):
+            for name, fitted, score in forked_map(lambda c: _screen_one(rd, c), pending, workers, ordered=False):
                 scores[name], fits[name] = score, fitted
                 bar.update(1, status=f"{name} {score:+.1f}")
-        _ROUND.clear()
         scores = {c: scores[c] for c in pending}  # in the candidates' order, however they finished
         if not scores:
             break

@@ -61,7 +61,7 @@ class TiledCameraProblem(dg.Problem):
 
     units = "m"
     judges_partial_matches = True
-    parallel_screening = True
+    parallel_fits = True
     fits_part_of_map = True
 
     def __init__(self, whole: CameraHeightProblem, tile_px: int = TILE_PX, per_side: int = TILES_PER_SIDE,
@@ -76,8 +76,8 @@ class TiledCameraProblem(dg.Problem):
                        for r in tile_origins(rows, tile_px, per_side) for c in tile_origins(cols, tile_px, per_side)]
         # The tiles share one placement matrix, so one store of blur transfers serves them all.
         transfers = InstrumentModel.transfer_cache(max_items=16)
-        self.tiles = [whole.sub(sr.start, sc.start, tile_px, margin_px=margin_px, transfers=transfers)
-                      for sr, sc in self.slices]
+        self.tiles = [whole.sub(sr.start, sc.start, tile_px, margin_px=margin_px, transfers=transfers,
+                                share=len(self.slices)) for sr, sc in self.slices]
         self.compared = np.zeros(whole.measured.shape, bool)
         for sl in self.slices:
             self.compared[sl] = whole.keep[sl]

@@ -58,6 +58,8 @@ __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMEN
 FINE_STEP_M = 0.125e-6
 # Extra design pixels around the camera footprint: kernel reach plus any placement refinement.
 MARGIN_PX = 3
+# The largest objective blur (Gaussian sigma, m) a camera map is padded for.
+MAX_BLUR_M = 1.5e-6
 # FFT threads for camera maps of at least FFT_THREADS_MIN_PX samples.
 FFT_WORKERS = 2
 FFT_THREADS_MIN_PX = 2 ** 22
@@ -107,6 +109,20 @@ class Placement:
         matrix = rot @ self.matrix @ np.diag([1.0 + sr, 1.0 + sc])
         centre_design = self.matrix @ centre + self.offset + np.array([dr, dc])
         return Placement(matrix, centre_design - matrix @ centre)
+
+
+    def in_frame_of(self, shift_rc: Sequence[float], rotation_rad: float, centre_rc: Sequence[float]) -> Placement:
+        """The same camera pixels placed on an image before a rigid motion moved it.
+
+        Where a mask printed with a shift and a rotation (:func:`masks.process.mask_motion`,
+        in design pixels) shows under this placement, its etch printed in place is sampled
+        under the returned one (:func:`masks.litho.inverse_motion`): a mask's overlay becomes
+        a placement, as cheap to change as the camera's own.
+        """
+        from masks.litho import inverse_motion
+
+        inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
+        return Placement(inverse @ self.matrix, inverse @ self.offset + offset)
 
 
 class ArrayCache:
@@ -202,11 +218,13 @@ class InstrumentModel:
     transfers : ArrayCache, optional
         Store of Fourier transfers to share with other models of the same placement matrix,
         pitch and fine step (tiles of one field), so each blur's transfer is computed once.
+    cache_bytes : int
+        Memory kept for the masks' etches between renders (a field's tiles share one budget).
     """
 
     def __init__(self, levels: np.ndarray, pitch_m: float, shape: tuple[int, int], placement: Placement,
                  step_m: float = FINE_STEP_M, margin_px: int = MARGIN_PX,
-                 transfers: ArrayCache | None = None) -> None:
+                 transfers: ArrayCache | None = None, cache_bytes: int = ETCH_CACHE_BYTES) -> None:
         from masks.process import fine_upsample
 
         self.levels = np.asarray(levels)
@@ -225,7 +243,7 @@ class InstrumentModel:
         self.region = (max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols))
         if self.region[0] >= self.region[1] or self.region[2] >= self.region[3]:
             raise DoeError("the camera field does not overlap the design under this placement")
-        self._etches = ArrayCache(ETCH_CACHE_BYTES)
+        self._etches = ArrayCache(cache_bytes)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
 
     @staticmethod
@@ -241,25 +259,49 @@ class InstrumentModel:
         mask's etch is kept for the next calls, so a fit that changes one mask's parameters
         recomputes that mask only.
         """
-        from masks.process import etch_key, finish_surface, mask_etch
+        from masks.process import finish_surface
 
-        u = self.upsample
-        r0, r1, c0, c1 = self.window
-        # Fine pixels beyond the region for the sidewall ramp (applied to the summed etches).
-        pad = int(math.ceil(params.sidewall_slope / self.step_m / 2)) + 2
+        pad = self._pad(params)
         total = None
         for j in range(params.n_masks):
-            key = (etch_key(params, j), pad)
-            etch = self._etches.get(key)
-            if etch is None:
-                etch = mask_etch(self.levels, self.pitch_m, params, j, step_m=self.step_m, region=self.region,
-                                 pad_px=pad)
-                self._etches.put(key, etch)
+            etch = self._etch(params, j, pad)
             total = -etch if total is None else np.subtract(total, etch, out=total)
-        s = finish_surface(total, params, self.step_m, pad)
+        return self._placed(finish_surface(total, params, self.step_m, pad))
+
+    def mask_surface(self, params: ProcessParams, mask: int) -> np.ndarray:
+        """Mask ``mask``'s part of :meth:`fine_surface` (m, <= 0): its etch with the sidewall
+        ramp. The parts sum to the whole surface when ``params`` has no roughness (the ramp is
+        a linear filter)."""
+        from masks.process import finish_surface
+
+        if params.roughness > 0:
+            raise DoeError("a rough surface is not the sum of its masks' parts")
+        pad = self._pad(params)
+        return self._placed(finish_surface(-self._etch(params, mask, pad), params, self.step_m, pad))
+
+    def _pad(self, params):
+        # Fine pixels beyond the region for the sidewall ramp (applied to the summed etches).
+        return int(math.ceil(params.sidewall_slope / self.step_m / 2)) + 2
+
+    def _etch(self, params, mask, pad):
+        """One mask's etch (m, >= 0) on the region padded by ``pad`` fine pixels, cached."""
+        from masks.process import etch_key, mask_etch
+
+        key = (etch_key(params, mask), pad)
+        etch = self._etches.get(key)
+        if etch is None:
+            etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
+                             pad_px=pad)
+            self._etches.put(key, etch)
+        return etch
+
+    def _placed(self, surface):
+        """The region's surface in the window's fine grid (0, unetched, beyond the design)."""
+        u = self.upsample
+        r0, r1, c0, c1 = self.window
         out = np.zeros(((r1 - r0) * u, (c1 - c0) * u))
         a, b = (self.region[0] - r0) * u, (self.region[2] - c0) * u
-        out[a:a + s.shape[0], b:b + s.shape[1]] = s
+        out[a:a + surface.shape[0], b:b + surface.shape[1]] = surface
         return out
 
     def camera_map(self, fine_m: np.ndarray, sigma_m: float) -> np.ndarray:
@@ -270,19 +312,39 @@ class InstrumentModel:
         padded with its edge values, so the map costs one real FFT pair. In single precision:
         its rounding (~1e-7 of the heights, ~1e-13 m) is far below any measurement's noise.
         """
+        return self.map_of(self.spectrum(fine_m), sigma_m)
+
+    def spectrum(self, fine_m: np.ndarray) -> np.ndarray:
+        """Real FFT of a fine surface padded for any blur within the camera's bounds: maps of
+        one surface at several blurs, or of several surfaces summed (the transfer is linear),
+        then cost one inverse FFT each (:meth:`map_of`)."""
         fine_m = np.asarray(fine_m, float)
+        h, shape = self._padding()
         rows, cols = fine_m.shape
-        # The kernel's reach plus the prefilter's decay (pole 2 - sqrt(3): 0.268^24 ~ 2e-14).
-        h = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 24
-        shape = (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
         padded = np.pad(fine_m.astype(np.float32), ((h, shape[0] - rows - h), (h, shape[1] - cols - h)),
                         mode="edge")
+        return sfft.rfft2(padded, workers=self._fft_workers(padded.size))
+
+    def map_of(self, spectrum: np.ndarray, sigma_m: float) -> np.ndarray:
+        """:meth:`camera_map` of the surface whose :meth:`spectrum` is given."""
+        h, shape = self._padding()
+        rows, cols = ((self.window[1] - self.window[0]) * self.upsample, (self.window[3] - self.window[2]) * self.upsample)
+        product = spectrum * self._transfer(shape, sigma_m)
+        return np.ascontiguousarray(sfft.irfft2(product, s=shape, workers=self._fft_workers(product.size * 2))
+                                    [h:h + rows, h:h + cols])
+
+    def _padding(self):
+        """Pad (fine cells) and FFT shape: the kernel's reach at the largest blur fitted plus
+        the spline prefilter's decay (pole 2 - sqrt(3): 0.268^24 ~ 2e-14)."""
+        h = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, MAX_BLUR_M) + 24
+        rows, cols = (self.window[1] - self.window[0]) * self.upsample, (self.window[3] - self.window[2]) * self.upsample
+        return h, (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
+
+    @staticmethod
+    def _fft_workers(size):
         # Both cores on a large window (a whole 512 px field); one on a small one, whose many
         # maps are cheaper without the threads' overhead.
-        workers = FFT_WORKERS if padded.size >= FFT_THREADS_MIN_PX else 1
-        spectrum = sfft.rfft2(padded, workers=workers)
-        spectrum *= self._transfer(shape, sigma_m)
-        return np.ascontiguousarray(sfft.irfft2(spectrum, s=shape, workers=workers)[h:h + rows, h:h + cols])
+        return FFT_WORKERS if size >= FFT_THREADS_MIN_PX else 1
 
     def _transfer(self, shape, sigma_m):
         """Fourier transfer of correlation with the footprint kernel followed by the spline
@@ -301,6 +363,19 @@ class InstrumentModel:
             prefilter = (6.0 / (4.0 + 2.0 * np.cos(wr)))[:, None] * (6.0 / (4.0 + 2.0 * np.cos(wc)))[None, :]
             self._transfers.put(key, (sfft.rfft2(wrapped) * prefilter).astype(np.complex64))
         return self._transfers.get(key)
+
+    def covers(self, placement: Placement, sigma_m: float) -> bool:
+        """Whether every camera pixel under ``placement`` reads only the rendered window: its
+        centre at least the kernel's reach (and the spline's support) inside the fine grid."""
+        rows, cols = self.shape
+        R, C = placement.to_design(np.array([0.0, 0.0, rows - 1.0, rows - 1.0]),
+                                   np.array([0.0, cols - 1.0, 0.0, cols - 1.0]))
+        u = self.upsample
+        reach = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 2
+        fr = (R - self.window[0] + 0.5) * u - 0.5
+        fc = (C - self.window[2] + 0.5) * u - 0.5
+        n_r, n_c = (self.window[1] - self.window[0]) * u, (self.window[3] - self.window[2]) * u
+        return bool(np.all((fr >= reach) & (fr <= n_r - 1 - reach) & (fc >= reach) & (fc <= n_c - 1 - reach)))
 
     def sample(self, coeffs: np.ndarray, placement: Placement) -> np.ndarray:
         """Camera-frame heights from :meth:`camera_map` coefficients under ``placement``."""
