@@ -48,8 +48,9 @@ log = logging.getLogger(__name__)
 _UM = 1e-6
 # Camera pixels per side above which candidates are screened on a crop of the window.
 SCREEN_WINDOW_PX = 128
-# Memory kept for rendered camera maps (and a quarter of it for fine surfaces) between renders.
-RENDER_CACHE_BYTES = 400 * 2 ** 20
+# Memory kept for rendered camera maps, as much for the masks' spectra (and a quarter of it for
+# fine surfaces) between renders: on a whole 512 px field, one model's four masks (110 MB each).
+RENDER_CACHE_BYTES = 640 * 2 ** 20
 
 
 def _no_op(*args):

@@ -63,8 +63,9 @@ MAX_BLUR_M = 1.5e-6
 # FFT threads for camera maps of at least FFT_THREADS_MIN_PX samples.
 FFT_WORKERS = 2
 FFT_THREADS_MIN_PX = 2 ** 22
-# Memory kept for the masks' etches between renders (enough for a Jacobian's columns).
-ETCH_CACHE_BYTES = 600 * 2 ** 20
+# Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
+# all four masks of one model on a whole 512 px field (210 MB each in float64).
+ETCH_CACHE_BYTES = 1024 * 2 ** 20
 # Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
 PLACEMENT_PARAMS = ("shift_row_px", "shift_col_px", "rotation_rad", "scale_row", "scale_col")
 
