@@ -207,8 +207,7 @@ class Problem:
     # memory (the full-size PSF stack).
     parallel_fits = False
     # Whether the problem fits a part of what its residual maps show (a large window fitted on
-    # tiles): the structure test then counts the map's own samples, and the close candidates
-    # are fitted to convergence on the screening crop before their fit on the problem.
+    # tiles): the structure test then counts the map's own samples.
     fits_part_of_map = False
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
@@ -524,7 +523,9 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         refits = {}
         for c in close:
             start = fits[c]
-            if problem.fits_part_of_map and screen is not problem:
+            if screen is not problem:
+                # Converged on the cheap crop first, the fit on the whole problem starts near
+                # its optimum and needs a few of its expensive evaluations, not a dozen.
                 start, _, _ = fit_effects(screen, start, list(model) + [c])
             refits[c] = fit_effects(problem, start, list(model) + [c])
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
