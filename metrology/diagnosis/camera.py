@@ -232,13 +232,16 @@ class CameraHeightProblem(dg.Problem):
                 for j, key in zip(group, keys):
                     spectrum = self._spectra.get(key)
                     if spectrum is None:
-                        fine = self.instrument.mask_surface(still, j)
-                        for e in surface:
-                            fine = e.apply(fine, e.check(model[e.name]), step)
-                        spectrum = self.instrument.spectrum(fine)
+                        if surface:
+                            fine = self.instrument.mask_surface(still, j)
+                            for e in surface:
+                                fine = e.apply(fine, e.check(model[e.name]), step)
+                            spectrum = self.instrument.spectrum(fine)
+                        else:
+                            spectrum = self.instrument.mask_spectrum(still, j)
                         self._spectra.put(key, spectrum)
                     total = spectrum.copy() if total is None else np.add(total, spectrum, out=total)
-                coeffs = self.instrument.map_of(total, blur)
+                coeffs = self.instrument.map_of(total, blur, overwrite=True)
                 self._coeffs.put((keys, blur), coeffs)
             out += self.instrument.sample(coeffs, placements[motion])
         return out

@@ -313,33 +313,73 @@ class InstrumentModel:
         padded with its edge values, so the map costs one real FFT pair. In single precision:
         its rounding (~1e-7 of the heights, ~1e-13 m) is far below any measurement's noise.
         """
-        return self.map_of(self.spectrum(fine_m), sigma_m)
+        return self.map_of(self.spectrum(fine_m), sigma_m, overwrite=True)
 
     def spectrum(self, fine_m: np.ndarray) -> np.ndarray:
         """Real FFT of a fine surface padded for any blur within the camera's bounds: maps of
         one surface at several blurs, or of several surfaces summed (the transfer is linear),
         then cost one inverse FFT each (:meth:`map_of`)."""
-        fine_m = np.asarray(fine_m, float)
-        h, shape = self._padding()
-        rows, cols = fine_m.shape
-        padded = np.pad(fine_m.astype(np.float32), ((h, shape[0] - rows - h), (h, shape[1] - cols - h)),
-                        mode="edge")
-        return sfft.rfft2(padded, workers=self._fft_workers(padded.size))
+        buf, inner = self._buffer()
+        inner[...] = fine_m
+        return self._padded_fft(buf)
 
-    def map_of(self, spectrum: np.ndarray, sigma_m: float) -> np.ndarray:
-        """:meth:`camera_map` of the surface whose :meth:`spectrum` is given."""
+    def mask_spectrum(self, params: ProcessParams, mask: int) -> np.ndarray:
+        """:meth:`spectrum` of :meth:`mask_surface`, the mask's etch written straight into the
+        FFT's buffer (no negated, cropped, placed or cast copies: on a whole 512 px field each
+        was a 100-200 MB array whose fresh pages the kernel zeroed). The same numbers."""
+        if params.sidewall_slope > 0:
+            return self.spectrum(self.mask_surface(params, mask))
+        if params.roughness > 0:
+            raise DoeError("a rough surface is not the sum of its masks' parts")
+        pad = self._pad(params)
+        etch = self._etch(params, mask, pad)
+        core = etch[pad:etch.shape[0] - pad, pad:etch.shape[1] - pad]
+        buf, inner = self._buffer()
+        u = self.upsample
+        a, b = (self.region[0] - self.window[0]) * u, (self.region[2] - self.window[2]) * u
+        if core.shape != inner.shape:
+            inner[...] = 0.0  # unetched beyond the design
+        np.negative(core, out=inner[a:a + core.shape[0], b:b + core.shape[1]], casting="unsafe")
+        return self._padded_fft(buf)
+
+    def map_of(self, spectrum: np.ndarray, sigma_m: float, overwrite: bool = False) -> np.ndarray:
+        """:meth:`camera_map` of the surface whose :meth:`spectrum` is given (multiplied in
+        place with ``overwrite``, when the caller owns it)."""
         h, shape = self._padding()
-        rows, cols = ((self.window[1] - self.window[0]) * self.upsample, (self.window[3] - self.window[2]) * self.upsample)
-        product = spectrum * self._transfer(shape, sigma_m)
+        rows, cols = self._fine_shape()
+        product = spectrum if overwrite else spectrum.copy()
+        product *= self._transfer(shape, sigma_m)
         # A view: the spline sampler reads strided arrays as they are (a copy cost ~0.4 s a map
         # on a whole 512 px field).
         return sfft.irfft2(product, s=shape, workers=self._fft_workers(product.size * 2))[h:h + rows, h:h + cols]
+
+    def _fine_shape(self):
+        u = self.upsample
+        return (self.window[1] - self.window[0]) * u, (self.window[3] - self.window[2]) * u
+
+    def _buffer(self):
+        """An FFT buffer (float32) and its view where the window's fine surface goes."""
+        h, shape = self._padding()
+        rows, cols = self._fine_shape()
+        buf = np.empty(shape, np.float32)
+        return buf, buf[h:h + rows, h:h + cols]
+
+    def _padded_fft(self, buf):
+        """Real FFT of ``buf`` once the surface in it is padded with its edge values (as
+        ``np.pad(mode="edge")``: rows first, then columns, corners from the corners)."""
+        h, shape = self._padding()
+        rows, cols = self._fine_shape()
+        buf[:h, h:h + cols] = buf[h, h:h + cols]
+        buf[h + rows:, h:h + cols] = buf[h + rows - 1, h:h + cols]
+        buf[:, :h] = buf[:, h:h + 1]
+        buf[:, h + cols:] = buf[:, h + cols - 1:h + cols]
+        return sfft.rfft2(buf, workers=self._fft_workers(buf.size))
 
     def _padding(self):
         """Pad (fine cells) and FFT shape: the kernel's reach at the largest blur fitted plus
         the spline prefilter's decay (pole 2 - sqrt(3): 0.268^24 ~ 2e-14)."""
         h = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, MAX_BLUR_M) + 24
-        rows, cols = (self.window[1] - self.window[0]) * self.upsample, (self.window[3] - self.window[2]) * self.upsample
+        rows, cols = self._fine_shape()
         return h, (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
 
     @staticmethod
@@ -357,13 +397,14 @@ class InstrumentModel:
             k = kernel.shape[0] // 2
             wrapped = np.zeros(shape)
             # Correlation: value[a] = sum_d kernel[k + d] fine[a + d], i.e. convolution with the
-            # kernel flipped, centred at index 0.
-            wrapped[:2 * k + 1, :2 * k + 1] = kernel[::-1, ::-1]
-            wrapped = np.roll(wrapped, (-k, -k), axis=(0, 1))
+            # kernel flipped, centred at index 0 (offset d at index d mod the shape).
+            offsets = np.arange(-k, k + 1)
+            wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
             wr = 2 * np.pi * sfft.fftfreq(shape[0])
             wc = 2 * np.pi * sfft.rfftfreq(shape[1])
             prefilter = (6.0 / (4.0 + 2.0 * np.cos(wr)))[:, None] * (6.0 / (4.0 + 2.0 * np.cos(wc)))[None, :]
-            self._transfers.put(key, (sfft.rfft2(wrapped) * prefilter).astype(np.complex64))
+            spectrum = sfft.rfft2(wrapped, workers=self._fft_workers(wrapped.size))
+            self._transfers.put(key, (spectrum * prefilter).astype(np.complex64))
         return self._transfers.get(key)
 
     def covers(self, placement: Placement, sigma_m: float) -> bool:
