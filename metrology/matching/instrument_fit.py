@@ -189,7 +189,8 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             ds = p[i_blur] - maps.sigma_m / _UM
             total = np.zeros(crop.shape)
             for j in range(n):
-                v0, v_b, v_s = maps.sampled(model, j, Placement(place.matrix, place.offset - shifts[j]))
+                # Overlay alone (no rotation): the mask's map sampled where the moved mask shows.
+                v0, v_b, v_s = maps.sampled(model, j, place.in_frame_of(shifts[j], 0.0, (0.0, 0.0)))
                 total -= p[j] * (v0 + db[j] * v_b + ds * v_s)
             return total * _H
 
