@@ -53,7 +53,8 @@ from .effects import EFFECTS
 from .process_params import ProcessParams, finite_float
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
-           "mask_etch", "mask_motion", "simulate_surface", "surface_key", "without_motion"]
+           "design_centre", "mask_etch", "mask_motion", "simulate_surface", "surface_key",
+           "without_motion"]
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +156,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
     u = fine_upsample(pitch_m, step_m)
     step = pitch_m / u
     row0, row1, col0, col1 = region
-    centre_design = ((levels.shape[0] - 1) / 2.0, (levels.shape[1] - 1) / 2.0)
+    centre_design = design_centre(levels.shape)
 
     margin = _margin_px(params, pitch_m, region, centre_design)
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
@@ -199,7 +200,7 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     region = _check_region(region, levels.shape)
     u = fine_upsample(_positive(pitch_m, "pitch_m"), _positive(step_m, "step_m"))
     row0, row1, col0, col1 = region
-    centre_design = ((levels.shape[0] - 1) / 2.0, (levels.shape[1] - 1) / 2.0)
+    centre_design = design_centre(levels.shape)
     margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design)
@@ -240,10 +241,17 @@ def surface_key(params: ProcessParams) -> tuple:
             params.seed)
 
 
+def design_centre(shape: tuple[int, int]) -> tuple[float, float]:
+    """Centre of a design of ``shape`` pixels in design-pixel coordinates (pixel (i, j) centred
+    at (i, j)): the point every mask's rotation turns about."""
+    return ((shape[0] - 1) / 2.0, (shape[1] - 1) / 2.0)
+
+
 def mask_motion(params: ProcessParams, mask: int, pitch_m: float) -> tuple[tuple[float, float], float]:
     """The rigid motion with which mask ``mask`` was printed: the shift (design pixels along
     row and column, row down) and the counter-clockwise rotation (rad) about the design's centre
-    that its overlay and its rotation amount to (see :func:`masks.litho.move`)."""
+    that its overlay and its rotation amount to (see :func:`masks.litho.move`,
+    :func:`design_centre`)."""
     dx, dy, rotation = (float(v) for v in params.mask_overlay[mask])
     return (-dy / pitch_m, dx / pitch_m), rotation + math.radians(float(params.mask_rotation[mask]))
 

@@ -23,7 +23,7 @@ import scipy.ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
-from masks.process import etch_key, mask_motion, surface_key, without_motion
+from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
@@ -193,7 +193,7 @@ class CameraHeightProblem(dg.Problem):
         blur = float(cam[5])
         placement = self.placement.refined(cam[:5], self.measured.shape, self.centre_px)
         if params.roughness == 0 and all(e.linear for e in surface):
-            centre = ((self.levels.shape[0] - 1) / 2.0, (self.levels.shape[1] - 1) / 2.0)
+            centre = design_centre(self.levels.shape)
             motions = [mask_motion(params, j, self.pitch_m) for j in range(params.n_masks)]
             moved = {m: placement.in_frame_of(*m, centre) for m in motions}
             if all(self.instrument.covers(pl, blur) for pl in moved.values()):

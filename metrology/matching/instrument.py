@@ -111,7 +111,6 @@ class Placement:
         centre_design = self.matrix @ centre + self.offset + np.array([dr, dc])
         return Placement(matrix, centre_design - matrix @ centre)
 
-
     def in_frame_of(self, shift_rc: Sequence[float], rotation_rad: float, centre_rc: Sequence[float]) -> Placement:
         """The same camera pixels placed on an image before a rigid motion moved it.
 
@@ -298,12 +297,14 @@ class InstrumentModel:
 
     def _placed(self, surface):
         """The region's surface in the window's fine grid (0, unetched, beyond the design)."""
-        u = self.upsample
-        r0, r1, c0, c1 = self.window
-        out = np.zeros(((r1 - r0) * u, (c1 - c0) * u))
-        a, b = (self.region[0] - r0) * u, (self.region[2] - c0) * u
+        out = np.zeros(self._fine_shape())
+        a, b = self._region_offset()
         out[a:a + surface.shape[0], b:b + surface.shape[1]] = surface
         return out
+
+    def _region_offset(self):
+        """Fine cells from the window's first cell to the region's (the design's part of it)."""
+        return (self.region[0] - self.window[0]) * self.upsample, (self.region[2] - self.window[2]) * self.upsample
 
     def camera_map(self, fine_m: np.ndarray, sigma_m: float) -> np.ndarray:
         """Spline coefficients of what a camera pixel centred at each fine cell reports.
@@ -335,8 +336,7 @@ class InstrumentModel:
         etch = self._etch(params, mask, pad)
         core = etch[pad:etch.shape[0] - pad, pad:etch.shape[1] - pad]
         buf, inner = self._buffer()
-        u = self.upsample
-        a, b = (self.region[0] - self.window[0]) * u, (self.region[2] - self.window[2]) * u
+        a, b = self._region_offset()
         if core.shape != inner.shape:
             inner[...] = 0.0  # unetched beyond the design
         np.negative(core, out=inner[a:a + core.shape[0], b:b + core.shape[1]], casting="unsafe")
@@ -411,23 +411,24 @@ class InstrumentModel:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its
         centre at least the kernel's reach (and the spline's support) inside the fine grid."""
         rows, cols = self.shape
-        R, C = placement.to_design(np.array([0.0, 0.0, rows - 1.0, rows - 1.0]),
-                                   np.array([0.0, cols - 1.0, 0.0, cols - 1.0]))
-        u = self.upsample
+        # An affine map: the field's extreme fine coordinates are its corner pixels'.
+        fr, fc = self._fine_index(placement, np.array([0.0, 0.0, rows - 1.0, rows - 1.0]),
+                                  np.array([0.0, cols - 1.0, 0.0, cols - 1.0]))
         reach = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 2
-        fr = (R - self.window[0] + 0.5) * u - 0.5
-        fc = (C - self.window[2] + 0.5) * u - 0.5
-        n_r, n_c = (self.window[1] - self.window[0]) * u, (self.window[3] - self.window[2]) * u
+        n_r, n_c = self._fine_shape()
         return bool(np.all((fr >= reach) & (fr <= n_r - 1 - reach) & (fc >= reach) & (fc <= n_c - 1 - reach)))
 
     def sample(self, coeffs: np.ndarray, placement: Placement) -> np.ndarray:
         """Camera-frame heights from :meth:`camera_map` coefficients under ``placement``."""
         r, c = np.mgrid[:self.shape[0], :self.shape[1]].astype(float)
-        R, C = placement.to_design(r, c)
-        u = self.upsample
-        fr = (R - self.window[0] + 0.5) * u - 0.5
-        fc = (C - self.window[2] + 0.5) * u - 0.5
+        fr, fc = self._fine_index(placement, r, c)
         return ndi.map_coordinates(coeffs, [fr, fc], output=np.float64, order=3, mode="nearest", prefilter=False)
+
+    def _fine_index(self, placement, rows, cols):
+        """Fine-cell index coordinates in the window of camera pixel centres (rows, cols)."""
+        R, C = placement.to_design(rows, cols)
+        u = self.upsample
+        return (R - self.window[0] + 0.5) * u - 0.5, (C - self.window[2] + 0.5) * u - 0.5
 
     def render(self, params: ProcessParams, placement: Placement, sigma_m: float,
                surface: Callable[[np.ndarray, float], np.ndarray] | None = None) -> np.ndarray:
