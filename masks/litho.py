@@ -9,11 +9,18 @@ parameters see smooth residuals. Arrays are row-major, row 0 at the top.
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 from scipy import ndimage as ndi
 
-__all__ = ["blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable", "inverse_motion",
-           "move", "upsample_mask"]
+__all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable",
+           "inverse_motion", "move", "upsample_mask"]
+
+# Trench-foot distance maps kept between calls (one per mask of a model; on a whole 512 px
+# camera field some 75 MB each).
+FOOT_DISTANCES_KEPT = 4
+_FOOT_DISTANCES: dict = {}
 
 
 def upsample_mask(mask: np.ndarray, upsample: int) -> np.ndarray:
@@ -67,21 +74,21 @@ def grow(coverage: np.ndarray, bias_px: float) -> np.ndarray:
         if whole:
             out = ndi.maximum_filter1d(out, 2 * whole + 1, axis=axis, mode="constant", cval=0.0)
         if frac > 0:
-            outer = (_max3_rows(out) if axis == 0
-                     else ndi.maximum_filter1d(out, 3, axis=axis, mode="constant", cval=0.0))
+            outer = _max3(out, axis)
             outer *= frac
             out = np.maximum(out, outer, out=outer)
     return out
 
 
-def _max3_rows(image):
-    """Maximum over each pixel and its two neighbours along axis 0, for values >= 0 (zero
-    beyond the edges): ``maximum_filter1d(size=3, axis=0, mode="constant")`` from shifted
-    slices, 7x faster on a large image than the filter's line buffers across rows (along a
-    row the filter is as fast)."""
+def _max3(image, axis):
+    """Maximum over each pixel and its two neighbours along ``axis``, for values >= 0 (zero
+    beyond the edges): ``maximum_filter1d(size=3, mode="constant")`` from shifted slices, 4-8x
+    faster on a large image than the filter's line buffers."""
     out = image.copy()
-    np.maximum(out[1:], image[:-1], out=out[1:])
-    np.maximum(out[:-1], image[1:], out=out[:-1])
+    ahead = (slice(None),) * axis + (slice(1, None),)
+    behind = (slice(None),) * axis + (slice(None, -1),)
+    np.maximum(out[ahead], image[behind], out=out[ahead])
+    np.maximum(out[behind], image[ahead], out=out[behind])
     return out
 
 
@@ -293,13 +300,27 @@ def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
         0 deep inside wide openings, 1 at the foot of a straight edge (capped at 1);
         meaningful where the coverage is non-zero (the caller multiplies by it).
     """
+    return np.minimum(np.exp(-_foot_distance(coverage) / width_px), 1.0)
+
+
+def _foot_distance(coverage):
+    """The distance ``s`` of :func:`edge_foot` (fine pixels, float32), kept for the last few
+    coverages: a fit of the trenches' depth and width changes neither the coverage nor ``s``,
+    and the distance transform is most of the trench's cost."""
     from scipy.ndimage import distance_transform_cdt
 
-    closed = 1.0 - np.asarray(coverage, dtype=np.float64)
-    padded = np.pad(closed, 1, constant_values=1.0)
-    dist, (ri, ci) = distance_transform_cdt(padded <= 0.0, metric="chessboard", return_indices=True)
-    s = dist + 0.5 - padded[ri, ci]
-    return np.minimum(np.exp(-s[1:-1, 1:-1] / width_px), 1.0)
+    coverage = np.ascontiguousarray(coverage)
+    key = (coverage.shape, coverage.dtype.str, hashlib.sha1(memoryview(coverage).cast("B")).digest())
+    s = _FOOT_DISTANCES.pop(key, None)
+    if s is None:
+        closed = 1.0 - np.asarray(coverage, dtype=np.float64)
+        padded = np.pad(closed, 1, constant_values=1.0)
+        dist, (ri, ci) = distance_transform_cdt(padded <= 0.0, metric="chessboard", return_indices=True)
+        s = (dist + 0.5 - padded[ri, ci])[1:-1, 1:-1].astype(np.float32)
+    _FOOT_DISTANCES[key] = s
+    while len(_FOOT_DISTANCES) > FOOT_DISTANCES_KEPT:
+        _FOOT_DISTANCES.pop(next(iter(_FOOT_DISTANCES)))
+    return s
 
 
 def box_kernel(width_px: float) -> np.ndarray:

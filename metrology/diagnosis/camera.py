@@ -102,6 +102,9 @@ class CameraHeightProblem(dg.Problem):
     cache_bytes : int
         Memory kept for rendered camera maps, as much for the masks' spectra, and a quarter of
         it for fine surfaces; the tiles of a field share one budget.
+    camera : sequence of float, optional
+        Placement refinement and blur (:data:`CAMERA`'s values) of the residual the noise floor
+        is estimated on (default: its start values).
     """
 
     units = "m"
@@ -112,7 +115,8 @@ class CameraHeightProblem(dg.Problem):
                  base_params: ProcessParams, effects: Sequence[Effect], step_m: float | None = None,
                  curvature: bool = False, keep: np.ndarray | None = None,
                  noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
-                 centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES) -> None:
+                 centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES,
+                 camera: Sequence[float] | None = None) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -132,9 +136,10 @@ class CameraHeightProblem(dg.Problem):
         if self.keep.sum() < 100:
             raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed field")
         self.leveller = Leveller(self.measured.shape, self.keep, curvature)
-        self._fine = ArrayCache(cache_bytes // 4)
-        self._coeffs = ArrayCache(cache_bytes)
-        self._spectra = ArrayCache(cache_bytes)
+        self._fine = ArrayCache(cache_bytes // 4, max_items=2)
+        self._coeffs = ArrayCache(cache_bytes, max_items=12)
+        self._spectra = ArrayCache(cache_bytes, max_items=8)
+        self._factors: dict = {}
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -153,7 +158,7 @@ class CameraHeightProblem(dg.Problem):
         if noise is not None:
             self.noise = noise
             return
-        first = self.measured - self.render({CAMERA.name: CAMERA.start_values()})
+        first = self.measured - self.render({CAMERA.name: CAMERA.start_values() if camera is None else camera})
         levelled = np.full(first.shape, np.nan)
         levelled[self.keep] = self.leveller(first[self.keep])
         self.noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
@@ -220,31 +225,51 @@ class CameraHeightProblem(dg.Problem):
         """The masks printed in place (``still``), each group that shares a motion summed in
         the Fourier domain into one camera map, sampled under that motion's placement. Spectra
         are kept per mask and maps per group and blur: a change of blur costs one inverse FFT
-        per group, a change of motion only a sampling."""
+        per group, a change of motion only a sampling. A surface effect with a Fourier transfer
+        (a batwing) multiplies the maps' spectra; any other acts on each mask's fine surface."""
         step = self.instrument.step_m
+        factors, direct = [], []
+        for e in surface:
+            factor = self._fourier_factor(e, model[e.name]) if e.fourier is not None else None
+            if factor is None:
+                direct.append(e)
+            else:
+                factors.append(factor)
+        direct_values = tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in direct)
         out = np.zeros(self.measured.shape)
         for motion in dict.fromkeys(motions):
             group = [j for j, m in enumerate(motions) if m == motion]
-            keys = tuple((etch_key(still, j), still.sidewall_slope, surface_values) for j in group)
-            coeffs = self._coeffs.get((keys, blur))
+            keys = tuple((etch_key(still, j), still.sidewall_slope, direct_values) for j in group)
+            coeffs = self._coeffs.get((keys, blur, surface_values))
             if coeffs is None:
-                total = None
+                spectra = []
                 for j, key in zip(group, keys):
                     spectrum = self._spectra.get(key)
                     if spectrum is None:
-                        if surface:
+                        if direct:
                             fine = self.instrument.mask_surface(still, j)
-                            for e in surface:
+                            for e in direct:
                                 fine = e.apply(fine, e.check(model[e.name]), step)
                             spectrum = self.instrument.spectrum(fine)
                         else:
                             spectrum = self.instrument.mask_spectrum(still, j)
                         self._spectra.put(key, spectrum)
-                    total = spectrum.copy() if total is None else np.add(total, spectrum, out=total)
-                coeffs = self.instrument.map_of(total, blur, overwrite=True)
-                self._coeffs.put((keys, blur), coeffs)
+                    spectra.append(spectrum)
+                coeffs = self.instrument.map_of(spectra, blur, factors=factors)
+                self._coeffs.put((keys, blur, surface_values), coeffs)
             out += self.instrument.sample(coeffs, placements[motion])
         return out
+
+    def _fourier_factor(self, effect, values):
+        """``effect``'s transfer on the instrument's FFT grid (None beyond its padding), kept
+        for the last few values."""
+        key = (effect.name, tuple(np.asarray(values, float)))
+        if key not in self._factors:
+            wr, wc, reach = self.instrument.fourier_grid()
+            self._factors[key] = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
+            while len(self._factors) > 4:
+                self._factors.pop(next(iter(self._factors)))
+        return self._factors[key]
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
@@ -356,9 +381,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         effects = effects_for("height", candidates)
         finite = np.isfinite(crop)
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
-        first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m)
         camera0 = np.array(CAMERA.start_values(), float)
         camera0[5] = screen_blur
+        # One render serves the noise floor and the robust rule (the screening model's).
+        first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
+                                    camera=camera0)
         keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
         diag = problem = fit = None
         for _ in range(3):
@@ -385,8 +412,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # What the user reads is the whole window's (the counts stay the fitted tiles').
             diag.initial_residual_rms, diag.final_residual_rms = (
                 float(np.sqrt(np.nanmean(m ** 2))) for m in (diag.residual_maps[0], diag.residual_maps[-1]))
-        # The nuisance's uncertainties at the final model (only the camera parameters refitted).
-        _, _, errors = dg.fit_effects(fit, diag.model, [CAMERA.name])
+        # The nuisance's uncertainties at the final model (the others held).
+        errors = dg.standard_errors(fit, diag.model, [CAMERA.name])
         diag.placement = problem.placement_report(diag.model, errors)
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]

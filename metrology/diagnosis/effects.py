@@ -49,7 +49,7 @@ from scipy.special import erf
 from doedesign.errors import DoeError
 
 __all__ = ["DOMAINS", "Effect", "EffectError", "FWHM_PER_SIGMA", "KINDS", "Parameter", "REGISTRY", "STAGES",
-           "batwing_profile", "effects_for", "gaussian_blur", "get_effect", "register_effect",
+           "batwing_profile", "batwing_transfer", "effects_for", "gaussian_blur", "get_effect", "register_effect",
            "unregister_effect"]
 
 DOMAINS = ("height", "psf")
@@ -118,6 +118,14 @@ class Effect:
         a batwing): it may then act on each mask's etch alone, so that the camera model can move
         masks by sampling (:meth:`metrology.diagnosis.camera.CameraHeightProblem.render`).
         False, the safe default, for any other effect.
+    fourier : callable, optional
+        For a linear surface effect, its transfer on a fine grid's FFT:
+        ``fourier(values, step_m, wr, wc, reach_px)`` with the angular frequencies (radians per
+        fine cell) along rows (full) and columns (half spectrum) returns the factor to multiply
+        the surface's spectrum by (broadcast to ``(wr.size, wc.size)``), or None when its taps
+        reach further than ``reach_px`` cells (the surface's edge padding), where ``apply`` on
+        the fine grid must serve. The camera model then changes the effect's values at the cost
+        of an inverse FFT, not of a new surface.
     """
 
     name: str
@@ -131,6 +139,7 @@ class Effect:
     start: tuple | None = field(default=None)
     per_channel: bool = False
     linear: bool = False
+    fourier: object = None
 
     def __post_init__(self):
         if self.domain not in DOMAINS:
@@ -366,6 +375,29 @@ def _batwing(height_m, values, step_m):
     return height_m + batwing_profile(height_m, float(values[0]), float(values[1]), step_m)
 
 
+def batwing_transfer(values: Sequence[float], step_m: float, wr: np.ndarray, wc: np.ndarray,
+                     reach_px: int) -> np.ndarray | None:
+    """Fourier factor of ``h + batwing_profile(h)``: the same separable taps' responses (they
+    are symmetric, so real: ``sum_k t_k cos(w k)``), or None beyond ``reach_px`` cells."""
+    amplitude, sigma_m = float(values[0]), float(values[1])
+    if sigma_m <= 0 or amplitude == 0:
+        return np.ones((1, 1), np.float32)
+    smooth, second = _gaussian_taps(sigma_m, step_m)
+    half = smooth.size // 2
+    if half > reach_px:
+        return None
+    k = np.arange(-half, half + 1)
+
+    def response(taps, w):
+        return np.cos(np.outer(w, k)) @ taps
+
+    c = -amplitude * sigma_m ** 2 / _DOG_PEAK
+    out = np.outer(c * response(second, wr), response(smooth, wc))
+    out += np.outer(c * response(smooth, wr), response(second, wc))
+    out += 1.0
+    return out.astype(np.float32)
+
+
 _UM = 1e-6
 _BUILTIN_HEIGHT = [
     Effect("etch_depth", "height", "process",
@@ -415,7 +447,7 @@ _BUILTIN_HEIGHT = [
            _batwing,
            "Measurement artefact: a white-light interferometer overshoots at steps shorter than its coherence "
            "length, a signed edge spike proportional to the step height.", kind="artefact", order=10,
-           start=(0.05, 0.6 * _UM), linear=True),
+           start=(0.05, 0.6 * _UM), linear=True, fourier=batwing_transfer),
 ]
 for _e in _BUILTIN_HEIGHT:
     register_effect(_e)

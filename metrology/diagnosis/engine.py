@@ -43,7 +43,8 @@ from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.noise import NoiseEstimate
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
-           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis"]
+           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
+           "standard_errors"]
 
 log = logging.getLogger(__name__)
 
@@ -254,24 +255,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
         Fitted model, residual sum of squares (in the problem's units squared), and the
         standard errors of the free effects' parameters (``cov = s^2 (J^T J)^-1 A``).
     """
-    effs = [problem.effects[name] for name in free]
-    scale = np.concatenate([e.scales() for e in effs])
-    lo = np.concatenate([e.bounds()[0] for e in effs]) / scale
-    hi = np.concatenate([e.bounds()[1] for e in effs]) / scale
-    x0 = np.concatenate([np.asarray(model[e.name], dtype=float) for e in effs]) / scale
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    splits = np.cumsum([e.n_params for e in effs])[:-1]
-    sigma = problem.noise.sigma
-
-    def unpack(x):
-        trial = dict(model)
-        for e, v in zip(effs, np.split(x * scale, splits)):
-            trial[e.name] = v
-        return trial
-
-    def residual(x):
-        return problem.residual(unpack(x)) / sigma
-
+    effs, scale, lo, hi, x0, unpack, residual = _fit_setup(problem, model, free)
     sizes = []  # residual size of each solver evaluation
 
     def fun(x):
@@ -289,19 +273,59 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
                         max_nfev=max_iter or 60)
     log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
-    fitted = unpack(res.x)
-    rss = float(np.sum(res.fun ** 2)) * sigma ** 2
-    n, k = res.fun.size, res.x.size
-    jtj = res.jac.T @ res.jac
-    try:
-        cov = np.linalg.pinv(jtj) * (np.sum(res.fun ** 2) / max(n - k, 1)) * problem.noise.corr_area_px
-        err = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
-    except np.linalg.LinAlgError:
-        err = np.full(k, np.nan)
+    rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
+    err = _errors(problem, res.fun, res.jac, scale)
     if sizes and sizes[-1] < 0:
-        err = np.full(k, np.nan)
-    errors = {e.name: v for e, v in zip(effs, np.split(err, splits))}
-    return fitted, rss, errors
+        err = np.full(res.x.size, np.nan)
+    return unpack(res.x), rss, _split(effs, err)
+
+
+def standard_errors(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str]) -> dict[str, np.ndarray]:
+    """Standard errors of the ``free`` effects' parameters at ``model`` (a fitted optimum), the
+    others held: one central-difference Jacobian, as :func:`fit_effects` reports them, without
+    the solver's iterations."""
+    effs, scale, lo, hi, x0, _, residual = _fit_setup(problem, model, free)
+    jac = _jacobian(residual, x0, lo, hi, True, WORKERS if problem.parallel_fits else 1)
+    return _split(effs, _errors(problem, residual(x0), jac, scale))
+
+
+def _fit_setup(problem, model, free):
+    """The free effects, their parameter scales and scaled bounds, the scaled start, and the
+    maps from scaled parameters to a model and to the noise-weighted residual."""
+    effs = [problem.effects[name] for name in free]
+    scale = np.concatenate([e.scales() for e in effs])
+    lo = np.concatenate([e.bounds()[0] for e in effs]) / scale
+    hi = np.concatenate([e.bounds()[1] for e in effs]) / scale
+    x0 = np.concatenate([np.asarray(model[e.name], dtype=float) for e in effs]) / scale
+    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    splits = np.cumsum([e.n_params for e in effs])[:-1]
+
+    def unpack(x):
+        trial = dict(model)
+        for e, v in zip(effs, np.split(x * scale, splits)):
+            trial[e.name] = v
+        return trial
+
+    def residual(x):
+        return problem.residual(unpack(x)) / problem.noise.sigma
+
+    return effs, scale, lo, hi, x0, unpack, residual
+
+
+def _errors(problem, fun, jac, scale):
+    """Standard errors (parameter units) from a weighted residual and its Jacobian (scaled
+    parameters): ``cov = s^2 (J^T J)^-1 A``, ``A`` the noise's correlation area."""
+    n, k = fun.size, jac.shape[1]
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * (np.sum(fun ** 2) / max(n - k, 1)) * problem.noise.corr_area_px
+        return np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    except np.linalg.LinAlgError:
+        return np.full(k, np.nan)
+
+
+def _split(effs, values):
+    """Per-effect parts of a vector over the effects' parameters."""
+    return {e.name: v for e, v in zip(effs, np.split(values, np.cumsum([e.n_params for e in effs])[:-1]))}
 
 
 def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP):
@@ -504,8 +528,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                   iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
                   prior=prior or {})
         workers = WORKERS if problem.parallel_fits else 1
+        # Those with the most parameters first (the longest fits): the workers then finish together.
+        by_size = sorted(pending, key=lambda c: -problem.effects[c].n_params)
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
-            for name, fitted, score in forked_map(lambda c: _screen_one(rd, c), pending, workers, ordered=False):
+            for name, fitted, score in forked_map(lambda c: _screen_one(rd, c), by_size, workers, ordered=False):
                 scores[name], fits[name] = score, fitted
                 bar.update(1, status=f"{name} {score:+.1f}")
         scores = {c: scores[c] for c in pending}  # in the candidates' order, however they finished

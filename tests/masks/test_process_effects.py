@@ -245,3 +245,25 @@ def test_microtrench_sees_no_wall_inside_a_moved_blurred_opening():
     interior = diff[8 * U:16 * U, 8 * U:16 * U]    # >= 14 um (28 w) from every wall
     assert np.abs(interior).max() < 1e-6 * t
     assert diff.min() < -0.5 * t                    # the trench is there at the walls
+
+
+def test_trench_foot_is_recomputed_for_each_coverage_and_kept_for_the_same():
+    # The foot's distance map is kept between calls on the same coverage (a fit of the trench's
+    # depth and width); a changed coverage must get its own, equal to a fresh transform's.
+    from scipy.ndimage import distance_transform_cdt
+
+    from masks import litho
+
+    def reference(coverage, width):
+        padded = np.pad(1.0 - coverage.astype(float), 1, constant_values=1.0)
+        dist, (ri, ci) = distance_transform_cdt(padded <= 0.0, metric="chessboard", return_indices=True)
+        s = (dist + 0.5 - padded[ri, ci])[1:-1, 1:-1]
+        return np.minimum(np.exp(-s / width), 1.0)
+
+    a = litho.grow(litho.upsample_mask(np.array([[0, 1, 1, 0], [0, 1, 0, 0], [1, 1, 0, 0]]), 8), 0.3)
+    b = a.copy()
+    b[10:14, 12:20] = 0.0
+    for coverage in (a, b, a, a):
+        for width in (2.0, 5.0):
+            np.testing.assert_allclose(litho.edge_foot(coverage, width), reference(coverage, width), rtol=0, atol=1e-6)
+    assert not np.allclose(litho.edge_foot(a, 2.0), litho.edge_foot(b, 2.0))

@@ -156,3 +156,22 @@ def test_defocus_and_bandwidth_wrap_the_renderer():
     assert np.sqrt(var) == pytest.approx(20e-9 / 2.3548, rel=1e-3)
     h = np.ones((3, 3))
     assert np.allclose(get_effect("depth_scale").apply(h, np.array([0.05])), 1.05)
+
+
+def test_batwing_transfer_is_the_profile_in_fourier():
+    # h + batwing_profile(h) (taps correlated in space, edges extended) against the factor
+    # multiplying the spectrum of h padded with its edge values, away from the padding.
+    rng = np.random.default_rng(3)
+    h = np.kron(rng.integers(0, 4, (12, 10)).astype(float), np.ones((9, 9))) * 1e-7
+    step, values, pad = 0.1e-6, (0.3, 0.35e-6), 24
+    padded = np.pad(h, pad, mode="edge")
+    wr = 2 * np.pi * np.fft.fftfreq(padded.shape[0])
+    wc = 2 * np.pi * np.fft.rfftfreq(padded.shape[1])
+    factor = fx.batwing_transfer(values, step, wr, wc, pad)
+    got = np.fft.irfft2(np.fft.rfft2(padded) * factor, s=padded.shape)[pad:-pad, pad:-pad]
+    want = h + fx.batwing_profile(h, values[0], values[1], step)
+    assert np.abs(want - h).max() > 5e-9
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-7 * np.abs(h).max())
+    # Taps reaching beyond the padding: the caller must use the fine grid.
+    assert fx.batwing_transfer((0.3, 3e-6), step, wr, wc, pad) is None
+    assert np.all(fx.batwing_transfer((0.0, 0.35e-6), step, wr, wc, pad) == 1)

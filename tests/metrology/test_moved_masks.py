@@ -104,7 +104,7 @@ def test_a_non_linear_surface_effect_renders_on_the_summed_surface():
     # mask's part: the render then sums the moved masks on the fine grid first.
     case = filegen.make_case([], 5, design_px=36, field_px=80, instrument=QUIET)
     problem = _problem(case, ["mask_overlay", "batwing"])
-    square = dataclasses.replace(problem.effects["batwing"], name="square", linear=False,
+    square = dataclasses.replace(problem.effects["batwing"], name="square", linear=False, fourier=None,
                                  apply=lambda h, v, step: h + v[0] * 1e6 * h ** 2)
     problem.effects["square"] = square
     model = {CAMERA.name: np.array([0, 0, 0, 0, 0, 0.4e-6]), "mask_overlay": np.array([0, 0, 0, 0, 0.2e-6, 0]),
@@ -116,3 +116,23 @@ def test_a_non_linear_surface_effect_renders_on_the_summed_surface():
     np.testing.assert_allclose(problem.render(model), expected, rtol=0, atol=1e-15)
     assert not effects_for("height", ["etch_depth"])[0].linear
     assert problem.effects["batwing"].linear
+
+
+@pytest.mark.parametrize("values", [[0.1, 0.6e-6], [-0.3, 1.5e-6], [0.2, 2.8e-6]])
+def test_batwing_as_a_fourier_factor_renders_as_its_taps_on_the_fine_grid(values):
+    # The batwing multiplies the camera map's spectrum (its values then cost an inverse FFT, not
+    # four new surfaces); the taps correlated on each mask's fine surface are the reference. A
+    # batwing wider than the map's edge padding (2.8 um) falls back to the taps.
+    case = filegen.make_case(["mask_overlay"], 9011, design_px=36, field_px=80, instrument=QUIET)
+    problem = _problem(case, ["mask_overlay", "batwing"])
+    taps = dataclasses.replace(problem.effects["batwing"], fourier=None)
+    reference = _problem(case, ["mask_overlay"])
+    reference.effects["batwing"] = taps
+    model = {CAMERA.name: np.array([0, 0, 0, 0, 0, 0.4e-6]), "mask_overlay": np.array([0.2e-6, 0, 0, 0.1e-6, 0, 0]),
+             "batwing": np.array(values)}
+    got, want = problem.render(model), reference.render(model)
+    assert _rms_nm(want - reference.render({CAMERA.name: model[CAMERA.name],
+                                            "mask_overlay": model["mask_overlay"]})) > 0.5
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-12)
+    wide = values[1] > 2e-6
+    assert bool(problem._factors) and (next(iter(problem._factors.values())) is None) == wide
