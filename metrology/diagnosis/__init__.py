@@ -1,7 +1,7 @@
 """Diagnosis: name the effects that separate a measurement from the ideal model.
 
 The registry of physical effects and artefacts (:mod:`.effects`); the model-selection engine
-that fits, scores and names them (:mod:`.engine`) on the noise floor of the data (:mod:`.noise`);
+that fits (:mod:`.fitting`), scores and names them (:mod:`.engine`) on the noise floor of the data (:mod:`.noise`);
 the two problems it solves, height maps (:mod:`.heights`) and PSF stacks (:mod:`.psf`); the
 window with most structure (:mod:`.window`), residual breakdowns (:mod:`.breakdown`), where an unexplained residual lives (:mod:`.locate`), figures
 (:mod:`.plots`); and the hidden-effect generator used by the tests and the demo

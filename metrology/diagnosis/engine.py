@@ -19,7 +19,8 @@ Method
    measurement artefact is preferred among them. A backward pass then swaps or drops named
    effects that the final model no longer needs (forward-backward stepwise selection).
    A residual shift of the whole pattern (registration) is fitted in every height model.
-5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum,
+5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum
+   (the fits and their uncertainties: :mod:`metrology.diagnosis.fitting`).
 
 A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) supplies a
 :class:`Problem`: the candidate effects, the noise estimate and the residual of a model.
@@ -34,10 +35,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
-
 from doedesign.progress import Progress
 
+from metrology.diagnosis.fitting import JAC_STEP, fit_effects, standard_errors
 from metrology.diagnosis.forked import WORKERS, forked_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.noise import NoiseEstimate
@@ -53,8 +53,6 @@ DEFAULT_THRESHOLD = 10.0
 # close candidates are refitted on the whole problem anyway).
 SCREEN_ITER = 4
 SCREEN_ITER_CROP = 2
-# Finite-difference step of the Jacobian, in units of each parameter's scale.
-JAC_STEP = 0.02
 # Fraction of the noise floor above which a final residual is reported unexplained even when
 # no binned pattern earns its parameters (the noise-floor estimate itself is good to ~5 %).
 UNEXPLAINED_RATIO = 1.25
@@ -224,130 +222,6 @@ class Problem:
         """Label maps of bins for the structured-residual test (0 = excluded), one per way of
         grouping pixels that an unmodelled effect would show up in."""
         return []
-
-
-def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],
-                max_iter: int | None = None,
-                central: bool = True) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
-    """Least-squares fit of the ``free`` effects' parameters, others held at ``model``.
-
-    Central-difference Jacobians by default: area-coverage edges make the residual piecewise
-    smooth with kinks where an edge crosses a grid line (at zero shift or bias), where one-sided
-    differences stall a fit to convergence.
-
-    Parameters
-    ----------
-    problem : Problem
-    model : dict
-        Effect name -> parameter values; the free effects start from theirs.
-    free : list of str
-        Effects whose parameters are fitted.
-    max_iter : int, optional
-        Cap on function evaluations outside the Jacobian (a short fit to screen candidates;
-        its standard errors are NaN: the Jacobian at its last point is not computed).
-    central : bool
-        Central differences (else forward ones: half the evaluations, for a short screening fit
-        whose score is conservative anyway).
-
-    Returns
-    -------
-    (dict, float, dict)
-        Fitted model, residual sum of squares (in the problem's units squared), and the
-        standard errors of the free effects' parameters (``cov = s^2 (J^T J)^-1 A``).
-    """
-    effs, scale, lo, hi, x0, unpack, residual = _fit_setup(problem, model, free)
-    sizes = []  # residual size of each solver evaluation
-
-    def fun(x):
-        r = residual(x)
-        sizes.append(r.size)
-        return r
-
-    def jac(x):
-        if max_iter and len(sizes) >= max_iter:
-            # The solver stops right after this Jacobian, which would only serve the errors.
-            sizes.append(-1)
-            return np.zeros((sizes[-2], x.size))
-        return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1)
-
-    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
-                        max_nfev=max_iter or 60)
-    log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
-    rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
-    err = _errors(problem, res.fun, res.jac, scale)
-    if sizes and sizes[-1] < 0:
-        err = np.full(res.x.size, np.nan)
-    return unpack(res.x), rss, _split(effs, err)
-
-
-def standard_errors(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str]) -> dict[str, np.ndarray]:
-    """Standard errors of the ``free`` effects' parameters at ``model`` (a fitted optimum), the
-    others held: one central-difference Jacobian, as :func:`fit_effects` reports them, without
-    the solver's iterations."""
-    effs, scale, lo, hi, x0, _, residual = _fit_setup(problem, model, free)
-    jac = _jacobian(residual, x0, lo, hi, True, WORKERS if problem.parallel_fits else 1)
-    return _split(effs, _errors(problem, residual(x0), jac, scale))
-
-
-def _fit_setup(problem, model, free):
-    """The free effects, their parameter scales and scaled bounds, the scaled start, and the
-    maps from scaled parameters to a model and to the noise-weighted residual."""
-    effs = [problem.effects[name] for name in free]
-    scale = np.concatenate([e.scales() for e in effs])
-    lo = np.concatenate([e.bounds()[0] for e in effs]) / scale
-    hi = np.concatenate([e.bounds()[1] for e in effs]) / scale
-    x0 = np.concatenate([np.asarray(model[e.name], dtype=float) for e in effs]) / scale
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    splits = np.cumsum([e.n_params for e in effs])[:-1]
-
-    def unpack(x):
-        trial = dict(model)
-        for e, v in zip(effs, np.split(x * scale, splits)):
-            trial[e.name] = v
-        return trial
-
-    def residual(x):
-        return problem.residual(unpack(x)) / problem.noise.sigma
-
-    return effs, scale, lo, hi, x0, unpack, residual
-
-
-def _errors(problem, fun, jac, scale):
-    """Standard errors (parameter units) from a weighted residual and its Jacobian (scaled
-    parameters): ``cov = s^2 (J^T J)^-1 A``, ``A`` the noise's correlation area."""
-    n, k = fun.size, jac.shape[1]
-    try:
-        cov = np.linalg.pinv(jac.T @ jac) * (np.sum(fun ** 2) / max(n - k, 1)) * problem.noise.corr_area_px
-        return np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
-    except np.linalg.LinAlgError:
-        return np.full(k, np.nan)
-
-
-def _split(effs, values):
-    """Per-effect parts of a vector over the effects' parameters."""
-    return {e.name: v for e, v in zip(effs, np.split(values, np.cumsum([e.n_params for e in effs])[:-1]))}
-
-
-def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP):
-    """Finite differences with an absolute step (in units of each parameter's scale); SciPy's
-    relative steps vanish at a parameter of exactly zero, where most effects start.
-
-    Central differences are one-sided against a bound; forward ones go backward against the
-    upper bound. The columns are computed in ``workers`` forked processes when more than one.
-    """
-    f0 = None if central else fun(x)
-
-    def column(i):
-        if central:
-            up, down = x.copy(), x.copy()
-            up[i] = min(x[i] + step, hi[i])
-            down[i] = max(x[i] - step, lo[i])
-            return (fun(up) - fun(down)) / (up[i] - down[i])
-        other = x.copy()
-        other[i] = x[i] + step if x[i] + step <= hi[i] else max(x[i] - step, lo[i])
-        return (fun(other) - f0) / (other[i] - x[i])
-
-    return np.stack(list(forked_map(column, range(x.size), workers)), axis=1)
 
 
 def _screen_one(rd, name):
