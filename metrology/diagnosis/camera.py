@@ -139,7 +139,7 @@ class CameraHeightProblem(dg.Problem):
         self._fine = ArrayCache(cache_bytes // 4, max_items=2)
         self._coeffs = ArrayCache(cache_bytes, max_items=12)
         self._spectra = ArrayCache(cache_bytes, max_items=8)
-        self._factors: dict = {}
+        self._factors = ArrayCache(cache_bytes, max_items=4)
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -261,15 +261,16 @@ class CameraHeightProblem(dg.Problem):
         return out
 
     def _fourier_factor(self, effect, values):
-        """``effect``'s transfer on the instrument's FFT grid (None beyond its padding), kept
-        for the last few values."""
+        """``effect``'s transfer on the instrument's FFT grid (None beyond its padding, which
+        the effect finds out before computing anything), kept for the last few values."""
         key = (effect.name, tuple(np.asarray(values, float)))
-        if key not in self._factors:
+        factor = self._factors.get(key)
+        if factor is None:
             wr, wc, reach = self.instrument.fourier_grid()
-            self._factors[key] = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
-            while len(self._factors) > 4:
-                self._factors.pop(next(iter(self._factors)))
-        return self._factors[key]
+            factor = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
+            if factor is not None:
+                self._factors.put(key, factor)
+        return factor
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return self.leveller(self.measured[self.keep] - self.render(model)[self.keep])
