@@ -27,9 +27,10 @@ from masks.process import design_centre, etch_key, mask_motion, surface_key, wit
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
+from metrology.diagnosis.forked import forked_map
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
-from metrology.diagnosis.tiles import TILED_WINDOW_PX, TiledCameraProblem
+from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (ETCH_CACHE_BYTES, MAX_BLUR_M, PLACEMENT_PARAMS, ArrayCache,
                                            InstrumentModel, Leveller, Placement, robust_valid)
 from metrology.matching.window import busiest_camera_window
@@ -51,6 +52,10 @@ SCREEN_WINDOW_PX = 128
 # Memory kept for rendered camera maps, as much for the masks' spectra (and a quarter of it for
 # fine surfaces) between renders: on a whole 512 px field, one model's four masks (110 MB each).
 RENDER_CACHE_BYTES = 640 * 2 ** 20
+# Camera fields larger than this (pixels per side) are rendered in blocks of about
+# RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
+BLOCKED_FIELD_PX = 256
+RENDER_BLOCK_PX = 128
 
 
 def _no_op(*args):
@@ -140,6 +145,7 @@ class CameraHeightProblem(dg.Problem):
         self._coeffs = ArrayCache(cache_bytes, max_items=12)
         self._spectra = ArrayCache(cache_bytes, max_items=8)
         self._factors = ArrayCache(cache_bytes, max_items=4)
+        self._factor_reach = {}
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -153,15 +159,22 @@ class CameraHeightProblem(dg.Problem):
         self.edge_m = np.stack([self._edge_distance(m, ri, ci, fr, fc) for m in masks])
         self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
-        flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
-        groups, _ = ndi.label(flat & (self.cam_levels >= 0))
-        if noise is not None:
-            self.noise = noise
-            return
-        first = self.measured - self.render({CAMERA.name: CAMERA.start_values() if camera is None else camera})
-        levelled = np.full(first.shape, np.nan)
-        levelled[self.keep] = self.leveller(first[self.keep])
-        self.noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+        self._noise = noise
+        self._noise_camera = CAMERA.start_values() if camera is None else camera
+        self._maps = ArrayCache(cache_bytes, max_items=4)
+
+    @property
+    def noise(self) -> NoiseEstimate:
+        """The measurement's noise floor: the one given, or estimated (on first use) on the
+        flat interiors of the residual against the base process at ``camera``."""
+        if self._noise is None:
+            flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
+            groups, _ = ndi.label(flat & (self.cam_levels >= 0))
+            first = self.measured - self.render({CAMERA.name: self._noise_camera})
+            levelled = np.full(first.shape, np.nan)
+            levelled[self.keep] = self.leveller(first[self.keep])
+            self._noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+        return self._noise
 
     def _edge_distance(self, mask, ri, ci, fr, fc):
         here = mask[ri, ci]
@@ -186,6 +199,8 @@ class CameraHeightProblem(dg.Problem):
         surface effect, roughness, or a motion that would sample beyond the rendered window
         sends the render through the summed fine surface instead.
         """
+        if max(self.measured.shape) > BLOCKED_FIELD_PX:
+            return self._render_blocked(model)
         cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
         chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
                         key=lambda e: (("process", "surface").index(e.stage), e.order))
@@ -229,8 +244,9 @@ class CameraHeightProblem(dg.Problem):
         (a batwing) multiplies the maps' spectra; any other acts on each mask's fine surface."""
         step = self.instrument.step_m
         factors, direct = [], []
+        reach = self.instrument.fourier_reach(placements.values(), blur) if surface else 0
         for e in surface:
-            factor = self._fourier_factor(e, model[e.name]) if e.fourier is not None else None
+            factor = self._fourier_factor(e, model[e.name], reach) if e.fourier is not None else None
             if factor is None:
                 direct.append(e)
             else:
@@ -260,16 +276,18 @@ class CameraHeightProblem(dg.Problem):
             out += self.instrument.sample(coeffs, placements[motion])
         return out
 
-    def _fourier_factor(self, effect, values):
-        """``effect``'s transfer on the instrument's FFT grid (None beyond its padding, which
-        the effect finds out before computing anything), kept for the last few values."""
+    def _fourier_factor(self, effect, values, reach):
+        """``effect``'s transfer on the instrument's FFT grid, or None when its taps reach
+        further than ``reach`` cells (the effect finds that out before computing anything);
+        kept for the last few values, with the reach it was made for."""
         key = (effect.name, tuple(np.asarray(values, float)))
         factor = self._factors.get(key)
-        if factor is None:
-            wr, wc, reach = self.instrument.fourier_grid()
+        if factor is None or reach < self._factor_reach.get(key, reach):
+            wr, wc = self.instrument.fourier_grid()
             factor = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
             if factor is not None:
                 self._factors.put(key, factor)
+                self._factor_reach[key] = reach
         return factor
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
@@ -291,19 +309,54 @@ class CameraHeightProblem(dg.Problem):
         ``transfers``: a Fourier-transfer store shared with the field's other parts; ``share``:
         how many parts share the memory budgets of its caches."""
         size = min(size_px, *self.measured.shape)
-        part = (slice(r0, r0 + size), slice(c0, c0 + size))
+        return self._part(slice(r0, r0 + size), slice(c0, c0 + size), margin_px, transfers, share, self.noise)
+
+    def _part(self, rows, cols, margin_px, transfers, share, noise, keep=None):
+        """:meth:`sub` on the camera pixels ``rows`` x ``cols`` (slices); ``keep``: its pixels
+        compared (default: the field's)."""
+        r0, c0 = rows.start, cols.start
+        shape = (rows.stop - r0, cols.stop - c0)
         start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
         instrument = None
         if margin_px is not None:
-            instrument = InstrumentModel(self.levels, self.pitch_m, (size, size), start, step_m=self.instrument.step_m,
+            instrument = InstrumentModel(self.levels, self.pitch_m, shape, start, step_m=self.instrument.step_m,
                                          margin_px=margin_px, transfers=transfers,
                                          cache_bytes=ETCH_CACHE_BYTES // max(share, 1))
-        return CameraHeightProblem(self.levels, self.pitch_m, self.measured[part], start, self.base,
+        return CameraHeightProblem(self.levels, self.pitch_m, self.measured[rows, cols], start, self.base,
                                    [e for n, e in self.effects.items() if n != CAMERA.name],
-                                   step_m=self.instrument.step_m, curvature=self.curvature, keep=self.keep[part],
-                                   noise=self.noise, instrument=instrument,
-                                   centre_px=np.asarray(self.centre_px, float) - [r0, c0],
+                                   step_m=self.instrument.step_m, curvature=self.curvature,
+                                   keep=self.keep[rows, cols] if keep is None else keep, noise=noise,
+                                   instrument=instrument, centre_px=np.asarray(self.centre_px, float) - [r0, c0],
                                    cache_bytes=RENDER_CACHE_BYTES // max(share, 1))
+
+    def _render_blocked(self, model):
+        """:meth:`render` of a large field, block by block: squares of about
+        :data:`RENDER_BLOCK_PX` pixels, each on its own fine grid with a margin past the
+        kernel's reach and a placement refinement, so the stitched map is the whole field's to
+        the FFTs' rounding. The blocks render side by side in forked workers and keep nothing:
+        a field is rendered once per model (the map is kept for a few models), and memory that
+        is freed and reused costs nothing, while on this scale each array kept in a cache
+        came from fresh pages the kernel zeroed (the whole grid's arrays are 100-200 MB)."""
+        key = tuple((name, tuple(np.asarray(v, float).ravel())) for name, v in sorted(model.items()))
+        out = self._maps.get(key)
+        if out is None:
+            rows, cols = self.measured.shape
+            edges = [np.linspace(0, n, -(-n // RENDER_BLOCK_PX) + 1).round().astype(int) for n in (rows, cols)]
+            blocks = [(slice(int(r0), int(r1)), slice(int(c0), int(c1)))
+                      for r0, r1 in zip(edges[0][:-1], edges[0][1:]) for c0, c1 in zip(edges[1][:-1], edges[1][1:])]
+            transfers = InstrumentModel.transfer_cache()
+            keep = np.ones(self.measured.shape, bool)
+
+            def block_map(block):
+                part = self._part(*block, TILE_MARGIN_PX, transfers, 1, self._noise, keep=keep[block])
+                return part.render(model)
+
+            out = np.empty(self.measured.shape)
+            for block, part_map in zip(blocks, forked_map(block_map, blocks)):
+                out[block] = part_map
+            out.flags.writeable = False
+            self._maps.put(key, out)
+        return out
 
     def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
         out = np.full(self.measured.shape, np.nan)

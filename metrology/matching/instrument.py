@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -58,8 +58,11 @@ __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMEN
 FINE_STEP_M = 0.125e-6
 # Extra design pixels around the camera footprint: kernel reach plus any placement refinement.
 MARGIN_PX = 3
-# The largest objective blur (Gaussian sigma, m) a camera map is padded for.
+# The largest objective blur (Gaussian sigma, m) a camera-frame fit may reach.
 MAX_BLUR_M = 1.5e-6
+# Fine cells between any pixel read and a cell the FFT's circular convolution wrapped around:
+# the spline prefilter's decay (0.268^24 ~ 2e-14) plus the cubic spline's support.
+_WRAP_GUARD = 26
 # FFT threads for camera maps of at least FFT_THREADS_MIN_PX samples.
 FFT_WORKERS = 2
 FFT_THREADS_MIN_PX = 2 ** 22
@@ -365,12 +368,25 @@ class InstrumentModel:
         # on a whole 512 px field).
         return sfft.irfft2(product, s=shape, workers=self._fft_workers(product.size * 2))[h:h + rows, h:h + cols]
 
-    def fourier_grid(self) -> tuple[np.ndarray, np.ndarray, int]:
-        """Angular frequencies (radians per fine cell) of :meth:`spectrum`'s rows and columns,
-        and the fine cells of edge padding around the window: a filter that reaches no further
-        acts on the padded FFT as on the window with its edges extended."""
-        h, shape = self._padding()
-        return 2 * np.pi * sfft.fftfreq(shape[0]), 2 * np.pi * sfft.rfftfreq(shape[1]), h
+    def fourier_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Angular frequencies (radians per fine cell) of :meth:`spectrum`'s rows and columns."""
+        _, shape = self._padding()
+        return 2 * np.pi * sfft.fftfreq(shape[0]), 2 * np.pi * sfft.rfftfreq(shape[1])
+
+    def fourier_reach(self, placements: Iterable[Placement], sigma_m: float) -> int:
+        """Fine cells a linear filter of the surface may reach and still act on this FFT grid as
+        on the surface with its edges extended, for camera pixels under ``placements`` and the
+        blur ``sigma_m``: the pixels' least distance to the FFT grid's edge, less the kernel's
+        reach and the prefilter's guard (no wrapped-around cell then touches a pixel)."""
+        h, _ = self._padding()
+        rows, cols = self.shape
+        n_r, n_c = self._fine_shape()
+        corner_r = np.array([0.0, 0.0, rows - 1.0, rows - 1.0])
+        corner_c = np.array([0.0, cols - 1.0, 0.0, cols - 1.0])
+        least = min(float(np.min([fr, n_r - 1 - fr, fc, n_c - 1 - fc]))
+                    for fr, fc in (self._fine_index(pl, corner_r, corner_c) for pl in placements))
+        k = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
+        return int(math.floor(least + h - k - _WRAP_GUARD))
 
     def _fine_shape(self):
         u = self.upsample
@@ -395,9 +411,14 @@ class InstrumentModel:
         return sfft.rfft2(buf, workers=self._fft_workers(buf.size))
 
     def _padding(self):
-        """Pad (fine cells) and FFT shape: the kernel's reach at the largest blur fitted plus
-        the spline prefilter's decay (pole 2 - sqrt(3): 0.268^24 ~ 2e-14)."""
-        h = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, MAX_BLUR_M) + 24
+        """Pad (fine cells of edge values around the window) and FFT shape.
+
+        The map is only read where :meth:`covers` allows, at least the kernel's reach inside
+        the window; cells the circular convolution wraps around lie within that reach of the
+        grid's edge, so a pad of :data:`_WRAP_GUARD` keeps them that many cells from every
+        pixel read, where the spline prefilter's weight (pole 2 - sqrt(3): 0.268^26 ~ 1e-15)
+        is nil. A pad sized for the largest blur, as before, only made every FFT larger."""
+        h = _WRAP_GUARD
         rows, cols = self._fine_shape()
         return h, (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
 
@@ -425,7 +446,7 @@ class InstrumentModel:
             offsets = np.arange(-k, k + 1)
             wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
             spectrum = sfft.rfft2(wrapped, workers=self._fft_workers(wrapped.size), overwrite_x=True)
-            wr, wc, _ = self.fourier_grid()
+            wr, wc = self.fourier_grid()
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
             self._transfers.put(key, spectrum)

@@ -14,8 +14,9 @@ import pytest
 import filegen
 from masks import litho
 from masks.process import ProcessParams, mask_motion, without_motion
+from metrology.diagnosis import camera
 from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
-from metrology.diagnosis.effects import effects_for
+from metrology.diagnosis.effects import _gaussian_taps, effects_for
 from metrology.matching.instrument import Placement
 
 QUIET = {"noise_m": 0.0, "n_spikes": 0, "invalid_fraction": 0.0, "tilt_rad": np.zeros(2), "piston_m": 0.0}
@@ -121,8 +122,9 @@ def test_a_non_linear_surface_effect_renders_on_the_summed_surface():
 @pytest.mark.parametrize("values", [[0.1, 0.6e-6], [-0.3, 1.5e-6], [0.2, 2.8e-6]])
 def test_batwing_as_a_fourier_factor_renders_as_its_taps_on_the_fine_grid(values):
     # The batwing multiplies the camera map's spectrum (its values then cost an inverse FFT, not
-    # four new surfaces); the taps correlated on each mask's fine surface are the reference. A
-    # batwing wider than the map's edge padding (2.8 um) falls back to the taps.
+    # four new surfaces); the taps correlated on each mask's fine surface are the reference. The
+    # FFT grid's pad is only the prefilter's guard: the widest batwing (2.8 um, taps of 113
+    # cells) is served by the window's own margin past the pixels read.
     case = filegen.make_case(["mask_overlay"], 9011, design_px=36, field_px=80, instrument=QUIET)
     problem = _problem(case, ["mask_overlay", "batwing"])
     taps = dataclasses.replace(problem.effects["batwing"], fourier=None)
@@ -134,5 +136,26 @@ def test_batwing_as_a_fourier_factor_renders_as_its_taps_on_the_fine_grid(values
     assert _rms_nm(want - reference.render({CAMERA.name: model[CAMERA.name],
                                             "mask_overlay": model["mask_overlay"]})) > 0.5
     np.testing.assert_allclose(got, want, rtol=0, atol=2e-12)
-    wide = values[1] > 2e-6
-    assert (problem._fourier_factor(problem.effects["batwing"], values) is None) == wide
+    # Taps reaching further than the pixels' guard fall back to the fine grid.
+    half = _gaussian_taps(values[1], problem.instrument.step_m)[0].size // 2
+    reach = problem.instrument.fourier_reach([problem.placement], 0.4e-6)
+    assert half <= reach
+    assert problem._fourier_factor(problem.effects["batwing"], values, reach) is not None
+    assert problem._fourier_factor(problem.effects["batwing"], values, half - 1) is None
+
+
+def test_a_large_field_renders_block_by_block_as_on_one_grid(monkeypatch):
+    # A field above BLOCKED_FIELD_PX is rendered in blocks, each on its own fine grid with a
+    # margin; stitched, they must be the one grid's map (placement refined, a mask moved, a
+    # batwing), and a repeated model is read back, not rendered again.
+    case = filegen.make_case(["mask_overlay"], 9011, design_px=36, field_px=90, instrument=QUIET)
+    model = {CAMERA.name: np.array([0.1, -0.05, 2e-4, 1e-3, 0, 0.45e-6]),
+             "mask_overlay": np.array([0.2e-6, 0, 0, 0.1e-6, 0, 0]), "batwing": np.array([0.1, 0.6e-6])}
+    whole = _problem(case, ["mask_overlay", "batwing"]).render(model)
+    monkeypatch.setattr(camera, "BLOCKED_FIELD_PX", 64)
+    monkeypatch.setattr(camera, "RENDER_BLOCK_PX", 40)
+    blocked = _problem(case, ["mask_overlay", "batwing"])
+    got = blocked.render(model)
+    np.testing.assert_allclose(got, whole, rtol=0, atol=1e-12)  # single-precision FFTs
+    assert _rms_nm(whole) > 100
+    assert blocked.render(model) is got
