@@ -12,6 +12,7 @@ command load them all, so the help lists every command. User mistakes
 from __future__ import annotations
 
 import argparse
+import ctypes
 from collections.abc import Sequence
 from importlib.metadata import entry_points
 import logging
@@ -23,6 +24,8 @@ from ..errors import DoeError
 __all__ = ["ENTRY_POINT_GROUP", "build_parser", "main"]
 
 ENTRY_POINT_GROUP = "doe.commands"
+# mallopt(3) parameters.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
 
 log = logging.getLogger("doe")
@@ -63,8 +66,25 @@ def _files_only_backend() -> None:
         os.environ["MPLBACKEND"] = "Agg"
 
 
+def _keep_freed_memory() -> None:
+    """Ask glibc's allocator to keep freed memory for reuse instead of returning it.
+
+    Fits render large arrays again and again; each one returned to the kernel comes back as
+    fresh pages that the kernel zeroes, at about 1 GB/s on a virtual machine (a fifth of a
+    512 px camera diagnosis went there). Arrays up to 32 MiB (the allocator's largest
+    threshold) then come from the heap, which is never trimmed. Elsewhere: nothing.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(2 ** 31 - 1))
+    libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(32 * 2 ** 20))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     _files_only_backend()
+    _keep_freed_memory()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     try:
