@@ -287,6 +287,8 @@ class CameraHeightProblem(dg.Problem):
             factor = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
             if factor is not None:
                 self._factors.put(key, factor)
+                # The reach of the factors still kept only.
+                self._factor_reach = {k: r for k, r in self._factor_reach.items() if k in self._factors}
                 self._factor_reach[key] = reach
         return factor
 

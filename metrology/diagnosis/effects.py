@@ -124,8 +124,8 @@ class Effect:
         fine cell) along rows (full) and columns (half spectrum) returns the factor to multiply
         the surface's spectrum by (broadcast to ``(wr.size, wc.size)``), or None when its taps
         reach further than ``reach_px`` cells (beyond, the FFT would wrap them around onto the
-        pixels read), where ``apply`` on the fine grid must serve. The camera model then changes the effect's values at the cost
-        of an inverse FFT, not of a new surface.
+        pixels read), where ``apply`` on the fine grid must serve. The camera model then
+        changes the effect's values at the cost of an inverse FFT, not of a new surface.
     """
 
     name: str

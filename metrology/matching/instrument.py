@@ -149,6 +149,9 @@ class ArrayCache:
                                         or (self.max_items and len(self._items) > self.max_items)):
             self._items.popitem(last=False)
 
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._items
+
     def clear(self) -> None:
         self._items.clear()
 
@@ -379,12 +382,7 @@ class InstrumentModel:
         blur ``sigma_m``: the pixels' least distance to the FFT grid's edge, less the kernel's
         reach and the prefilter's guard (no wrapped-around cell then touches a pixel)."""
         h, _ = self._padding()
-        rows, cols = self.shape
-        n_r, n_c = self._fine_shape()
-        corner_r = np.array([0.0, 0.0, rows - 1.0, rows - 1.0])
-        corner_c = np.array([0.0, cols - 1.0, 0.0, cols - 1.0])
-        least = min(float(np.min([fr, n_r - 1 - fr, fc, n_c - 1 - fc]))
-                    for fr, fc in (self._fine_index(pl, corner_r, corner_c) for pl in placements))
+        least = min(self._clearance(pl) for pl in placements)
         k = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
         return int(math.floor(least + h - k - _WRAP_GUARD))
 
@@ -455,13 +453,17 @@ class InstrumentModel:
     def covers(self, placement: Placement, sigma_m: float) -> bool:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its
         centre at least the kernel's reach (and the spline's support) inside the fine grid."""
+        reach = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 2
+        return self._clearance(placement) >= reach
+
+    def _clearance(self, placement):
+        """Least distance (fine cells) of a camera pixel centre under ``placement`` to the edge
+        of the window's fine grid: an affine map, so the corner pixels'."""
         rows, cols = self.shape
-        # An affine map: the field's extreme fine coordinates are its corner pixels'.
         fr, fc = self._fine_index(placement, np.array([0.0, 0.0, rows - 1.0, rows - 1.0]),
                                   np.array([0.0, cols - 1.0, 0.0, cols - 1.0]))
-        reach = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 2
         n_r, n_c = self._fine_shape()
-        return bool(np.all((fr >= reach) & (fr <= n_r - 1 - reach) & (fc >= reach) & (fc <= n_c - 1 - reach)))
+        return float(np.min([fr, n_r - 1 - fr, fc, n_c - 1 - fc]))
 
     def sample(self, coeffs: np.ndarray, placement: Placement) -> np.ndarray:
         """Camera-frame heights from :meth:`camera_map` coefficients under ``placement``."""
