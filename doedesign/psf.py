@@ -27,8 +27,11 @@ transforms live in :mod:`doedesign.psf_lags`, the result container in :mod:`doed
 
 from __future__ import annotations
 
+import itertools
 import logging
+import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -132,6 +135,7 @@ class PSFEngine:
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
         self._kernel_cache = {}
+        self._cache_lock = threading.Lock()  # psf(threads > 1) fills the kernel cache from threads
         self._lag_cache = {} if lag_cache is None else lag_cache
         self._work = {}
 
@@ -221,8 +225,9 @@ class PSFEngine:
         (r0, r1, c0, c1), _ = self._views[view]
         # The kernels depend on the box's size only: views of equal width share them.
         key = (r1 - r0, c1 - c0, float(wavelength))
-        if key in self._kernel_cache:
-            return self._kernel_cache[key]
+        found = self._kernel_cache.get(key)
+        if found is not None:
+            return found
         cam = self.camera
         lz = wavelength * cam.sensor_distance_m
         ky = np.arange(r1 - r0)
@@ -231,9 +236,7 @@ class PSFEngine:
         kern_y[:, 1:] *= 2.0
         kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], kx, lz)
         out = (kern_y, kern_x, self.step_m ** 2 / lz ** 2)
-        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
-            self._kernel_cache.pop(next(iter(self._kernel_cache)))
-        self._kernel_cache[key] = out
+        self._cache_put(key, out)
         return out
 
 
@@ -251,8 +254,9 @@ class PSFEngine:
         """
         (r0, r1, c0, c1), _ = self._views[view]
         key = ("forward", r1 - r0, c1 - c0, float(wavelength), np.dtype(dtype).str)
-        if key in self._kernel_cache:
-            return self._kernel_cache[key]
+        found = self._kernel_cache.get(key)
+        if found is not None:
+            return found
         cam = self.camera
         lz = wavelength * cam.sensor_distance_m
         kern_y = self._axis_kernel(cam.window_shape[0], cam.axis_pixel[0], np.arange(r1 - r0), lz)
@@ -265,12 +269,14 @@ class PSFEngine:
         return out
 
     def _cache_put(self, key, value):
-        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
-            self._kernel_cache.pop(next(iter(self._kernel_cache)))
-        self._kernel_cache[key] = value
+        """Keep ``value`` in the kernel cache, the oldest entry out beyond ``KERNEL_CACHE_SIZE``."""
+        with self._cache_lock:
+            while len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
+                self._kernel_cache.pop(next(iter(self._kernel_cache)))
+            self._kernel_cache[key] = value
 
 
-    def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
+    def _view_psf(self, view, height_m, wavelength, depth, precision="double", fft_workers=-1):
         """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.psf_lags.paired_lags`.
 
         ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
@@ -286,7 +292,7 @@ class PSFEngine:
             energy = self._energy[view]  # a phase does not change it
             if precision == "single":
                 t = t.astype(np.complex64)
-            lags = paired_lags(t) + (energy,)
+            lags = paired_lags(t, fft_workers) + (energy,)
             if view == "uncoded" and self._opd[float(depth)] is None:
                 self._lag_cache[key] = lags
         s, d, n_fft, energy = lags
@@ -304,27 +310,43 @@ class PSFEngine:
             raise DoeError(f"height map holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
         return h
 
-    def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None) -> PSFResult:
-        """PSFs of the requested views for every depth and wavelength (see :class:`PSFResult`)."""
+    def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
+            threads: int = 1) -> PSFResult:
+        """PSFs of the requested views for every depth and wavelength (see :class:`PSFResult`).
+
+        ``threads`` > 1 computes that many wavelengths side by side (each with one FFT thread;
+        the transforms release the GIL), for the same result. The caller sets the BLAS threads:
+        one each is right with ``threads`` equal to the cores.
+        """
         h = self._check_height(height_m)
         for v in views:
             if v not in VIEWS:
                 raise DoeError(f"unknown view {v!r}; views are {VIEWS}")
         rows, cols = self.camera.window_shape
         out = np.empty((len(views), self.depths_m.size, self.wavelengths_m.size, rows, cols))
-        # Views innermost: both use the same wavelength's kernels while they are cached.
-        for di, depth in enumerate(self.depths_m):
-            for wi, wl in enumerate(self.wavelengths_m):
-                for vi, view in enumerate(views):
-                    if view == "uncoded":
-                        key = (float(depth), float(wl), self.precision)
-                        if key not in self._uncoded_cache:
-                            self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)
-                        out[vi, di, wi] = self._uncoded_cache[key]
-                    else:
-                        out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision)
-                    if progress is not None:
-                        progress.update(1)
+        tasks = [(di, wi) for di in range(self.depths_m.size) for wi in range(self.wavelengths_m.size)]
+
+        def channel(task, fft_workers=-1 if threads <= 1 else 1):
+            # Views innermost: both use the same wavelength's kernels while they are cached.
+            di, wi = task
+            depth, wl = self.depths_m[di], self.wavelengths_m[wi]
+            for vi, view in enumerate(views):
+                if view == "uncoded":
+                    key = (float(depth), float(wl), self.precision)
+                    if key not in self._uncoded_cache:
+                        self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
+                    out[vi, di, wi] = self._uncoded_cache[key]
+                else:
+                    out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
+            return len(views)
+
+        # The first channel alone: it fills the lag cache the others may share. Threads are
+        # started only when asked for (a pool's threads start on its first task).
+        with ThreadPoolExecutor(max(1, threads)) as pool:
+            mapper = pool.map if threads > 1 else map
+            for n in itertools.chain([channel(tasks[0], -1)], mapper(channel, tasks[1:])):
+                if progress is not None:
+                    progress.update(n)
         return PSFResult(psf=out, views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
                          depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
                          axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
@@ -392,8 +414,9 @@ class PSFEngine:
     def _read_axes(self, wavelength, rows, cols, energy):
         """Cached :class:`~doedesign.psf_reads.ReadAxis` pair for the coded view."""
         key = ("reads", float(wavelength), tuple(rows), tuple(cols), bool(energy))
-        if key in self._kernel_cache:
-            return self._kernel_cache[key]
+        found = self._kernel_cache.get(key)
+        if found is not None:
+            return found
         (r0, r1, c0, c1), _ = self._views["coded"]
         cam = self.camera
         lz = wavelength * cam.sensor_distance_m
@@ -403,10 +426,8 @@ class PSFEngine:
             centres, u, w = self._axis_nodes(n_pix, axis, n - 1, lz)
             lag_sum = self._axis_kernel(n_pix, axis, np.arange(-(n - 1), n), lz).sum(axis=0) if energy else None
             out.append(read_axis(centres[np.asarray(lines)], u, w, self.step_m / lz, n, lag_sum))
-        if len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
-            self._kernel_cache.pop(next(iter(self._kernel_cache)))
-        self._kernel_cache[key] = tuple(out)
-        return self._kernel_cache[key]
+        self._cache_put(key, tuple(out))
+        return tuple(out)
 
     def _value_and_grad_reads(self, h, loss_fn, reads):
         """:meth:`value_and_grad` for a loss of a few pixels and the window energy (see :mod:`.psf_reads`)."""

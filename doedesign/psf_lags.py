@@ -63,8 +63,10 @@ def fft_shape(t: np.ndarray) -> tuple[int, int]:
     return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
 
 
-def paired_lags(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def paired_lags(t: np.ndarray, workers: int = -1) -> tuple[np.ndarray, np.ndarray, int]:
     """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
+
+    ``workers`` is the FFTs' thread count (-1: all cores; 1 when wavelengths run side by side).
 
     Returns ``(S, D, n_fft)``, ``S`` and ``D`` shaped (2, a, b) each as (real, imaginary) planes, with
     ``S[ky] = C[ky] + C[-ky]`` and ``D[ky] = C[ky] - C[-ky]`` for ky = 0..a-1. Because
@@ -73,14 +75,14 @@ def paired_lags(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """
     a, b = t.shape
     ly, lx = fft_shape(t)
-    spec = sfft.fft(t, n=lx, axis=1, workers=-1)
-    spec = sfft.fft(spec, n=ly, axis=0, workers=-1, overwrite_x=True)
+    spec = sfft.fft(t, n=lx, axis=1, workers=workers)
+    spec = sfft.fft(spec, n=ly, axis=0, workers=workers, overwrite_x=True)
     planes = spec.view(spec.real.dtype)
     np.square(planes, out=planes)
     power = planes[:, 0::2] + planes[:, 1::2]
     del spec, planes
     # C[k] = conj(R[k]) / N: the conjugate is taken below by the sign of the imaginary planes.
-    r = sfft.rfft2(power, workers=-1)
+    r = sfft.rfft2(power, workers=workers)
     del power
     plus = r[:a, :b]
     minus = r[(-np.arange(a)) % ly, :b]

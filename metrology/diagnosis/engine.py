@@ -205,6 +205,9 @@ class Problem:
     # and its own render caches). Off where a problem's working arrays would double the peak
     # memory (the full-size PSF stack).
     parallel_fits = False
+    # Whether the residual has kinks in the parameters (area-coverage edges crossing grid lines):
+    # fits then take central-difference Jacobians; a smooth problem takes forward ones.
+    kinks = True
     # Whether the problem fits a part of what its residual maps show (a large window fitted on
     # tiles): the structure test then counts the map's own samples.
     fits_part_of_map = False
@@ -243,7 +246,7 @@ def _screen_one(rd, name):
         return (bic_eff(rss, rd["n_s"], rd["n_eff_s"], rd["k_now"] + eff.n_params) - rd["crit_s"]) \
             * rd["n_eff"] / rd["n_eff_s"]
 
-    fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=not rd["quick"])
+    fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=False if rd["quick"] else None)
     if first < iters and score(rss_c) < 0:
         # The first step paid for the candidate's parameters: finish the short fit.
         fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)

@@ -31,12 +31,13 @@ JAC_STEP = 0.02
 
 def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],
                 max_iter: int | None = None,
-                central: bool = True) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
+                central: bool | None = None) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
     """Least-squares fit of the ``free`` effects' parameters, others held at ``model``.
 
-    Central-difference Jacobians by default: area-coverage edges make the residual piecewise
-    smooth with kinks where an edge crosses a grid line (at zero shift or bias), where one-sided
-    differences stall a fit to convergence.
+    Central-difference Jacobians where the residual has kinks (``problem.kinks``: area-coverage
+    edges make a height residual piecewise smooth, with kinks where an edge crosses a grid line,
+    at zero shift or bias, where one-sided differences stall a fit to convergence); forward ones
+    where it is smooth in the parameters (a PSF stack), at half the evaluations.
 
     Parameters
     ----------
@@ -48,9 +49,9 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     max_iter : int, optional
         Cap on function evaluations outside the Jacobian (a short fit to screen candidates;
         its standard errors are NaN: the Jacobian at its last point is not computed).
-    central : bool
+    central : bool, optional
         Central differences (else forward ones: half the evaluations, for a short screening fit
-        whose score is conservative anyway).
+        whose score is conservative anyway); default ``problem.kinks``.
 
     Returns
     -------
@@ -59,11 +60,14 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
         standard errors of the free effects' parameters (``cov = s^2 (J^T J)^-1 A``).
     """
     effs, scale, lo, hi, x0, unpack, residual = _fit_setup(problem, model, free)
+    central = problem.kinks if central is None else central
     sizes = []  # residual size of each solver evaluation
+    last = {}  # the last evaluation, the base of a forward-difference Jacobian there
 
     def fun(x):
         r = residual(x)
         sizes.append(r.size)
+        last.update(x=x.copy(), r=r)
         return r
 
     def jac(x):
@@ -71,7 +75,8 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
             # The solver stops right after this Jacobian, which would only serve the errors.
             sizes.append(-1)
             return np.zeros((sizes[-2], x.size))
-        return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1)
+        f0 = last["r"] if not central and np.array_equal(last.get("x"), x) else None
+        return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0)
 
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
                         max_nfev=max_iter or 60)
@@ -131,14 +136,16 @@ def _split(effs, values):
     return {e.name: v for e, v in zip(effs, np.split(values, np.cumsum([e.n_params for e in effs])[:-1]))}
 
 
-def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP):
+def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None):
     """Finite differences with an absolute step (in units of each parameter's scale); SciPy's
     relative steps vanish at a parameter of exactly zero, where most effects start.
 
     Central differences are one-sided against a bound; forward ones go backward against the
-    upper bound. The columns are computed in ``workers`` forked processes when more than one.
+    upper bound, from ``f0 = fun(x)`` (computed when not given). The columns are computed in
+    ``workers`` forked processes when more than one.
     """
-    f0 = None if central else fun(x)
+    if not central and f0 is None:
+        f0 = fun(x)
 
     def column(i):
         if central:

@@ -20,6 +20,7 @@ from doedesign.errors import DoeError
 from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
+from metrology.diagnosis.forked import WORKERS
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.window import window_sums
 
@@ -97,11 +98,12 @@ class PsfRenderer:
         missing = tuple(w for w in found if found[w] is None)
         if missing:
             self.calls += 1
-            # One BLAS thread: the lag transform's products are mid-sized (a crop has 128 rows) and
-            # BLAS threads spin while they wait; measured on the full-size case at a load of 11-12
-            # on 2 cores, two threads took 2-2.5x the CPU time of one for each screening fit.
+            # Wavelengths side by side, one BLAS thread each: the lag transform's products are
+            # mid-sized (a crop has 128 rows) and BLAS threads spin while they wait; measured on the
+            # full-size case at a load of 11-12 on 2 cores, two BLAS threads took 2-2.5x the CPU
+            # time of one for each screening fit.
             with threadpool_limits(limits=1, user_api="blas"):
-                fresh = self._engine(missing, depth).psf(height_m, views=VIEWS).psf[:, 0]
+                fresh = self._engine(missing, depth).psf(height_m, views=VIEWS, threads=WORKERS).psf[:, 0]
             for i, w in enumerate(missing):
                 found[w] = np.ascontiguousarray(fresh[:, i])
             size = fresh[:, 0].nbytes
@@ -176,6 +178,8 @@ class PsfProblem(Problem):
     """
 
     units = "fraction of the channel's light per pixel"
+    # Every PSF effect is smooth in its parameters: forward-difference Jacobians.
+    kinks = False
 
     def __init__(self, design_height_m: np.ndarray, pitch_m: float, camera: Camera, measured: np.ndarray,
                  views: Sequence[str], wavelengths_m: Sequence[float] | np.ndarray, depth_m: float,

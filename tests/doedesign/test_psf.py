@@ -285,3 +285,22 @@ def test_shared_lag_cache_reuses_only_the_wavelength_free_uncoded_lags():
         np.testing.assert_array_equal(res.psf, ref.psf)
     # The defocused uncoded PSF really differs from the in-focus one (the check above can fail).
     assert np.abs(c.psf[1, 0, 0] - b.psf[1, 0, 0]).max() > 0.1 * b.psf[1, 0, 0].max()
+
+
+def test_wavelengths_side_by_side_give_the_serial_psfs():
+    """psf(threads=2) computes wavelengths in threads (kernels cached from both, the uncoded lags
+    shared) and returns exactly the serial stack, in focus and defocused, with a kernel cache
+    smaller than the wavelengths so that entries are evicted while threads add theirs."""
+    from doedesign.progress import Progress
+
+    cam = Camera(aperture_diameter_m=1.0e-3, window_shape=(40, 56), axis_pixel=(20, 28), doe_side="left")
+    h = blazed_grating(160, period_px=16)
+    wls = np.linspace(450e-9, 650e-9, 11)
+    serial = PSFEngine(cam, PITCH, h.shape, wavelengths_m=wls, depths_m=[cam.focus_distance_m, 0.5]).psf(h).psf
+    with Progress(2 * wls.size * 2, enabled=False) as bar:
+        threaded = PSFEngine(cam, PITCH, h.shape, wavelengths_m=wls, depths_m=[cam.focus_distance_m, 0.5]).psf(
+            h, progress=bar, threads=2).psf
+        assert bar.count == 2 * wls.size * 2
+    np.testing.assert_array_equal(threaded, serial)
+    # Each channel is its own wavelength's (the comparison above can fail on a mix-up).
+    assert np.abs(serial[0, 0, 0] - serial[0, 0, -1]).max() > 0.1 * serial[0, 0, 0].max()

@@ -177,6 +177,36 @@ def test_psf_renderer_reuses_channels_and_matches_the_engine():
     single = PsfRenderer(camera, design.pitch_m, design.shape, design.material, precision="single")(h, wls, d)
     assert np.abs(single - first).max() < 1e-6 * first.max()
 
+def test_psf_fits_take_forward_differences_to_the_central_optimum():
+    """A PSF stack is smooth in every effect's parameters: its fits take forward-difference
+    Jacobians (one render a column, not two) and reach the central-difference optimum to a
+    small fraction of the standard error; a height problem keeps central ones (kinks)."""
+    from metrology.diagnosis.fitting import fit_effects
+
+    case = make_psf_case(["source_bandwidth", "defocus"], 2003)
+    d = case.data
+    fits = {}
+    for central in (True, None):
+        problem = PsfProblem(d["design"].height_m, d["design"].pitch_m, d["camera"], d["measured_psf"], d["views"],
+                             d["wavelengths_m"], d["camera"].focus_distance_m, effects_for("psf"))
+        start = {n: problem.effects[n].start_values() for n in ("source_bandwidth", "defocus")}
+        calls = problem.render.calls
+        fits[central] = fit_effects(problem, start, list(start), central=central) + (problem.render.calls - calls,)
+    assert fits[None][3] < 0.8 * fits[True][3]
+    for name in ("source_bandwidth", "defocus"):
+        err = fits[True][2][name]
+        assert np.all(np.abs(fits[None][0][name] - fits[True][0][name]) < 0.1 * err), name
+        assert np.all(np.abs(fits[None][2][name] - err) < 0.05 * err)
+        # The fit is right, not only the same (the hidden values; the comparison above can fail).
+        assert np.all(np.abs(fits[None][0][name] - case.truth[name]) < 0.2 * np.abs(case.truth[name]))
+    assert fits[None][1] == pytest.approx(fits[True][1], rel=1e-6)
+    from metrology.diagnosis.camera import CameraHeightProblem
+    from metrology.diagnosis.heights import HeightProblem
+    from metrology.diagnosis.tiles import TiledCameraProblem
+
+    assert not PsfProblem.kinks and HeightProblem.kinks and CameraHeightProblem.kinks and TiledCameraProblem.kinks
+
+
 UNSEPARABLE_AT_MODEL_GRID = {"instrument_blur", "sidewall_slope"}
 
 
