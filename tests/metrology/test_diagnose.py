@@ -207,6 +207,33 @@ def test_psf_fits_take_forward_differences_to_the_central_optimum():
     assert not PsfProblem.kinks and HeightProblem.kinks and CameraHeightProblem.kinks and TiledCameraProblem.kinks
 
 
+def test_whole_window_model_in_single_precision_only_far_below_the_noise():
+    """The whole window's model is rendered in single precision when its measured error (against
+    the double-precision ideal model) is below 1 % of the noise floor; a stack with little noise
+    keeps double precision. The two models differ by that error, no more."""
+    from doedesign.psf import VIEWS
+    from metrology.diagnosis.psf import SINGLE_PRECISION_NOISE_FRACTION, PsfRenderer
+
+    case = make_psf_case([], 5)
+    d = case.data
+    head = (d["design"].height_m, d["design"].pitch_m, d["camera"])
+    tail = (d["views"], d["wavelengths_m"], d["camera"].focus_distance_m, effects_for("psf"))
+    ideal = PsfRenderer(d["camera"], d["design"].pitch_m, d["design"].shape)(
+        d["design"].height_m, d["wavelengths_m"], d["camera"].focus_distance_m)[[VIEWS.index(v) for v in d["views"]]]
+    ideal = ideal / ideal.sum(axis=(-2, -1), keepdims=True)
+    rng = np.random.default_rng(1)
+    problems = {}
+    for rel in (1e-7, 3e-3):  # noise rms over the brightest pixel
+        problems[rel] = PsfProblem(*head, ideal + rel * ideal.max() * rng.standard_normal(ideal.shape), *tail)
+    quiet, noisy = problems[1e-7], problems[3e-3]
+    assert quiet.render.precision == "double" and noisy.render.precision == "single"
+    for p in (quiet, noisy):
+        assert (p.render.precision == "single") == (p.single_precision_error
+                                                    < SINGLE_PRECISION_NOISE_FRACTION * p.noise.sigma)
+    a, b = noisy.stack({}), quiet.stack({})
+    assert 0 < np.abs(a - b).max() <= 1.01 * noisy.single_precision_error
+
+
 UNSEPARABLE_AT_MODEL_GRID = {"instrument_blur", "sidewall_slope"}
 
 
