@@ -10,7 +10,7 @@ import numpy as np
 from ..design import Design
 from ..progress import Progress
 from .common import Number, NumberList, add_camera_options, camera_from_args
-from ..psf import PSFEngine, parse_wavelengths_nm
+from ..psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 
 __all__ = ["cmd_psf", "register"]
 
@@ -33,7 +33,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
                        doe_oversample=args.doe_oversample)
     steps = 2 * engine.depths_m.size * wavelengths.size
     with Progress(steps, desc="psf") as bar:
-        result = engine.psf(design.height_m, progress=bar)
+        result = engine.psf(design.height_m, progress=bar, threads=args.threads)
     result.save(args.out)
     if args.png:
         save(psf_figure(result, title=design.name), args.png)
@@ -51,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--wavelengths-nm", default="486,589,656", help="list (486,589,656) or range start:stop:step (400:700:10)")
     p.add_argument("--depth-m", default=None, type=NumberList(Number(float, 0, lo_open=True, allow_inf=True, unit="m")), help="point-source distance(s), comma separated (default: in focus)")
     p.add_argument("--doe-oversample", type=Number(int, 1, 16), default=1, help="pupil samples per DOE pixel for strong defocus")
+    p.add_argument("--threads", type=Number(int, 1, 64), default=DEFAULT_THREADS,
+                   help=f"wavelengths computed side by side (default {DEFAULT_THREADS}: the cores, at most 4)")
     p.add_argument("--out", required=True, help="output PSF .npz")
     p.add_argument("--png", help="optional PNG montage")
     add_camera_options(p)
