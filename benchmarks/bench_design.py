@@ -4,7 +4,7 @@ Spot array: a 4 x 4 grid (+-3, +-9 DFT bins about the axis, point- and transpose
 no sign or axis convention of either code matters) on a square N x N DOE filling the pupil.
 The camera's sensor pixel is set to one DFT bin of the DOE, lambda z / (N p), so slmsuite's
 ``SpotHologram`` (basis "knm") and our target address the same points. Both phase maps are
-then scored with the same physical model, :class:`doedesign.psf.PSFEngine` (pixelated DOE,
+then scored with the same physical model, :class:`doedesign.engine.psf.PSFEngine` (pixelated DOE,
 pixel-integrated sensor, light normalized to all that passes the pupil): efficiency = light on
 the 16 spot pixels, uniformity = 1 - (max - min) / (max + min) of the spot powers.
 Our loss is energy + L2 toward the reachable energy, with WGS-like reweighting rounds of the
@@ -27,11 +27,11 @@ from scipy.integrate import quad
 
 from doedesign import targets
 from doedesign.camera import Camera
-from doedesign.losses import LossSpec
-from doedesign.materials import get_material
+from doedesign.engine.psf import PSFEngine
 from doedesign.levels import level_step_m, quantize
-from doedesign.optimize import ANNEAL_SCHEDULE, OptimizerSettings, design_doe
-from doedesign.psf import PSFEngine
+from doedesign.materials import get_material
+from doedesign.optimizer.losses import LossSpec
+from doedesign.optimizer.optimize import ANNEAL_SCHEDULE, OptimizerSettings, design_doe
 
 log = logging.getLogger(__name__)
 PITCH = 5.4e-6

@@ -15,8 +15,8 @@ import tracemalloc
 import numpy as np
 
 from doedesign.camera import Camera
+from doedesign.engine.psf import PSFEngine
 from doedesign.materials import FUSED_SILICA
-from doedesign.psf import PSFEngine
 
 PITCH = 5.4e-6
 

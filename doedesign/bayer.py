@@ -270,7 +270,7 @@ def design_psf(design: Design, source: str = "design") -> tuple[np.ndarray, Came
     between (1, 0) and (0, 1) and the reconstruction's :func:`green_weights`.
     """
     from .bounds import bound_report, spot_bound
-    from .psf import compute_psf
+    from .engine.psf import compute_psf
 
     camera = design.camera()
     target = design_target(design, camera)

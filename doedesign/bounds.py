@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from scipy import signal
 
 from .camera import Camera
-from .psf import PSFEngine
+from .engine.psf import PSFEngine
 from .targets import Target
 
 __all__ = ["bound_report", "diffraction_limited_psf", "spot_bound"]

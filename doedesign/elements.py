@@ -36,7 +36,7 @@ from .bounds import spot_bound
 from .camera import Camera
 from .levels import N_LEVELS
 from .materials import get_material
-from .optimize import OptimizerSettings, design_doe
+from .optimizer.optimize import OptimizerSettings, design_doe
 
 __all__ = ["AXIS", "PITCH_M", "RING_R0_PX", "RING_ZONE", "WINDOW", "axicon_ring_start", "cylinder_streak_start",
            "depth_element", "design_seed_elements", "geometric_ring_radius_px", "hyperspectral_element",
@@ -176,7 +176,7 @@ def hyperspectral_element(size_px: int = 160, iterations: int = 30,
 
 
 def depth_element(size_px: int = 160, iterations: int = 30, depths_m: ArrayLike = (1.0, 2.0, 3.0, 4.0)) -> dict:
-    from .psf import PSFEngine
+    from .engine.psf import PSFEngine
 
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, focus_distance_m=3.5, window_shape=WINDOW, axis_pixel=AXIS)
     radii = geometric_ring_radius_px(cam, size_px, depths_m)

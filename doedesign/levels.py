@@ -27,16 +27,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import DoeError
 from .materials import Material, get_material
-
-if TYPE_CHECKING:
-    from .design import Design
 
 __all__ = ["N_LEVELS", "QuantizeResult", "design_levels", "level_step_m", "quantize", "quantize_design",
            "wrap_height_m"]
@@ -45,6 +42,18 @@ log = logging.getLogger(__name__)
 
 #: Levels of the four-mask process (2**4).
 N_LEVELS = 16
+
+
+class LevelSource(Protocol):
+    """What the level rule reads of a design (:class:`doedesign.design.Design` is one): its
+    stored levels, if any, else its heights and level step. A protocol, so that the design file,
+    which quantizes through this module, is not imported by it."""
+
+    name: str
+    levels: np.ndarray | None
+    height_m: np.ndarray
+
+    def level_step_m(self, n_levels: int = N_LEVELS) -> float: ...
 
 
 def level_step_m(material: str | Material, design_wavelength_m: float, n_levels: int = N_LEVELS) -> float:
@@ -172,13 +181,13 @@ def wrap_height_m(height_m: ArrayLike, step_m: float, n_levels: int = N_LEVELS) 
     return -np.mod(-np.asarray(height_m, dtype=np.float64), period)
 
 
-def quantize_design(design: Design, n_levels: int = N_LEVELS,
+def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
                     source: str | None = None) -> tuple[np.ndarray, QuantizeResult | None]:
     """Level map of a design and, when it had to be quantized, the quantization.
 
     Parameters
     ----------
-    design : doedesign.design.Design
+    design : LevelSource
         A design; its ``levels`` are used when present, else its heights are quantized with
         :func:`quantize` at its own level step.
     n_levels : int
@@ -211,6 +220,6 @@ def quantize_design(design: Design, n_levels: int = N_LEVELS,
     return q.levels, q
 
 
-def design_levels(design: Design, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
+def design_levels(design: LevelSource, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
     """Level map (int16, 0 .. n_levels-1) of a design: see :func:`quantize_design`."""
     return quantize_design(design, n_levels, source)[0]

@@ -12,8 +12,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from .engine.psf import PSFResult
 from .fileio import save_figure
-from .psf import PSFResult
 
 __all__ = ["height_map_figure", "psf_figure", "save"]
 

@@ -23,12 +23,12 @@ import numpy as np
 
 from doedesign.camera import Camera
 from doedesign.design import Design
+from doedesign.engine.psf import compute_psf
 from doedesign.fileio import atomic_path, json_ready, write_json
-from doedesign.psf import compute_psf
 
 if TYPE_CHECKING:
-    from doedesign.optimize import DesignRun
-    from doedesign.psf import PSFResult
+    from doedesign.engine.psf import PSFResult
+    from doedesign.optimizer.optimize import DesignRun
     from metrology.matching.compare import Comparison
 
 __all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
@@ -60,7 +60,7 @@ class DemoConfig:
     instrument_blur_m: float = 0.5e-6
     seed: int = 7
     window: int = 512
-    # Bayer objective (doedesign.optimize.OBJECTIVES). The quick run's 160 px aperture has a spot ten
+    # Bayer objective (doedesign.optimizer.optimize.OBJECTIVES). The quick run's 160 px aperture has a spot ten
     # pixels wide, where the balanced design is nearly flat (levels 0-1) and leaves the metrology
     # chain no etch depths to measure, so it keeps the L1 loss.
     objective: str = "softmin"
@@ -100,8 +100,8 @@ def demo_camera(cfg: DemoConfig) -> Camera:
 
 def design_step(cfg: DemoConfig, camera: Camera, out: Path) -> DesignRun:
     from doedesign import targets
-    from doedesign.losses import LossSpec
-    from doedesign.optimize import OptimizerSettings, design_doe
+    from doedesign.optimizer.losses import LossSpec
+    from doedesign.optimizer.optimize import OptimizerSettings, design_doe
 
     target = targets.bayer(camera, rggb=cfg.rggb)
     settings = OptimizerSettings(max_iter=cfg.iterations, anneal_iter=cfg.anneal_iterations, seed=cfg.seed,
@@ -133,9 +133,9 @@ def masks_step(design: Design, design_path: Path, out: Path) -> dict:
 def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[Path, dict]:
     """Simulate the etched surface with the hidden error and write the Zygo file."""
     from masks.process import ProcessParams
-    from metrology.matching.window import busiest_window
-    from metrology.matching import compare, register
     from metrology.formats.writers import write_datx
+    from metrology.matching import compare, register
+    from metrology.matching.window import busiest_window
 
     rng = np.random.default_rng(cfg.seed)
     n_masks = 4
@@ -246,7 +246,6 @@ def markdown_report(report: dict, out: Path) -> str:
     """The demo report as Markdown: a summary to read in two minutes, tables with units, the
     figures inline (paths relative to the report) and a link to report.json beside it."""
     from doedesign import report_md as md
-
     from metrology import report_pages as pages
 
     cfg, d = report["config"], report["design"]

@@ -8,17 +8,15 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
-
-from .common import Number
 from .. import bayer, targets
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
 from ..fileio import ensure_output_dir, ensure_output_file, output_run, write_json
-from ..losses import LossSpec
-from ..optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
+from ..optimizer.losses import LossSpec
+from ..optimizer.optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
+from .common import Number
 
 __all__ = ["cmd_design", "cmd_evaluate_bayer", "quick_bayer_design", "register",
            "robust_perturbations"]
@@ -153,7 +151,7 @@ def _floats(text, what):
 
 
 def cmd_design(args: argparse.Namespace) -> int:
-    from ..psf import parse_wavelengths_nm
+    from ..engine.psf import parse_wavelengths_nm
 
     # Refuse an unwritable result now, not after minutes of optimization.
     out = ensure_output_file(args.out)
@@ -342,7 +340,7 @@ def _evaluate_bayer(args, out):
 
 
 def _front(design, camera, doe_info, path):
-    from ..pareto import front_figure, pareto_front
+    from ..optimizer.pareto import front_figure, pareto_front
 
     points = pareto_front(camera, bayer.design_target(design, camera), design.pitch_m, design.shape,
                           design.material, design.design_wavelength_m)

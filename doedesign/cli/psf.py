@@ -8,9 +8,9 @@ import logging
 import numpy as np
 
 from ..design import Design
+from ..engine.psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 from ..progress import Progress
 from .common import Number, NumberList, add_camera_options, camera_from_args
-from ..psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 
 __all__ = ["cmd_psf", "register"]
 
@@ -18,9 +18,8 @@ log = logging.getLogger(__name__)
 
 
 def cmd_psf(args: argparse.Namespace) -> int:
-    from ..plots import psf_figure, save
-
     from ..fileio import ensure_output_file
+    from ..plots import psf_figure, save
 
     ensure_output_file(args.out)
     if args.png:

@@ -20,7 +20,7 @@ RGB_WAVELENGTHS_M = (656e-9, 589e-9, 486e-9)
 HYPERSPECTRAL_WAVELENGTHS_M = tuple(np.arange(400, 701, 10) * 1e-9)
 SEED_GRATING_PERIOD_M = 86.4e-6
 KINDS = ("bayer", "hdr-streak", "hyperspectral", "depth", "spots", "image")
-# The optimizer's start for each kind (names from doedesign.starts.INITS).
+# The optimizer's start for each kind (names from doedesign.optimizer.starts.INITS).
 DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",
                 "spots": "random", "image": "random"}
 # L1 alone (the seed's Eq. 2) also falls when light leaves the simulated window, which on a
@@ -65,7 +65,7 @@ def hdr_streak(camera: Camera | None = None, wavelengths_m: ArrayLike = (550e-9,
     Each arm is ``arm_width_px`` wide (2 px: rows/cols axis-1 and axis for even widths) and
     reaches ``arm_length_px`` from the axis (default: a quarter of the window). The light is
     spread evenly over the streak pixels. ``peak_penalty`` weights a penalty on the brightest
-    pixel (see :func:`doedesign.losses.peak_loss`), which keeps the streak from collapsing
+    pixel (see :func:`doedesign.optimizer.losses.peak_loss`), which keeps the streak from collapsing
     into the central spot.
     """
     cam = _camera(camera)

@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def cmd_tolerance(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
-    from doedesign.psf import parse_wavelengths_nm
+    from doedesign.engine.psf import parse_wavelengths_nm
 
     from .analysis import nominal_depths, tolerance_analysis
     from .spec import default_spec, load_spec, parse_threshold

@@ -6,7 +6,7 @@ thread, and never pickled.
 
 Sampling (the per-sample cost): the process model runs on the whole element at
 ``process_upsample`` samples per design pixel, is area-averaged to ``oversample`` samples
-per pixel and goes through :class:`doedesign.psf.PSFEngine` at ``pitch / oversample``
+per pixel and goes through :class:`doedesign.engine.psf.PSFEngine` at ``pitch / oversample``
 (coded view only: the uncoded half is clear glass, untouched by the process), at the
 design's wavelengths and depths. See :mod:`masks.fabricated` for what this grid misses.
 """
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from doedesign.camera import Camera
-from doedesign.psf import PSFEngine
+from doedesign.engine.psf import PSFEngine
 
 from ..fabricated import fabricated_height
 from ..process import ProcessParams

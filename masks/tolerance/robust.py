@@ -91,8 +91,8 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir: s
     import time
 
     from doedesign import targets
-    from doedesign.losses import LossSpec
-    from doedesign.optimize import OptimizerSettings, design_doe
+    from doedesign.optimizer.losses import LossSpec
+    from doedesign.optimizer.optimize import OptimizerSettings, design_doe
 
     from .analysis import nominal_depths, tolerance_analysis
     from .spec import build_spec

@@ -10,11 +10,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage
 
+from doedesign.engine.psf import PSFResult
 from doedesign.errors import DoeError
-from doedesign.psf import PSFResult
 
 from .capture import centroid, crop_to_window
-from .stack import PSFStack, WAVELENGTH_TOLERANCE_M, _match_wavelength, as_stack, check_wavelengths
+from .stack import WAVELENGTH_TOLERANCE_M, PSFStack, _match_wavelength, as_stack, check_wavelengths
 
 __all__ = ["compare_stacks", "extrapolate_orders", "locate_orders", "order_energies"]
 

@@ -9,16 +9,16 @@ networks as ``(2, H, W, C)`` (uncoded view first).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from doedesign.engine.psf import VIEWS, PSFResult, read_psf_arrays
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, dumps_json, write_npz
-from doedesign.psf import VIEWS, PSFResult, read_psf_arrays
 
 __all__ = ["BACKGROUNDS", "NORMALIZATIONS", "PSFStack", "WAVELENGTH_TOLERANCE_M", "as_stack", "band_centroid_fwhm",
            "check_wavelengths", "load_stack", "network_array", "read_stack", "save_network_npy", "save_stack"]
@@ -36,7 +36,7 @@ class PSFStack:
     Attributes
     ----------
     psf : ndarray (2, wavelengths, rows, cols)
-        Views in :data:`doedesign.psf.VIEWS` order (coded, uncoded), normalized as
+        Views in :data:`doedesign.engine.psf.VIEWS` order (coded, uncoded), normalized as
         ``normalization`` says; row 0 at the top, the axis at ``axis_pixel``.
     wavelengths_m : ndarray, strictly increasing
     pixel_pitch_m : float
@@ -132,7 +132,7 @@ def _match_wavelength(wavelengths_m, wl, what):
 
 
 def as_stack(psf_result: PSFResult | PSFStack, depth_index: int = 0) -> PSFStack:
-    """A :class:`PSFStack` from a :class:`doedesign.psf.PSFResult` (one depth) or a stack."""
+    """A :class:`PSFStack` from a :class:`doedesign.engine.psf.PSFResult` (one depth) or a stack."""
     if isinstance(psf_result, PSFStack):
         return psf_result
     try:
@@ -168,7 +168,7 @@ def save_network_npy(stacks: PSFStack | Sequence[PSFStack], path: str | Path) ->
 
 
 def save_stack(stack: PSFStack, path: str | Path) -> Path:
-    """Write the tool's PSF ``.npz``: the fields of :meth:`doedesign.psf.PSFResult.save` plus calibration ones.
+    """Write the tool's PSF ``.npz``: the fields of :meth:`doedesign.engine.psf.PSFResult.save` plus calibration ones.
 
     ``psf`` is (views, depths=1, wavelengths, rows, cols) with views (coded, uncoded), so
     :meth:`PSFResult.load` and the diagnosis stage read it; ``measured`` flags extrapolated
@@ -195,7 +195,7 @@ def read_stack(path: str | Path) -> dict:
 
     The one set of rules for PSF-stack files: ``psf`` is (views, wavelengths, rows, cols),
     (wavelengths, rows, cols) for one view, or 5-D with a single depth; ``views`` names each
-    view from :data:`doedesign.psf.VIEWS` (default ``("coded",)`` for one view);
+    view from :data:`doedesign.engine.psf.VIEWS` (default ``("coded",)`` for one view);
     ``wavelengths_m`` are in metres; ``depths_m`` (first) or ``depth_m`` give the source
     distance; ``axis_pixel`` is (row, col), row 0 at the top.
 

@@ -9,14 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
-from doedesign.cli.common import MAX_WINDOW_PX, Number
-from doedesign.errors import DoeError
-from doedesign.fileio import (check_input_file, ensure_output_dir, ensure_output_file, output_run, save_figure,
-                              write_json, write_npz)
-from doedesign.psf import parse_wavelengths_nm
-
 import metrology.calibration.dualpixel as dp
 import metrology.calibration.psfstack as ps
+from doedesign.cli.common import MAX_WINDOW_PX, Number
+from doedesign.engine.psf import parse_wavelengths_nm
+from doedesign.errors import DoeError
+from doedesign.fileio import (
+    check_input_file,
+    ensure_output_dir,
+    ensure_output_file,
+    output_run,
+    save_figure,
+    write_json,
+    write_npz,
+)
 
 log = logging.getLogger(__name__)
 

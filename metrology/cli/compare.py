@@ -44,9 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_compare(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
+    from doedesign.engine.psf import parse_wavelengths_nm
     from doedesign.fileio import ensure_output_dir
-    from doedesign.psf import parse_wavelengths_nm
-
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 

@@ -3,7 +3,7 @@
 Method
 ------
 1. Forward model: the design through the ideal process (height domain, :mod:`masks.process`)
-   or the ideal PSF (PSF domain, :mod:`doedesign.psf`), with the effects of the current model
+   or the ideal PSF (PSF domain, :mod:`doedesign.engine.psf`), with the effects of the current model
    (:mod:`metrology.diagnosis.effects`) applied.
 2. Noise floor (:mod:`metrology.diagnosis.noise`) and correlation from the data alone: heights scatter about their own mean on
    the flat interiors of features (edges excluded); PSF pixels scatter about a local mean where
@@ -35,12 +35,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from doedesign.progress import Progress
 
+from doedesign.progress import Progress
 from metrology.diagnosis.fitting import JAC_STEP, fit_effects, standard_errors
 from metrology.diagnosis.forked import WORKERS, forked_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
-from metrology.diagnosis.noise import NoiseEstimate
+from metrology.diagnosis.problem import Problem
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
            "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
@@ -165,14 +165,20 @@ class Diagnosis:
         """
         from metrology.diagnosis.plots import plot_breakdown, plot_steps
 
-        return [plot_steps(self, Path(out_dir) / "residual_steps.png"),
-                plot_breakdown(self, Path(out_dir) / "breakdown.png")]
+        if len(self.residual_maps) == len(self.steps) + 1:
+            titles = ["ideal model"] + [f"+ {s.effect}" for s in self.steps]
+            rms = [self.initial_residual_rms] + [s.residual_rms_after for s in self.steps]
+        else:  # the backward pass revised the steps: show the ideal and the final model
+            titles = ["ideal model", "final: " + ", ".join(self.named)]
+            rms = [self.initial_residual_rms, self.final_residual_rms]
+        return [plot_steps(self.residual_maps, titles, rms, self.domain, Path(out_dir) / "residual_steps.png"),
+                plot_breakdown(self.breakdown_initial, self.breakdown_final, self.domain,
+                               Path(out_dir) / "breakdown.png")]
 
     def save(self, out_dir: str | Path, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write the figures (:meth:`plot`), ``report.json`` (:meth:`to_dict` with ``inputs``
         and ``plots``) and the page a person reads, ``report.md``, into ``out_dir``; return the report."""
         from doedesign.fileio import json_ready, write_json
-
         from metrology.report_pages import diagnose_page
 
         report = self.to_dict()
@@ -181,50 +187,6 @@ class Diagnosis:
         write_json(Path(out_dir) / "report.json", report)
         diagnose_page(json_ready(report), Path(out_dir))
         return report
-
-
-class Problem:
-    """What a domain supplies to the fitting loop.
-
-    Subclasses set ``effects`` (candidate Effect objects), ``noise`` (NoiseEstimate), optionally
-    ``screening`` (a cheaper Problem with the same effects to screen candidates on), and
-    implement ``residual(model) -> 1-D array`` (measured minus model, on the compared samples),
-    ``residual_map(model) -> 2-D array`` and ``breakdown(residual_map) -> dict``.
-    """
-
-    effects: dict
-    noise: NoiseEstimate
-    units = "m"
-    nuisance: dict = {}
-    # Whether the forward model holds the instrument, so that a true effect leaves noise on its
-    # footprint and a fabrication effect that does not may be withheld as a partial match. The
-    # design-frame height fit resamples the data and does not close to the floor (issue 11).
-    judges_partial_matches = False
-    # Whether candidates are screened, and Jacobian columns computed, side by side in forked
-    # workers (:mod:`metrology.diagnosis.forked`; each holds a copy-on-write view of the problem
-    # and its own render caches). Off where a problem's working arrays would double the peak
-    # memory (the full-size PSF stack).
-    parallel_fits = False
-    # Whether the residual has kinks in the parameters (area-coverage edges crossing grid lines):
-    # fits then take central-difference Jacobians; a smooth problem takes forward ones.
-    kinks = True
-    # Whether the problem fits a part of what its residual maps show (a large window fitted on
-    # tiles): the structure test then counts the map's own samples.
-    fits_part_of_map = False
-
-    def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
-        raise NotImplementedError
-
-    def residual_map(self, model: dict[str, np.ndarray]) -> np.ndarray:
-        raise NotImplementedError
-
-    def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
-        return {}
-
-    def structure_groups(self) -> list[np.ndarray]:
-        """Label maps of bins for the structured-residual test (0 = excluded), one per way of
-        grouping pixels that an unmodelled effect would show up in."""
-        return []
 
 
 def _screen_one(rd, name):

@@ -19,7 +19,7 @@ from scipy.optimize import least_squares
 from metrology.diagnosis.forked import WORKERS, forked_map
 
 if TYPE_CHECKING:
-    from metrology.diagnosis.engine import Problem
+    from metrology.diagnosis.problem import Problem
 
 __all__ = ["JAC_STEP", "fit_effects", "standard_errors"]
 

@@ -3,32 +3,27 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from doedesign.fileio import save_figure
 
-if TYPE_CHECKING:
-    from metrology.diagnosis.engine import Diagnosis
-
 __all__ = ["plot_breakdown", "plot_steps"]
 
 
-def plot_steps(diag: Diagnosis, path: str | Path) -> Path:
-    """Residual map before and after each step (row 0 at the top); returns the path."""
+def _scale(domain: str) -> tuple[float, str]:
+    return (1e9, "nm") if domain == "height" else (1.0, "fraction")
+
+
+def plot_steps(maps: list[np.ndarray], titles: list[str], rms: list[float], domain: str,
+               path: str | Path) -> Path:
+    """Residual maps (row 0 at the top) with their titles and rms, in the units of ``domain``
+    ("height": metres, shown in nm; else fractions of the light); returns the path."""
     import matplotlib.pyplot as plt
 
-    maps = diag.residual_maps
-    scale, unit = (1e9, "nm") if diag.domain == "height" else (1.0, "fraction")
+    scale, unit = _scale(domain)
     lim = np.nanpercentile(np.abs(maps[0]), 99) * scale or 1.0
     fig, axes = plt.subplots(1, len(maps), figsize=(3.2 * len(maps), 3.4), squeeze=False)
-    if len(maps) == len(diag.steps) + 1:
-        titles = ["ideal model"] + [f"+ {s.effect}" for s in diag.steps]
-        rms = [diag.initial_residual_rms] + [s.residual_rms_after for s in diag.steps]
-    else:  # the backward pass revised the steps: show the ideal and the final model
-        titles = ["ideal model", "final: " + ", ".join(diag.named)]
-        rms = [diag.initial_residual_rms, diag.final_residual_rms]
     for ax, m, t, r in zip(axes[0], maps, titles, rms):
         im = ax.imshow(m * scale, cmap="RdBu_r", vmin=-lim, vmax=lim, origin="upper", interpolation="nearest")
         ax.set_title(f"{t}\nrms {r * scale:.3g} {unit}", fontsize=9)
@@ -38,15 +33,16 @@ def plot_steps(diag: Diagnosis, path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
-def plot_breakdown(diag: Diagnosis, path: str | Path) -> Path:
-    """Mean residual by each breakdown key, before and after; returns the path."""
+def plot_breakdown(before: dict, after: dict, domain: str, path: str | Path) -> Path:
+    """Mean residual by each breakdown key (a dict of ``edges``, ``mean``, ``rms`` per key),
+    ``before`` and ``after`` the diagnosis; returns the path."""
     import matplotlib.pyplot as plt
 
-    scale, unit = (1e9, "nm") if diag.domain == "height" else (1.0, "fraction")
-    keys = [k for k, v in diag.breakdown_initial.items() if "rms" in v]
+    scale, unit = _scale(domain)
+    keys = [k for k, v in before.items() if "rms" in v]
     fig, axes = plt.subplots(1, max(len(keys), 1), figsize=(3.4 * max(len(keys), 1), 3.0), squeeze=False)
     for ax, key in zip(axes[0], keys):
-        for label, bd, style in (("before", diag.breakdown_initial, "o-"), ("after", diag.breakdown_final, "s--")):
+        for label, bd, style in (("before", before, "o-"), ("after", after, "s--")):
             b = bd[key]
             centres = 0.5 * (np.asarray(b["edges"][1:]) + np.asarray(b["edges"][:-1]))
             x = centres * 1e6 if key.endswith("_m") else centres

@@ -16,7 +16,6 @@ import scipy.ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
-
 from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
@@ -62,7 +61,7 @@ class PsfRenderer:
     Parameters
     ----------
     precision : {"double", "single"}
-        Arithmetic of the transforms (:class:`doedesign.psf.PSFEngine`); "single" for screening.
+        Arithmetic of the transforms (:class:`doedesign.engine.psf.PSFEngine`); "single" for screening.
     """
 
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
@@ -78,7 +77,7 @@ class PsfRenderer:
         self._last_height = None
 
     def _engine(self, wavelengths, depth_m):
-        from doedesign.psf import PSFEngine
+        from doedesign.engine.psf import PSFEngine
 
         key = (wavelengths, depth_m)
         if key not in self._engines:
@@ -89,7 +88,7 @@ class PsfRenderer:
         return self._engines[key]
 
     def __call__(self, height_m, wavelengths_m, depth_m):
-        from doedesign.psf import VIEWS
+        from doedesign.engine.psf import VIEWS
 
         wls = tuple(float(w) for w in np.round(np.asarray(wavelengths_m, dtype=float), 15))
         depth = float(depth_m)
@@ -135,7 +134,7 @@ def psf_forward(model: dict[str, np.ndarray], effects: dict[str, Effect], render
     views : sequence of str
         Measured views, a subset of ``("coded", "uncoded")``.
     """
-    from doedesign.psf import VIEWS
+    from doedesign.engine.psf import VIEWS
 
     chosen = sorted((effects[n] for n in model), key=lambda e: (("height", "optics", "sensor").index(e.stage), e.order))
     h = np.asarray(height_m, dtype=float)

@@ -5,7 +5,7 @@ A profilometer field covers only part of the element (2 mm of an 8.64 mm apertur
 patch would turn the PSF into a comb of orders unlike the real one. So the fitted process
 of the measured patch (etch depths, per-mask overlay, linewidth bias) is applied to the
 whole design with :func:`masks.process.simulate_surface` on a grid of ``pitch / oversample``
-and that surface goes through :class:`doedesign.psf.PSFEngine`; the design is evaluated on the
+and that surface goes through :class:`doedesign.engine.psf.PSFEngine`; the design is evaluated on the
 same grid. The assumption is that the process does not vary across the die, which one field
 cannot test.
 
@@ -25,9 +25,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from doedesign.engine.psf import PSFEngine
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
-from doedesign.psf import PSFEngine
 from masks.fabricated import DEFAULT_TARGET_FRACTION, fabricated_height, target_from_psf
 
 if TYPE_CHECKING:

@@ -66,7 +66,7 @@ def test_evaluate_bayer_refused_before_writing_leaves_nothing(tmp_path):
 
 @pytest.fixture
 def captures(tmp_path):
-    from doedesign.psf import PSFEngine
+    from doedesign.engine.psf import PSFEngine
 
     # Two narrowband captures of a small grating's PSF: the sum frame and the stored (uncoded) view.
     cam = Camera(aperture_diameter_m=48 * 5.4e-6, window_shape=(48, 48), axis_pixel=(24, 24))

@@ -128,7 +128,7 @@ def balanced_design(tmp_path_factory):
 
     from doedesign import targets
     from doedesign.fileio import write_json
-    from doedesign.optimize import OptimizerSettings, design_doe
+    from doedesign.optimizer.optimize import OptimizerSettings, design_doe
 
     folder = tmp_path_factory.mktemp("balanced")
     cam = Camera(aperture_diameter_m=48 * 5.4e-6, focus_distance_m=math.inf, window_shape=(64, 64),
@@ -141,7 +141,7 @@ def balanced_design(tmp_path_factory):
 
 
 def test_cli_evaluate_bayer_gives_the_balanced_designs_row(balanced_design, tmp_path):
-    from doedesign.psf import PSFEngine
+    from doedesign.engine.psf import PSFEngine
 
     out = tmp_path / "study"
     assert cli.main(["evaluate-bayer", "--design", str(balanced_design / "balanced.npz"), "--out", str(out),
@@ -176,7 +176,7 @@ def test_full_size_balanced_design_sorts_colour_nearly_like_its_target(images):
     import math
 
     from doedesign import targets
-    from doedesign.optimize import OptimizerSettings, design_doe
+    from doedesign.optimizer.optimize import OptimizerSettings, design_doe
 
     cam = Camera(focus_distance_m=math.inf)
     settings = OptimizerSettings(max_iter=25, anneal_iter=5, seed=7, init="router", objective="softmin")

@@ -8,8 +8,8 @@ import pytest
 from doedesign import materials
 from doedesign.cli import main
 from doedesign.design import Design
+from doedesign.engine.psf import PSFResult
 from doedesign.errors import DesignFileError, DoeError, MaterialError
-from doedesign.psf import PSFResult
 from doedesign.spectra import bandpass, gaussian_band, rgb_response
 
 

@@ -55,7 +55,7 @@ def test_cylinder_streak_start_spreads_each_half_over_one_arm():
     # spread along it (a spot would put nearly all within L / 2, a uniform line half).
     from doedesign import elements
     from doedesign.camera import Camera
-    from doedesign.psf import PSFEngine
+    from doedesign.engine.psf import PSFEngine
 
     n, arm = 320, 48
     cam = Camera(aperture_diameter_m=n * elements.PITCH_M, window_shape=elements.WINDOW, axis_pixel=elements.AXIS)
@@ -76,7 +76,7 @@ def test_axicon_ring_follows_the_ray_optics_radius():
     # in-focus spot's own spread (about 0.6 px): 1 px tolerance.
     from doedesign import elements
     from doedesign.camera import Camera
-    from doedesign.psf import PSFEngine
+    from doedesign.engine.psf import PSFEngine
 
     n, depths = 800, np.array([1.0, 2.0, 3.0, 4.0])
     cam = Camera(aperture_diameter_m=n * elements.PITCH_M, focus_distance_m=3.5, window_shape=elements.WINDOW,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from doedesign import losses
-from doedesign.losses import LossSpec, make_loss
+from doedesign.optimizer.losses import LossSpec, make_loss
 from doedesign.targets import Target
 
 

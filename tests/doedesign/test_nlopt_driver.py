@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from doedesign.errors import DoeError
-from doedesign.nlopt_driver import LARGE_ALGORITHM, LBFGS_MAX_VARIABLES, choose_algorithm, minimize
+from doedesign.optimizer.nlopt_driver import LARGE_ALGORITHM, LBFGS_MAX_VARIABLES, choose_algorithm, minimize
 
 
 def separable_quadratic(n, spread=1.5, seed=0):
@@ -26,7 +26,7 @@ def separable_quadratic(n, spread=1.5, seed=0):
 def test_switch_rule(caplog):
     # PLIS forms -999 * n in a C int: the limit is the largest n for which that fits.
     assert 999 * LBFGS_MAX_VARIABLES <= 2**31 - 1 < 999 * (LBFGS_MAX_VARIABLES + 1)
-    with caplog.at_level(logging.INFO, logger="doedesign.nlopt_driver"):
+    with caplog.at_level(logging.INFO, logger="doedesign.optimizer.nlopt_driver"):
         assert choose_algorithm("LD_LBFGS", LBFGS_MAX_VARIABLES) == "LD_LBFGS"
         assert not caplog.records
         assert choose_algorithm("LD_LBFGS", LBFGS_MAX_VARIABLES + 1) == LARGE_ALGORITHM == "LD_MMA"
@@ -46,7 +46,7 @@ def test_small_quadratic_converges():
 def test_switched_run_scales_a_small_objective(monkeypatch):
     # Gains per variable of ~1e-9 (like heights in metres): plain MMA's curvature bound (>= 1e-5)
     # swamps them; the switched run scales the objective and reaches the closed-form minimum.
-    import doedesign.nlopt_driver as driver
+    import doedesign.optimizer.nlopt_driver as driver
 
     fun, x_min, f_min = separable_quadratic(2000)
     calls = []
@@ -72,7 +72,7 @@ def test_budget_stop_is_not_a_failure(caplog):
     def fun(x):
         return float(np.sum((x - 0.3) ** 2)), 2 * (x - 0.3)
 
-    with caplog.at_level(logging.INFO, logger="doedesign.nlopt_driver"):
+    with caplog.at_level(logging.INFO, logger="doedesign.optimizer.nlopt_driver"):
         _, history = minimize(fun, np.zeros(5), -1.0, 1.0, max_iter=2)
     assert len(history) == 2
     assert "stopped by the evaluation budget" in caplog.text
@@ -111,7 +111,7 @@ def test_above_lbfgs_limit_converges(caplog):
         raw.optimize(np.zeros(n))
     assert raw.get_numevals() == 1
 
-    with caplog.at_level(logging.INFO, logger="doedesign.nlopt_driver"):
+    with caplog.at_level(logging.INFO, logger="doedesign.optimizer.nlopt_driver"):
         x, history = minimize(fun, np.zeros(n), -1.0, 1.0, "LD_LBFGS", max_iter=40, ftol_rel=0)
     assert "running LD_MMA instead" in caplog.text
     assert len(history) <= 40

@@ -10,10 +10,10 @@ import pytest
 
 from doedesign import targets
 from doedesign.camera import Camera
-from doedesign.losses import LossSpec
-from doedesign.objectives import maximize_min, plane_energies, softmin_loss
-from doedesign.optimize import OptimizerSettings, design_doe
-from doedesign.router import pupil_model
+from doedesign.optimizer.losses import LossSpec
+from doedesign.optimizer.objectives import maximize_min, plane_energies, softmin_loss
+from doedesign.optimizer.optimize import OptimizerSettings, design_doe
+from doedesign.optimizer.router import pupil_model
 
 N = 160
 

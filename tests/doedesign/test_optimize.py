@@ -8,10 +8,10 @@ import pytest
 from doedesign import cli, optimize, targets
 from doedesign.camera import Camera
 from doedesign.design import Design
+from doedesign.engine.psf import PSFEngine
 from doedesign.errors import DoeError
-from doedesign.losses import LossSpec
 from doedesign.materials import FUSED_SILICA
-from doedesign.psf import PSFEngine
+from doedesign.optimizer.losses import LossSpec
 
 PITCH = 5.4e-6
 STEP = FUSED_SILICA.height_2pi_m(550e-9) / 16
@@ -196,7 +196,7 @@ def _four_spot_target():
 
 
 def test_uniformity_loss_value_and_gradient():
-    from doedesign.losses import uniformity_loss
+    from doedesign.optimizer.losses import uniformity_loss
 
     t = _four_spot_target()
     rng = np.random.default_rng(3)
@@ -219,7 +219,7 @@ def test_uniformity_loss_value_and_gradient():
 
 
 def test_reweight_target_favours_dark_spots_and_leaves_single_spots_alone():
-    from doedesign.losses import reweight_target
+    from doedesign.optimizer.losses import reweight_target
 
     t = _four_spot_target()
     psf = np.zeros(t.intensity.shape)

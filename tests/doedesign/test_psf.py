@@ -5,9 +5,9 @@ import pytest
 from scipy import integrate
 
 from doedesign.camera import Camera
+from doedesign.engine.psf import PSFEngine, parse_wavelengths_nm
 from doedesign.errors import DoeError, SamplingError
 from doedesign.materials import FUSED_SILICA
-from doedesign.psf import PSFEngine, parse_wavelengths_nm
 
 PITCH = 5.4e-6
 Z = 50e-3

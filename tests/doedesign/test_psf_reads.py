@@ -5,9 +5,9 @@ import pytest
 
 from doedesign import targets
 from doedesign.camera import Camera
-from doedesign.losses import LossSpec, make_loss
-from doedesign.optimize import OptimizerSettings, design_doe
-from doedesign.psf import PSFEngine
+from doedesign.engine.psf import PSFEngine
+from doedesign.optimizer.losses import LossSpec, make_loss
+from doedesign.optimizer.optimize import OptimizerSettings, design_doe
 
 PITCH = 5.4e-6
 
@@ -40,7 +40,7 @@ def test_bayer_loss_and_gradient_match_full_window(spec):
 def test_softmin_and_plane_losses_match_full_window(weights):
     # The balanced objectives read only the target pixels (no window energy): same value and
     # gradient as the whole window, to 1e-9.
-    from doedesign.objectives import _single_plane_loss, softmin_loss
+    from doedesign.optimizer.objectives import _single_plane_loss, softmin_loss
 
     _, target, engine = bayer_engine(focus=5.0)
     h = random_height(64, seed=4)

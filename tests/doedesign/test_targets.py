@@ -6,7 +6,7 @@ import pytest
 from doedesign import targets
 from doedesign.camera import Camera
 from doedesign.errors import DoeError
-from doedesign.losses import LossSpec, energy_loss, make_loss, peak_loss, smooth_l1, target_metrics
+from doedesign.optimizer.losses import LossSpec, energy_loss, make_loss, peak_loss, smooth_l1, target_metrics
 
 CAM = Camera()
 

@@ -31,7 +31,7 @@ def test_doe_masks_loads_only_its_command_and_no_matplotlib(tmp_path):
     assert got["code"] == 0 and (tmp_path / "out" / "masks.png").is_file()
     loaded = set(got["modules"])
     assert "matplotlib" not in loaded
-    assert not {m for m in loaded if m.startswith(("metrology", "masks.tolerance", "doedesign.psf", "doedesign.bayer"))}
+    assert not {m for m in loaded if m.startswith(("metrology", "masks.tolerance", "doedesign.engine.psf", "doedesign.bayer"))}
     # the plain `doe --help` still lists every command
     full = subprocess.run([sys.executable, "-c", "from doedesign.cli import main; main(['--help'])"],
                           capture_output=True, text=True, check=True).stdout

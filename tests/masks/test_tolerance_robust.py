@@ -8,11 +8,11 @@ import pytest
 
 from doedesign import targets
 from doedesign.camera import Camera
+from doedesign.engine.psf import PSFEngine
 from doedesign.errors import DoeError
 from doedesign.levels import level_step_m
-from doedesign.losses import LossSpec, make_loss
-from doedesign.optimize import OptimizerSettings, design_doe, robust_value_and_grad
-from doedesign.psf import PSFEngine
+from doedesign.optimizer.losses import LossSpec, make_loss
+from doedesign.optimizer.optimize import OptimizerSettings, design_doe, robust_value_and_grad
 from masks.fabricated import fabricated_height
 from masks.process import ProcessParams
 from masks.tolerance.robust import process_perturbations, spec_perturbations
@@ -134,7 +134,7 @@ def test_robust_design_beats_the_plain_one_on_its_own_objective():
     runs = {name: design_doe(target, cam, PITCH, (24, 24), loss=loss, settings=settings, perturbations=p)
             for name, p in (("plain", None), ("robust", perts))}
     engine = PSFEngine(cam, PITCH, (24, 24), "fused_silica", target.wavelengths_m, target.depths_m)
-    from doedesign.objectives import plane_weights, softmin_loss
+    from doedesign.optimizer.objectives import plane_weights, softmin_loss
 
     objective = softmin_loss(target, plane_weights(target, None), settings.softmin_tau)
 

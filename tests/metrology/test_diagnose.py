@@ -10,10 +10,16 @@ import numpy as np
 import pytest
 
 from doedesign.cli import main
-from metrology.diagnosis import (PsfProblem, bic_eff, diagnose_heights, estimate_noise, run_diagnosis)
+from metrology.diagnosis import PsfProblem, bic_eff, diagnose_heights, estimate_noise, run_diagnosis
 from metrology.diagnosis.effects import effects_for
-from metrology.diagnosis.synthetic import (HEIGHT_EFFECTS, PSF_EFFECTS, correlated_noise, make_height_case, make_psf_case,
-                                 parameter_errors)
+from metrology.diagnosis.synthetic import (
+    HEIGHT_EFFECTS,
+    PSF_EFFECTS,
+    correlated_noise,
+    make_height_case,
+    make_psf_case,
+    parameter_errors,
+)
 
 PARAM_TOL = 0.20
 RESIDUAL_TOL = 1.3
@@ -153,7 +159,7 @@ def test_screening_crop_holds_the_most_light_and_shares_the_noise():
 def test_psf_renderer_reuses_channels_and_matches_the_engine():
     """The renderer computes only the wavelengths it has not rendered for that height and distance
     (a wavelength-averaged model reuses the nominal ones), and its stacks are the engine's."""
-    from doedesign.psf import PSFEngine
+    from doedesign.engine.psf import PSFEngine
     from metrology.diagnosis.psf import PsfRenderer
     from metrology.diagnosis.synthetic import psf_test_setup
 
@@ -211,7 +217,7 @@ def test_whole_window_model_in_single_precision_only_far_below_the_noise():
     """The whole window's model is rendered in single precision when its measured error (against
     the double-precision ideal model) is below 1 % of the noise floor; a stack with little noise
     keeps double precision. The two models differ by that error, no more."""
-    from doedesign.psf import VIEWS
+    from doedesign.engine.psf import VIEWS
     from metrology.diagnosis.psf import SINGLE_PRECISION_NOISE_FRACTION, PsfRenderer
 
     case = make_psf_case([], 5)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from doedesign.camera import Camera
+from doedesign.engine.psf import PSFEngine, PSFResult
 from doedesign.errors import DoeError
 from doedesign.materials import get_material
-from doedesign.psf import PSFEngine, PSFResult
 from metrology.calibration import psfstack as ps
 
 PITCH = 5.4e-6

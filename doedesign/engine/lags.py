@@ -3,8 +3,8 @@
 For a piecewise-constant pupil ``t`` (step ``s``) the pixel-integrated intensity is
 ``sum_k C_k K_y[j, ky] K_x[i, kx]`` with ``C`` the discrete autocorrelation of ``t`` and per-axis
 kernels ``K[j, k] = integral over sensor pixel j of sinc^2(f x) exp(-2 pi i k f x) dx``
-(``f = s / lambda z``), by Gauss-Legendre quadrature (see :mod:`doedesign.psf`). This module
-holds those pieces as plain functions of arrays; :class:`doedesign.psf.PSFEngine` caches them.
+(``f = s / lambda z``), by Gauss-Legendre quadrature (see :mod:`doedesign.engine.psf`). This module
+holds those pieces as plain functions of arrays; :class:`doedesign.engine.psf.PSFEngine` caches them.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ what the window holds, nothing is renormalized.
 
 Cost per view and wavelength: one FFT autocorrelation on a (2N)^2 grid and a matrix
 Fourier transform from the lag grid to the window's pixel centres (Hermitian half only); those
-transforms live in :mod:`doedesign.psf_lags`, the result container in :mod:`doedesign.psf_result`
+transforms live in :mod:`doedesign.engine.lags`, the result container in :mod:`doedesign.engine.result`
 (re-exported here).
 """
 
@@ -40,17 +40,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 from threadpoolctl import threadpool_limits
 
-from .camera import Camera
-from .errors import DoeError, SamplingError
-from .materials import get_material
-from .psf_lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
-from .psf_reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
-from .psf_result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
+from ..camera import Camera
+from ..errors import DoeError, SamplingError
+from ..materials import get_material
+from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
+from .reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
+from .result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
 
 if TYPE_CHECKING:
-    from .design import Design
-    from .materials import Material
-    from .progress import Progress
+    from ..design import Design
+    from ..materials import Material
+    from ..progress import Progress
 
 __all__ = ["DEFAULT_THREADS", "KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS", "PSFEngine", "PSFResult", "VIEWS",
            "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
@@ -284,7 +284,7 @@ class PSFEngine:
 
 
     def _view_psf(self, view, height_m, wavelength, depth, precision="double", fft_workers=-1):
-        """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.psf_lags.paired_lags`.
+        """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.engine.lags.paired_lags`.
 
         ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
         ``K_x``): six real matrix products, about half the work of the complex lag transform.
@@ -363,9 +363,9 @@ class PSFEngine:
                        full_window: bool = False) -> tuple[float, np.ndarray]:
         """Loss of the coded PSF and its exact (adjoint) gradient with respect to the heights.
 
-        A loss with a ``reads`` attribute (:class:`doedesign.losses.PixelReads`, as
-        :func:`doedesign.losses.make_loss` sets for losses of a few pixels and the window
-        energy) is evaluated from those pixels alone (:mod:`doedesign.psf_reads`), unless
+        A loss with a ``reads`` attribute (:class:`doedesign.optimizer.losses.PixelReads`, as
+        :func:`doedesign.optimizer.losses.make_loss` sets for losses of a few pixels and the window
+        energy) is evaluated from those pixels alone (:mod:`doedesign.engine.reads`), unless
         ``full_window`` asks for the whole window; both give the same loss and gradient.
 
         Parameters
@@ -420,7 +420,7 @@ class PSFEngine:
         return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
 
     def _read_axes(self, wavelength, rows, cols, energy):
-        """Cached :class:`~doedesign.psf_reads.ReadAxis` pair for the coded view."""
+        """Cached :class:`~doedesign.engine.reads.ReadAxis` pair for the coded view."""
         key = ("reads", float(wavelength), tuple(rows), tuple(cols), bool(energy))
         found = self._kernel_cache.get(key)
         if found is not None:

@@ -1,7 +1,7 @@
 """Losses between a simulated PSF and a :class:`~doedesign.targets.Target`, with gradients.
 
 Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
-:meth:`doedesign.psf.PSFEngine.value_and_grad` hands it over, and returns
+:meth:`doedesign.engine.psf.PSFEngine.value_and_grad` hands it over, and returns
 ``(loss, dloss_dpsf)``. Per-plane terms are averaged with the target's channel weights
 (normalized to sum 1), so the numbers compare across targets with different band counts.
 
@@ -25,7 +25,7 @@ Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
 :func:`reweight_target` is the gradient analogue of weighted Gerchberg-Saxton (WGS): between
 optimization rounds each target pixel's loss weight is multiplied by
 ``(mean ratio / its ratio)^alpha``, so pixels that get too little light count more in the next
-round (used by :func:`doedesign.optimize.design_doe` with ``reweight_rounds``).
+round (used by :func:`doedesign.optimizer.optimize.design_doe` with ``reweight_rounds``).
 
 Losses that read few pixels
 ---------------------------
@@ -33,7 +33,7 @@ Losses that read few pixels
 window's total energy (``energy``, ``uniformity``, and ``l1`` with one off-target pixel weight
 per plane; not ``l2`` or ``peak``), ``Loss.reads`` names those pixels (:class:`PixelReads`) and
 ``Loss.sparse(values, energy)`` evaluates the same loss from them alone. The PSF engine then
-computes only those pixels and the energy (:meth:`doedesign.psf.PSFEngine.value_and_grad`), so
+computes only those pixels and the energy (:meth:`doedesign.engine.psf.PSFEngine.value_and_grad`), so
 Bayer, spot and similar targets never build the whole window. ``reads`` is None otherwise.
 """
 
@@ -44,10 +44,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import DoeError
+from ..errors import DoeError
 
 if TYPE_CHECKING:
-    from .targets import Target
+    from ..targets import Target
 
 __all__ = ["DEFAULT_EPS", "Loss", "LossSpec", "MAX_READ_LINES", "PEAK_POWER", "PixelReads", "TERMS",
            "energy_loss", "l2_loss", "make_loss", "peak_loss", "reweight_target", "smooth_l1", "target_metrics",

@@ -2,9 +2,9 @@
 
 Pipeline (:func:`design_doe`)
 -----------------------------
-1. Continuous stage: minimize the target loss (:mod:`doedesign.losses`) over the heights with
-   nlopt (:mod:`doedesign.nlopt_driver`; ``LD_LBFGS`` by default, ``LD_MMA`` or ``LD_CCSAQ``),
-   gradients from :meth:`doedesign.psf.PSFEngine.value_and_grad`. Heights are bounded, in the design file's
+1. Continuous stage: minimize the target loss (:mod:`doedesign.optimizer.losses`) over the heights with
+   nlopt (:mod:`doedesign.optimizer.nlopt_driver`; ``LD_LBFGS`` by default, ``LD_MMA`` or ``LD_CCSAQ``),
+   gradients from :meth:`doedesign.engine.psf.PSFEngine.value_and_grad`. Heights are bounded, in the design file's
    convention (z up, 0 = unetched top, etched pixels negative):
    ``height_range="process"``: ``[-(N-1) step, 0]``, the deepest process level down to the top
    surface, so every height has a fabricable nearest level; ``"2pi"``: ``[-N step, 0]``, the
@@ -13,7 +13,7 @@ Pipeline (:func:`design_doe`)
    heights wrapped modulo the 2 pi height at the end. Bounds cut a linear phase ramp into a
    clipped one, so single-wavelength designs (gratings, spot arrays) converge best with
    "wrap"; the wrap is exact at the design wavelength and approximate elsewhere.
-2. Quantization-aware finish: penalty annealing toward the nearest level (:mod:`doedesign.anneal`).
+2. Quantization-aware finish: penalty annealing toward the nearest level (:mod:`doedesign.optimizer.anneal`).
    The penalty ``mean sin^2(pi h / step)`` (zero on every level) is added with a growing weight
    and the heights re-optimized at each weight; finally each height is rounded (not floored) to the
    nearest level by the one level rule of :mod:`doedesign.levels` (the rule the masks,
@@ -25,7 +25,7 @@ Pipeline (:func:`design_doe`)
 Uniform multi-spot targets: ``reweight_rounds`` > 0 adds rounds after the continuous stage
 in which the target's pixel weights are updated from the current PSF,
 ``w_i <- w_i (mean a / a_i)^reweight_alpha`` with ``a_i`` = delivered / wanted light
-(:func:`doedesign.losses.reweight_target`, the gradient analogue of weighted Gerchberg-Saxton),
+(:func:`doedesign.optimizer.losses.reweight_target`, the gradient analogue of weighted Gerchberg-Saxton),
 and the heights re-optimized for ``reweight_iter`` evaluations. The weights keep being updated
 before each annealing stage, so the quantized design stays balanced; the final weights are
 in the report. On targets with one pixel per plane (Bayer) the update does nothing.
@@ -33,16 +33,16 @@ in the report. On targets with one pixel per plane (Bayer) the update does nothi
 Robust design: ``perturbations`` (a list of functions ``h -> (h', vjp)``, e.g. process samples
 from the ``doe.perturbations`` entry points) makes every stage minimize the mean loss over the
 perturbed heights, or with ``robust_measure="cvar"`` the mean of the worst ``cvar_alpha`` share
-(CVaR), through the same adjoint gradient pulled back by each ``vjp`` (:mod:`doedesign.robust_loss`).
+(CVaR), through the same adjoint gradient pulled back by each ``vjp`` (:mod:`doedesign.optimizer.robust_loss`).
 The list is fixed for the whole run (common random numbers), so the objective stays
 deterministic for nlopt.
 
-Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.losses.LossSpec`
+Balanced objectives (``objective``): ``"loss"`` minimizes the :class:`~doedesign.optimizer.losses.LossSpec`
 terms; ``"softmin"`` the negative soft minimum of the per-plane energies on target over their
 ``colour_weights``; ``"maxmin"`` runs the continuous stage as nlopt's auxiliary-variable max-min
-(:func:`doedesign.objectives.maximize_min`, LD_MMA or LD_CCSAQ) and anneals with the soft-min.
-``init="router"`` starts from the coherent pupil model's max-min (:mod:`doedesign.router`);
-``starts`` adds initial designs for a multi-start (:mod:`doedesign.starts`: a short stage each,
+(:func:`doedesign.optimizer.objectives.maximize_min`, LD_MMA or LD_CCSAQ) and anneals with the soft-min.
+``init="router"`` starts from the coherent pupil model's max-min (:mod:`doedesign.optimizer.router`);
+``starts`` adds initial designs for a multi-start (:mod:`doedesign.optimizer.starts`: a short stage each,
 the best goes on; all are in the report).
 
 Metrics (energy on target per wavelength and depth, efficiency, L1, and each plane's energy
@@ -59,103 +59,29 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..bounds import bound_report, spot_bound
+from ..design import Design
+from ..engine.psf import PSFEngine
+from ..errors import DoeError
+from ..isolation import isolated_pixels, isolation_penalty
+from ..levels import level_step_m, quantize, wrap_height_m
 from .anneal import ANNEAL_SCHEDULE, anneal, level_penalty
-from .bounds import bound_report, spot_bound
-from .design import Design
-from .errors import DoeError
-from .isolation import isolated_pixels, isolation_penalty
-from .levels import N_LEVELS, level_step_m, quantize, wrap_height_m
 from .losses import LossSpec, make_loss, reweight_target, target_metrics
 from .nlopt_driver import ALGORITHMS, StageCallback, minimize
 from .objectives import maxmin_stage, plane_weights, softmin_loss
-from .psf import PSFEngine
-from .robust_loss import ROBUST_MEASURES, Perturbation, robust_value_and_grad
+from .robust_loss import Perturbation, robust_value_and_grad
 from .router import router_start
+from .settings import HEIGHT_RANGES, OBJECTIVES, WRAP_SPAN, OptimizerSettings, height_bounds
 from .starts import INITS, initial_height, multistart
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .targets import Target
+    from ..camera import Camera
+    from ..targets import Target
 
 # The optimizer's public names, wherever they are defined (callers import them from here).
 __all__ = ["ALGORITHMS", "ANNEAL_SCHEDULE", "DesignRun", "HEIGHT_RANGES", "INITS", "OBJECTIVES", "OptimizerSettings",
            "WRAP_SPAN", "coded_support", "design_doe", "height_bounds", "initial_height", "isolated_pixels",
            "isolation_penalty", "level_penalty", "minimize", "robust_value_and_grad"]
-
-OBJECTIVES = ("loss", "softmin", "maxmin")
-HEIGHT_RANGES = ("process", "2pi", "wrap")
-# Bounds of the "wrap" range in 2 pi heights: wide enough never to bind, finite for nlopt.
-WRAP_SPAN = 8
-
-
-# -- bounds and settings ------------------------------------------------------------------------
-def height_bounds(step_m: float, n_levels: int = N_LEVELS, height_range: str = "process") -> tuple[float, float]:
-    """(lower, upper) height bounds in metres for ``height_range`` (see the module docstring)."""
-    if height_range == "process":
-        return -(n_levels - 1) * step_m, 0.0
-    if height_range == "2pi":
-        return -n_levels * step_m, 0.0
-    if height_range == "wrap":
-        return -WRAP_SPAN * n_levels * step_m, WRAP_SPAN * n_levels * step_m
-    raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {height_range!r}")
-
-
-@dataclass
-class OptimizerSettings:
-    """Settings of :func:`design_doe` (see the module docstring)."""
-
-    algorithm: str = "LD_LBFGS"
-    max_iter: int = 100
-    ftol_rel: float = 1e-7
-    max_time_s: float | None = None
-    seed: int = 0
-    init: str = "random"
-    height_range: str = "process"
-    n_levels: int = N_LEVELS
-    quantize: bool = True
-    anneal_iter: int = 20
-    fab_weight: float = 0.0
-    reweight_rounds: int = 0
-    reweight_alpha: float = 1.0
-    reweight_iter: int | None = None  # None: max_iter
-    robust_measure: str = "mean"      # with perturbations: "mean" or "cvar" of the loss
-    cvar_alpha: float = 0.25          # CVaR: share of the worst perturbations averaged
-    objective: str = "loss"
-    colour_weights: list | None = None  # per wavelength (or per plane) for softmin / maxmin
-    softmin_tau: float = 0.01
-    starts: tuple = ()  # further initial designs for a multi-start; the best after start_iter is kept
-    start_iter: int | None = None  # None: max(max_iter // 4, 3)
-    router_grid_px: int = 100
-    router_iter: int = 150
-
-    def __post_init__(self):
-        if self.objective not in OBJECTIVES:
-            raise DoeError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
-        self.starts = tuple(self.starts)
-        for s in (self.init, *self.starts):
-            if s not in INITS:
-                raise DoeError(f"unknown initialization {s!r}; choose from {', '.join(INITS)}")
-        if not self.softmin_tau > 0:
-            raise DoeError(f"softmin_tau must be positive, got {self.softmin_tau}")
-        if self.algorithm not in ALGORITHMS:
-            raise DoeError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
-        if int(self.max_iter) < 1:
-            raise DoeError(f"iterations must be at least 1, got {self.max_iter}")
-        if self.height_range not in HEIGHT_RANGES:
-            raise DoeError(f"height range must be one of {HEIGHT_RANGES}, got {self.height_range!r}")
-        if self.max_time_s is not None and not self.max_time_s > 0:
-            raise DoeError(f"time limit must be positive, got {self.max_time_s}")
-        if self.fab_weight < 0:
-            raise DoeError("fab_weight must be >= 0")
-        if int(self.reweight_rounds) < 0 or not (np.isfinite(self.reweight_alpha) and self.reweight_alpha > 0):
-            raise DoeError(f"reweight_rounds must be >= 0 and reweight_alpha > 0, got {self.reweight_rounds} "
-                           f"and {self.reweight_alpha}")
-        if self.reweight_iter is not None and int(self.reweight_iter) < 1:
-            raise DoeError(f"reweight_iter must be at least 1, got {self.reweight_iter}")
-        if self.robust_measure not in ROBUST_MEASURES or not 0 < self.cvar_alpha <= 1:
-            raise DoeError(f"robust_measure must be one of {ROBUST_MEASURES} and cvar_alpha in (0, 1], got "
-                           f"{self.robust_measure!r} and {self.cvar_alpha}")
-
 
 # -- the whole design run --------------------------------------------------------------------------
 @dataclass
@@ -191,7 +117,7 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     pitch_m : float
     shape : (int, int)
         Design grid (DOE pixels), centred on the axis.
-    loss : doedesign.losses.LossSpec, optional
+    loss : doedesign.optimizer.losses.LossSpec, optional
     settings : OptimizerSettings, optional
     init_height_m : ndarray, optional
         A user starting height map (overrides ``settings.init``).

@@ -10,10 +10,10 @@ so the model is solved on a coarse pupil grid (``grid_px`` samples across the ap
 100 = 86 um cells for the seed camera) in seconds and its height map is carried to the design
 grid by nearest-cell lookup; the PSF engine then scores and refines it exactly.
 
-The three colours are served at once by the max-min (:func:`doedesign.objectives.maximize_min`):
+The three colours are served at once by the max-min (:func:`doedesign.optimizer.objectives.maximize_min`):
 every colour's phase comes from the same heights (``phi = 2 pi (n(lambda) - 1) h / lambda``), and the
 wavelength dependence of the wrapped 16-level relief is what routes them. This is the initial
-design ``init="router"`` of :func:`doedesign.optimize.design_doe`.
+design ``init="router"`` of :func:`doedesign.optimizer.optimize.design_doe`.
 """
 
 from __future__ import annotations
@@ -24,16 +24,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import DoeError
-from .materials import get_material
+from ..errors import DoeError
+from ..materials import get_material
 from .objectives import maximize_min, plane_weights
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from .camera import Camera
-    from .optimize import OptimizerSettings
-    from .targets import Target
+    from ..camera import Camera
+    from ..targets import Target
+    from .settings import OptimizerSettings
 
 __all__ = ["MAX_TARGET_PIXELS", "PupilModel", "pupil_model", "router_heights", "router_start", "to_design_grid"]
 
@@ -139,7 +139,7 @@ def to_design_grid(model: PupilModel, h_coarse: np.ndarray, camera: Camera, pitc
 
 def router_start(target: Target, camera: Camera, pitch_m: float, shape: tuple, material: str, lower: float,
                  settings: OptimizerSettings) -> np.ndarray:
-    """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.router`)."""
+    """The ``router`` initial design: the coherent pupil model's max-min heights (:mod:`doedesign.optimizer.router`)."""
     # No finer than the design itself.
     model = pupil_model(camera, target, material, min(settings.router_grid_px, max(shape)))
     h, energies = router_heights(model, lower, settings.colour_weights, settings.router_iter, target=target)

@@ -1,7 +1,7 @@
 """PSF files and wavelength lists: the container of a computed PSF stack and its ``.npz``.
 
 :class:`PSFResult` holds both views' pixel-integrated PSFs on the sensor window (see
-:mod:`doedesign.psf` for the model); :func:`parse_wavelengths_nm` reads the CLI's wavelength lists.
+:mod:`doedesign.engine.psf` for the model); :func:`parse_wavelengths_nm` reads the CLI's wavelength lists.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import DoeError
-from .fileio import dumps_json, read_npz, write_npz
+from ..errors import DoeError
+from ..fileio import dumps_json, read_npz, write_npz
 
 __all__ = ["MAX_WAVELENGTHS", "PSFResult", "VIEWS", "parse_wavelengths_nm", "read_psf_arrays"]
 

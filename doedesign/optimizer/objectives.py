@@ -20,16 +20,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import DoeError
+from ..engine.psf import PSFEngine
+from ..errors import DoeError
+from ..progress import Progress
 from .losses import MAX_READ_LINES, PixelReads
-from .progress import Progress
-from .psf import PSFEngine
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
-    from .optimize import OptimizerSettings
-    from .targets import Target
+    from ..targets import Target
+    from .settings import OptimizerSettings
 
 __all__ = ["MAXMIN_ALGORITHMS", "PlaneLoss", "maximize_min", "maxmin_stage", "plane_energies", "plane_weights",
            "softmin_loss"]
@@ -62,7 +62,7 @@ class PlaneLoss:
     """Engine loss ``f(E)`` of the plane energies ``E`` (depths, wavelengths) on ``mask``.
 
     Reads only the target pixels: :attr:`reads` and :meth:`sparse` let the engine evaluate it
-    from those pixels alone (:mod:`doedesign.psf_reads`) when they lie on few rows and columns.
+    from those pixels alone (:mod:`doedesign.engine.reads`) when they lie on few rows and columns.
 
     Parameters
     ----------
@@ -85,7 +85,7 @@ class PlaneLoss:
         return float(value), np.asarray(d_e, dtype=float)[..., None, None] * self.mask
 
     def sparse(self, values: np.ndarray, energy: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """The loss from the target pixels' values (depths, wavelengths, pixels); see :class:`doedesign.losses.Loss`."""
+        """The loss from the target pixels' values (depths, wavelengths, pixels); see :class:`doedesign.optimizer.losses.Loss`."""
         value, d_e = self.fn(np.sum(values * self._mask, axis=-1))
         return float(value), np.asarray(d_e, dtype=float)[..., None] * self._mask, np.zeros_like(energy)
 

@@ -1,8 +1,8 @@
 """Starting designs: the initial height maps (:data:`INITS`) and the multi-start among them.
 
-``init`` picks one start for :func:`doedesign.optimize.design_doe`; ``starts`` adds others, each
+``init`` picks one start for :func:`doedesign.optimizer.optimize.design_doe`; ``starts`` adds others, each
 optimized for a short stage, and the best goes on (all are in the report). ``router`` comes from
-the coherent pupil model of :mod:`doedesign.router`; the others are made here.
+the coherent pupil model of :mod:`doedesign.optimizer.router`; the others are made here.
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import DoeError
-from .levels import N_LEVELS, wrap_height_m
-from .materials import get_material
+from ..errors import DoeError
+from ..levels import N_LEVELS, wrap_height_m
+from ..materials import get_material
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .materials import Material
+    from ..camera import Camera
+    from ..materials import Material
 
 __all__ = ["INITS", "initial_height", "multistart"]
 

@@ -1,6 +1,6 @@
 """The nlopt driver: minimize ``fun(x) -> (value, grad)`` over a bounded array, keeping the best point.
 
-Every stage of :func:`doedesign.optimize.design_doe` (continuous, reweighting, multi-start,
+Every stage of :func:`doedesign.optimizer.optimize.design_doe` (continuous, reweighting, multi-start,
 annealing) runs through :func:`minimize`. The evaluation budget is enforced inside the objective,
 because nlopt's L-BFGS can evaluate past ``maxeval``; round-off and nlopt's generic failures keep
 the best point evaluated instead of raising, except a failure before any step (the start returned
@@ -20,8 +20,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import DoeError
-from .progress import Progress
+from ..errors import DoeError
+from ..progress import Progress
 
 __all__ = ["ALGORITHMS", "LARGE_ALGORITHM", "LBFGS_MAX_VARIABLES", "StageCallback", "choose_algorithm", "minimize"]
 

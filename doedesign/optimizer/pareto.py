@@ -2,7 +2,7 @@
 
 The weighted max-min ``max min_c E_c / w_c`` ends where the energies stand in the ratio of the
 weights, on the front (where no colour gains without another losing). Each weight vector is
-solved on the coherent pupil model (:mod:`doedesign.router`), carried to the design grid and
+solved on the coherent pupil model (:mod:`doedesign.optimizer.router`), carried to the design grid and
 scored exactly by the PSF engine, continuous and rounded to the 16 levels, so the figure shows
 what the engine sees, not what the model predicts.
 """
@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .levels import level_step_m, quantize
-from .optimize import height_bounds
-from .progress import Progress
-from .psf import PSFEngine
+from ..camera import Camera
+from ..engine.psf import PSFEngine
+from ..levels import level_step_m, quantize
+from ..progress import Progress
+from ..targets import Target
 from .router import pupil_model, router_heights, to_design_grid
-from .camera import Camera
-from .targets import Target
+from .settings import height_bounds
 
 __all__ = ["front_figure", "pareto_front", "sweep_weights"]
 
@@ -74,7 +74,7 @@ def front_figure(points: list[dict], bound: Sequence[float], chosen: Sequence[fl
     """Pairwise projections of the front (quantized and continuous) with the bounds and the chosen design."""
     import matplotlib.pyplot as plt
 
-    from .fileio import save_figure
+    from ..fileio import save_figure
 
     q = np.array([p["quantized"] for p in points])
     c = np.array([p["continuous"] for p in points])

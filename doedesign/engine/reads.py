@@ -1,8 +1,8 @@
 """A few sensor pixels and the window's total energy of a split-aperture PSF, without the window.
 
-Used by :meth:`doedesign.psf.PSFEngine.value_and_grad` for losses that declare the pixels they
-read (:class:`doedesign.losses.PixelReads`). Same model and same quadrature as the engine's
-full window (see :mod:`doedesign.psf`), organized for a handful of pixels:
+Used by :meth:`doedesign.engine.psf.PSFEngine.value_and_grad` for losses that declare the pixels they
+read (:class:`doedesign.optimizer.losses.PixelReads`). Same model and same quadrature as the engine's
+full window (see :mod:`doedesign.engine.psf`), organized for a handful of pixels:
 
 - A pixel's value. ``sum_k C_k exp(-2 pi i k f x) = |F(x)|^2`` with
   ``F(x) = sum_m t_m exp(-2 pi i m f x)`` (``f = step / lambda z``), so the Gauss-Legendre

@@ -2,7 +2,7 @@
 
 The penalty ``mean sin^2(pi h / step)`` (zero on every level) is added to the loss with the
 growing weights of :data:`ANNEAL_SCHEDULE`, relative to the continuous loss, and the heights are
-re-optimized at each weight; :func:`doedesign.optimize.design_doe` then rounds the result to the
+re-optimized at each weight; :func:`doedesign.optimizer.optimize.design_doe` then rounds the result to the
 nearest level and keeps it or the plainly rounded continuous optimum, whichever scores better.
 """
 

@@ -1,0 +1,16 @@
+"""The PSF engine: the split-aperture camera's pixel-integrated PSF of a height map, and the
+gradient of a loss on it.
+
+Public:
+
+- :class:`PSFEngine` (``.psf``, ``.value_and_grad``) and :func:`compute_psf` (one call);
+- :class:`PSFResult`, the PSF file (``.save`` / ``.load``), :data:`VIEWS`;
+- :func:`parse_wavelengths_nm`, the CLI's wavelength lists.
+
+Inside: ``psf`` (the engine), ``lags`` (pupil autocorrelation lags and the pixel kernels),
+``reads`` (reading a few pixels and their adjoint), ``result`` (the result and its file).
+"""
+
+from .psf import MAX_WAVELENGTHS, VIEWS, PSFEngine, PSFResult, compute_psf, parse_wavelengths_nm
+
+__all__ = ["MAX_WAVELENGTHS", "VIEWS", "PSFEngine", "PSFResult", "compute_psf", "parse_wavelengths_nm"]
