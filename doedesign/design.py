@@ -23,7 +23,6 @@ metadata : str
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 from . import __version__
 from .camera import Camera
 from .errors import DesignFileError, DoeError
-from .fileio import atomic_path, dumps_json, read_npz
+from .fileio import atomic_path, dumps_json, parse_json, read_npz
 from .levels import N_LEVELS, level_step_m, quantize
 from .materials import get_material
 
@@ -57,6 +56,9 @@ class Design:
     levels: np.ndarray | None = None
     aperture: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
+    # The file :meth:`load` read (not a field): errors found later, in the camera entry say,
+    # name the file the user gave rather than the design's internal name.
+    source_path = None
 
     def __post_init__(self) -> None:
         self.height_m = np.asarray(self.height_m, dtype=np.float64)
@@ -135,12 +137,13 @@ class Design:
         cam = self.metadata.get("camera")
         if cam is None:
             return Camera() if missing == "seed" else None
+        where = self.source_path or self.name
         if not isinstance(cam, dict):
-            raise DesignFileError(f"{self.name}: metadata camera must be a JSON object, got {type(cam).__name__}")
+            raise DesignFileError(f"{where}: metadata camera must be a JSON object, got {type(cam).__name__}")
         try:
             return Camera.from_dict(cam)
         except (TypeError, ValueError, DoeError) as exc:
-            raise DesignFileError(f"{self.name}: metadata camera entry is not a valid camera: {exc}") from None
+            raise DesignFileError(f"{where}: metadata camera entry is not a valid camera: {exc}") from None
 
     def level_step_m(self, n_levels: int = N_LEVELS) -> float:
         """Depth of one of ``n_levels`` levels at this design's material and wavelength.
@@ -173,10 +176,7 @@ class Design:
         """Read and validate a design file; errors name the file and the field."""
         path = Path(path)
         data = read_npz(path, REQUIRED, "design file", DesignFileError)
-        try:
-            metadata = json.loads(str(data["metadata"]))
-        except json.JSONDecodeError as exc:
-            raise DesignFileError(f"{path}: metadata is not valid JSON ({exc})") from None
+        metadata = parse_json(str(data["metadata"]), f"{path}: metadata", DesignFileError)
         if not isinstance(metadata, dict):
             raise DesignFileError(f"{path}: metadata must be a JSON object")
         _check_metadata(path, metadata)
@@ -195,6 +195,7 @@ class Design:
         design.levels = data.get("levels")
         design.aperture = data.get("aperture")
         design.metadata = metadata
+        design.source_path = str(path)
         design.validate(source=str(path))
         design.check_levels(source=str(path))
         return design

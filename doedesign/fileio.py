@@ -33,7 +33,8 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
-           "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run"]
+           "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run", "parse_json",
+           "parse_toml"]
 
 TEMP_SUFFIX = ".part"
 INCOMPLETE_MARKER = "INCOMPLETE"
@@ -337,6 +338,36 @@ def read_npz(path: str | Path, required: Iterable[str], what: str,
     if missing:
         raise error(f"{path}: missing field(s) {', '.join(missing)}; a {what} needs {', '.join(required)}")
     return data
+
+
+def parse_json(text: str, where: str, error: type[Exception] | None = None) -> Any:
+    """JSON text from a user's file, parsed; every failure is one ``error`` naming ``where``.
+
+    Besides syntax errors this catches what :func:`json.loads` raises on hostile input:
+    RecursionError for arrays nested thousands deep and ValueError for integers over
+    Python's digit limit.
+    """
+    error = error or DoeError
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise error(f"{where} is not readable JSON (nested too deeply)") from None
+    except ValueError as exc:  # JSONDecodeError, an integer of over 4300 digits
+        raise error(f"{where} is not valid JSON ({exc})") from None
+
+
+def parse_toml(text: str, where: str, error: type[Exception] | None = None) -> dict[str, Any]:
+    """TOML text from a user's file, parsed; every failure is one ``error`` naming ``where``
+    (syntax, tables nested too deeply for the parser, integers over the digit limit)."""
+    import tomllib
+
+    error = error or DoeError
+    try:
+        return tomllib.loads(text)
+    except RecursionError:
+        raise error(f"{where} is not readable TOML (nested too deeply)") from None
+    except ValueError as exc:  # TOMLDecodeError, an integer of over 4300 digits
+        raise error(f"{where} is not valid TOML ({exc})") from None
 
 
 def json_ready(obj: Any) -> Any:

@@ -12,7 +12,7 @@ from .. import bayer, targets
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
-from ..fileio import ensure_output_dir, ensure_output_file, output_run, write_json
+from ..fileio import ensure_output_dir, ensure_output_file, output_run, parse_toml, write_json
 from ..optimizer.losses import LossSpec
 from ..optimizer.optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
@@ -117,15 +117,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _read_toml(path):
-    import tomllib
-
     path = Path(path)
     if not path.is_file():
         raise DoeError(f"{path}: no such file")
     try:
-        return tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
         raise DoeError(f"{path}: not valid TOML: {exc}") from None
+    return parse_toml(text, str(path))
 
 
 def _camera(section, size_px, pitch_m, side, source):

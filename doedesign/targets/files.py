@@ -10,6 +10,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import DoeError
+from ..fileio import parse_toml
 from .base import Target, _camera, combine
 from .builtin import KINDS, bayer, depth_ring, hdr_streak, hyperspectral, image, spots
 
@@ -72,13 +73,12 @@ def from_dict(spec: dict, camera: Camera | None = None, base_dir: str | Path = "
 
 def load_toml(path: str | Path, camera: Camera | None = None) -> Target:
     """Read a target TOML file (schema in the module docstring)."""
-    import tomllib
-
     path = Path(path)
     if not path.is_file():
         raise DoeError(f"{path}: no such target file")
     try:
-        spec = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
         raise DoeError(f"{path}: not valid TOML: {exc}") from None
+    spec = parse_toml(text, str(path))
     return from_dict(spec, camera=camera, base_dir=path.parent, source=str(path))

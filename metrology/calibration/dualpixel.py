@@ -23,7 +23,6 @@ pattern string names the 2x2 cell starting at (row 0, column 0) in row-major ord
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +33,7 @@ from scipy import ndimage
 from scipy.interpolate import make_smoothing_spline
 
 from doedesign.errors import DoeError
-from doedesign.fileio import dumps_json, write_npz
+from doedesign.fileio import dumps_json, parse_json, write_npz
 
 __all__ = ["CFA_PATTERNS", "CHANNELS", "CrosstalkCalibration", "MAX_NEGATIVE_FRACTION", "MIN_CLIPPED_PIXELS",
            "RAW_SUFFIXES", "VIEW_NAMES", "apply_channel_gains", "calibrate_crosstalk", "cfa_channels",
@@ -238,9 +237,12 @@ class CrosstalkCalibration:
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as npz:
-                ratio, raw, meta = npz["ratio"], npz["raw_ratio"], json.loads(str(npz["metadata"]))
+                ratio, raw, text = npz["ratio"], npz["raw_ratio"], str(npz["metadata"])
         except (OSError, ValueError, KeyError, EOFError) as exc:
             raise DoeError(f"{path}: not a crosstalk calibration file: {exc}") from None
+        meta = parse_json(text, f"{path}: metadata")
+        if not isinstance(meta, dict):
+            raise DoeError(f"{path}: metadata must be a JSON object")
         if ratio.ndim != 3 or ratio.shape[:2] != (2, 4):
             raise DoeError(f"{path}: ratio must be (2 views, 4 channels, columns), got {ratio.shape}")
         return cls(ratio=ratio, raw_ratio=raw, cfa_pattern=meta.get("cfa_pattern", "RGGB"),

@@ -8,7 +8,6 @@ networks as ``(2, H, W, C)`` (uncoded view first).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ from numpy.typing import ArrayLike
 
 from doedesign.engine.psf import VIEWS, PSFResult, read_psf_arrays
 from doedesign.errors import DoeError
-from doedesign.fileio import atomic_path, dumps_json, write_npz
+from doedesign.fileio import atomic_path, dumps_json, parse_json, write_npz
 
 __all__ = ["BACKGROUNDS", "NORMALIZATIONS", "PSFStack", "WAVELENGTH_TOLERANCE_M", "as_stack", "band_centroid_fwhm",
            "check_wavelengths", "load_stack", "network_array", "read_stack", "save_network_npy", "save_stack"]
@@ -236,7 +235,7 @@ def read_stack(path: str | Path) -> dict:
             "depth_m": depth, "axis_pixel": axis, "measured": data.get("measured"),
             "normalization": str(data["normalization"]) if "normalization" in data else None,
             "spectrum_wavelengths_m": data.get("spectrum_wavelengths_m"), "spectra": data.get("spectra"),
-            "info": json.loads(str(info)) if info is not None else None}
+            "info": parse_json(str(info), f"{path}: info") if info is not None else None}
 
 
 def load_stack(path: str | Path) -> PSFStack:

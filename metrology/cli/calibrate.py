@@ -29,6 +29,10 @@ log = logging.getLogger(__name__)
 __all__ = ["CAPTURE_HELP", "FRAME_SUFFIXES", "find_captures", "register", "run_crosstalk", "run_psf"]
 
 FRAME_SUFFIXES = (".tif", ".tiff", ".npy") + dp.RAW_SUFFIXES
+# Smallest PSF window (pixels per side), as for 'doe psf --window'.
+MIN_WINDOW_PX = 8
+# Largest diffraction order '--orders' may name: orders beyond a few hundred leave any sensor window.
+MAX_ORDER = 1000
 CAPTURE_HELP = """\
 Capture naming (a directory): for each wavelength NNN in nm, NNNnm_sum.EXT (the sum frame) and
 NNNnm_view.EXT (the stored single-photodiode frame), EXT one of .tif .tiff .npy or a camera raw
@@ -96,16 +100,28 @@ def _frame_options(p):
     p.add_argument("--black-level", type=Number(float, 0), default=0.0, help="raw black level of each frame (0)")
 
 
-def _pair(values, name):
+def _pair(values, name, lo=0):
     try:
         parts = [int(v) for v in str(values).split(",")]
         if len(parts) != 2:
             raise ValueError
     except ValueError:
         raise DoeError(f"{name} must be two integers like 256,256, got {values!r}") from None
-    if not all(0 <= p <= MAX_WINDOW_PX for p in parts):
-        raise DoeError(f"{name} {values!r}: each must lie in 0..{MAX_WINDOW_PX} pixels")
+    if not all(lo <= p <= MAX_WINDOW_PX for p in parts):
+        raise DoeError(f"{name} {values!r}: each must lie in {lo}..{MAX_WINDOW_PX} pixels")
     return tuple(parts)
+
+
+def _orders(text):
+    """Diffraction orders from '--orders' ('0,1,2'; '' for none)."""
+    try:
+        orders = tuple(int(v) for v in str(text).split(",") if v.strip()) if text else ()
+    except ValueError:
+        raise DoeError(f"--orders must be integers separated by commas like 0,1,2 (or '' for none), "
+                       f"got {text!r}") from None
+    if any(abs(m) > MAX_ORDER for m in orders):
+        raise DoeError(f"--orders {text!r}: each must lie in -{MAX_ORDER}..{MAX_ORDER}")
+    return orders
 
 
 # -- crosstalk -------------------------------------------------------------------------------------------
@@ -250,12 +266,20 @@ def _views_of(sum_path, view_path, args, cal, coded_name):
 def run_psf(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
 
+    # Every option and the small input files are checked before the captures are read and
+    # before anything is written.
     out = ensure_output_dir(args.out)
-    window = _pair(args.window, "--window")
+    window = _pair(args.window, "--window", lo=MIN_WINDOW_PX)
     axis_pixel = _pair(args.axis_pixel, "--axis-pixel") if args.axis_pixel else (window[0] // 2, window[1] // 2)
+    centre = _pair(args.axis, "--axis") if args.axis else None
+    orders = _orders(args.orders)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None
     if wavelengths is not None:
         ps.check_wavelengths(wavelengths, "--wavelengths-nm")
+    extrapolate = parse_wavelengths_nm(args.extrapolate_nm) if args.extrapolate_nm else None
+    if extrapolate is not None and not args.predicted:
+        raise DoeError("--extrapolate-nm needs --predicted PSFs at those wavelengths (order positions)")
+    predicted = ps.load_stack(args.predicted) if args.predicted else None
     wl, files, dark_files = find_captures(args.captures, wavelengths)
     cal = dp.CrosstalkCalibration.load(args.crosstalk) if args.crosstalk else None
     if args.coded_view:
@@ -267,7 +291,6 @@ def run_psf(args: argparse.Namespace) -> int:
     cfa = None if args.cfa.lower() == "none" else args.cfa
     if cal is not None and cfa is not None and cfa.upper() != cal.cfa_pattern:
         raise DoeError(f"--cfa {cfa} differs from the calibration's pattern {cal.cfa_pattern}")
-    centre = _pair(args.axis, "--axis") if args.axis else None
 
     captures, gains = [], []
     for sum_path, view_path, _ in files:
@@ -297,28 +320,34 @@ def run_psf(args: argparse.Namespace) -> int:
         stats = stack.band_stats()
         report["band_centroid_nm"] = (stats[:, 0] * 1e9).tolist()
         report["band_fwhm_nm"] = (stats[:, 1] * 1e9).tolist()
-    predicted = None
-    if args.predicted:
-        predicted = ps.load_stack(args.predicted)
-    if args.extrapolate_nm:
-        if predicted is None:
-            raise DoeError("--extrapolate-nm needs --predicted PSFs at those wavelengths (order positions)")
-        stack = ps.extrapolate_orders(stack, predicted, parse_wavelengths_nm(args.extrapolate_nm))
-        report["extrapolation"] = stack.info["extrapolation"]
-    orders = tuple(int(v) for v in args.orders.split(",") if v.strip()) if args.orders else ()
+    comparison = None
+    if predicted is not None:
+        try:
+            if extrapolate is not None:
+                stack = ps.extrapolate_orders(stack, predicted, extrapolate)
+                report["extrapolation"] = stack.info["extrapolation"]
+            # The comparison is computed before anything is written: a prediction that does not
+            # fit the captures leaves the output folder as it was.
+            comparison = ps.compare_stacks(stack, predicted, orders, name="predicted")
+        except DoeError as exc:
+            raise DoeError(f"{args.predicted}: {exc}") from None
     with output_run(out, f"doe calibrate psf {args.captures}"):
-        _write_psf_outputs(stack, predicted, orders, report, out)
+        _write_psf_outputs(stack, comparison, orders, report, out)
     print_json({"out": str(out), "wavelengths_nm": (stack.wavelengths_m * 1e9).round(3).tolist(),
                 "measured": stack.measured.tolist(),
                 "energy_in_window": {v: stack.energy_in_window[i].round(5).tolist() for i, v in enumerate(ps.VIEWS)}})
     return 0
 
 
-def _write_psf_outputs(stack, predicted, orders, report, out):
-    """Figures, comparison, stack, network export and report: INCOMPLETE in ``out`` until all are written."""
+def _write_psf_outputs(stack, comparison, orders, report, out):
+    """Figures, comparison, stack, network export and report: INCOMPLETE in ``out`` until all are written.
+
+    ``comparison`` is :func:`~metrology.calibration.orders.compare_stacks`' (report, difference)
+    or None.
+    """
     figures = [_stack_figure(stack, out / "psf_stack.png")]
-    if predicted is not None:
-        comparison, difference = ps.compare_stacks(stack, predicted, orders, name="predicted")
+    if comparison is not None:
+        comparison, difference = comparison
         report["comparison"] = comparison
         write_npz(out / "comparison.npz", difference=difference, measured=stack.psf,
                   predicted=stack.psf - difference, views=np.array(ps.VIEWS), wavelengths_m=stack.wavelengths_m,

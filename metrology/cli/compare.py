@@ -10,6 +10,7 @@ import logging
 from pathlib import Path
 
 from doedesign.cli.common import Number
+from metrology.formats.plausibility import RANGES
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("measurement", help="height map (.dat, .datx, .xyz, .asc, .npz, .npy, .tif)")
     p.add_argument("--design", required=True, help="design .npz")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--pixel-size-um", type=Number(float, 0, 1e4, lo_open=True, unit="um"), default=None,
+    p.add_argument("--pixel-size-um", type=Number(float, 0, RANGES["pixel_size_m"].hi * 1e6, lo_open=True, unit="um"),
+                   default=None,
                    help="measurement pixel size (um) when the file has none or it is wrong (a starting value: "
                         "registration measures it against the DOE pitch)")
     p.add_argument("--wavelengths-nm", default="486,589,656", help="PSF wavelengths: list or start:stop:step")

@@ -15,7 +15,7 @@ from doedesign.cli.common import Number, NumberList
 
 log = logging.getLogger(__name__)
 
-__all__ = ["register", "run"]
+__all__ = ["load_effects_file", "parse_effects", "register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -64,9 +64,9 @@ def run(args: argparse.Namespace) -> int:
 
     for path in args.effects_file:
         load_effects_file(path)
+    candidates = parse_effects(args.effects, "psf" if args.measured_psf else "height")
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
-    candidates = [c.strip() for c in args.effects.split(",") if c.strip()] if args.effects else None
     if args.measured and args.frame == "camera":
         diag, inputs = _camera(design, Path(args.measured), args, candidates)
     elif args.measured:
@@ -80,6 +80,29 @@ def run(args: argparse.Namespace) -> int:
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
                 "noise_floor": diag.noise_floor, "unexplained": diag.unexplained})
     return 0
+
+
+def parse_effects(text: str | None, domain: str) -> list[str] | None:
+    """The ``--effects`` candidates (None: every registered effect of ``domain``).
+
+    Raises
+    ------
+    DoeError
+        The list names no effect (a diagnosis with nothing to try would call any residual
+        explained), an unknown effect or one of the other domain.
+    """
+    from doedesign.errors import DoeError
+    from metrology.diagnosis.effects import REGISTRY, effects_for
+
+    if text is None:
+        return None
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    if not names:
+        known = sorted(n for n, e in REGISTRY.items() if e.domain == domain)
+        raise DoeError(f"--effects {text!r} names no effect; give a comma-separated list of {', '.join(known)} "
+                       "(or leave --effects out for all)")
+    effects_for(domain, names)  # unknown names and effects of the other domain are refused here
+    return names
 
 
 def load_effects_file(path: str | Path) -> None:

@@ -10,6 +10,7 @@ import numpy as np
 from doedesign.cli.common import Number, print_json
 from doedesign.design import Design
 from metrology.formats import readers
+from metrology.formats.plausibility import RANGES
 
 
 __all__ = ["cmd_inspect", "inspect_file", "is_design_file", "register"]
@@ -53,6 +54,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    ".asc, .csv, .npy, .npz, .tif).")
     p.add_argument("file")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--pixel-size-m", type=Number(float, 0, 1e-2, lo_open=True, unit="m"), default=None,
+    p.add_argument("--pixel-size-m", type=Number(float, 0, RANGES["pixel_size_m"].hi, lo_open=True, unit="m"), default=None,
                    help="lateral pixel size for files that do not carry one (.npy, TIFF without tags)")
     p.set_defaults(func=cmd_inspect)

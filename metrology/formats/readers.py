@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import logging
 import re
@@ -23,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from doedesign.fileio import check_input_file, load_npy, read_npz
+from doedesign.fileio import check_input_file, load_npy, parse_json, read_npz
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
-from metrology.formats.plausibility import check_claimed_pixels, check_measurement
+from metrology.formats.plausibility import check_claimed_pixels, check_measurement, pixel_size
 from metrology.formats.zygo_ascii import read_asc, read_xyz
 from metrology.formats.zygo_dat import MAGIC, read_dat
 from metrology.formats.zygo_datx import HDF5_SIGNATURE, read_datx
@@ -120,10 +119,8 @@ def read_measurement(path: str | Path, format: str | None = None, pixel_size_m: 
     return check_measurement(path, meas, pixel_overridden=pixel_size_m is not None)
 
 
-def _need_pixel(path, pixel_size_m, where):
-    if pixel_size_m is None:
-        raise MeasurementFileError(f"{path}: {where} does not record the pixel size; pass pixel_size_m")
-    return pixel_size_m
+def _need_pixel(path, pixel_size_m, stored, where, field="pixel_size_m"):
+    return pixel_size(path, pixel_size_m, stored, field, f"{where} does not record the pixel size")
 
 
 def read_array(path: str | Path, pixel_size_m: float | None = None) -> Measurement:
@@ -138,7 +135,7 @@ def read_array(path: str | Path, pixel_size_m: float | None = None) -> Measureme
     if not is_zip:
         height = load_npy(path, MeasurementFileError)
         metadata["format"] = "npy"
-        pixel = _need_pixel(path, pixel_size_m, "a .npy file")
+        pixel = _need_pixel(path, pixel_size_m, None, "a .npy file")
     else:
         metadata["format"] = "npz"
         npz = read_npz(path, (), "height map", MeasurementFileError)
@@ -151,15 +148,17 @@ def read_array(path: str | Path, pixel_size_m: float | None = None) -> Measureme
             raise MeasurementFileError(f"{path}: no 'height_m' array (found {', '.join(names) or 'nothing'})")
         stored = next((_scalar(path, k, npz[k]) for k in ("pixel_size_m", "pitch_m") if k in names), None)
         if "metadata" in names:
+            # Provenance only: metadata that cannot be read is reported and left out.
             try:
-                extra = json.loads(str(npz["metadata"]))
-            except json.JSONDecodeError:
-                extra = None
+                extra = parse_json(str(npz["metadata"]), f"{path}: 'metadata'", MeasurementFileError)
+            except MeasurementFileError as exc:
+                log.warning("%s; ignored", exc)
+                extra = {}
             if isinstance(extra, dict):
                 metadata = {**extra, **metadata}
             else:
                 log.warning("%s: 'metadata' is not a JSON object; ignored", path)
-        pixel = pixel_size_m if pixel_size_m is not None else _need_pixel(path, stored, "this .npz")
+        pixel = _need_pixel(path, pixel_size_m, stored, "this .npz")
     if height.ndim != 2 or height.dtype.kind not in "fiu":
         raise MeasurementFileError(f"{path}: expected a 2-D numeric height map, got {height.dtype} {height.shape}")
     return Measurement(height, pixel, metadata)
@@ -200,7 +199,7 @@ def read_tiff(path: str | Path, pixel_size_m: float | None = None, z_unit_m: flo
                 stored = _TIFF_RESOLUTION_UNIT_M[int(unit)] * den / num
     if data.ndim != 2:
         raise MeasurementFileError(f"{path}: expected a single-channel 2-D image, got shape {data.shape}")
-    pixel = pixel_size_m if pixel_size_m is not None else _need_pixel(path, stored, "this TIFF")
+    pixel = _need_pixel(path, pixel_size_m, stored, "this TIFF", "XResolution pixel size")
     height = data.astype(np.float64) * z_unit_m
     return Measurement(height, pixel, {"source_file": str(path), "format": "tiff", "z_unit_m": z_unit_m})
 
@@ -259,5 +258,4 @@ def read_profile_csv(path: str | Path, pixel_size_m: float | None = None) -> Mea
     metadata = {r[0].strip(): ",".join(r[1:]).strip() for r in rows[:start] if r and r[0].strip()}
     metadata.update({"source_file": str(path), "format": "mx_profile_csv", "x0_m": float(x[0]),
                      "height_column": names[zcol]})
-    pixel = pixel_size_m if pixel_size_m is not None else step
-    return Measurement(z[np.newaxis, :], pixel, metadata)
+    return Measurement(z[np.newaxis, :], _need_pixel(path, pixel_size_m, step, "the X column", "X step"), metadata)

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError
-from metrology.formats.plausibility import check_claimed_pixels
+from metrology.formats.plausibility import check_claimed_pixels, pixel_size
 from metrology.formats.zygo_dat import PHASE_RES_COUNTS, counts_to_height, height_step_m, unix_to_iso
 
 __all__ = ["NO_DATA", "TITLE_ASC", "TITLE_XYZ", "header_lines", "parse_header", "read_asc", "read_xyz"]
@@ -161,11 +161,8 @@ def _metadata(path, fmt, h):
 
 
 def _pixel(path, h, pixel_size_m):
-    pixel = pixel_size_m if pixel_size_m is not None else h["lateral_res_m"]
-    if not pixel or pixel <= 0:
-        raise MeasurementFileError(f"{path}: camera resolution is {h['lateral_res_m']} (not calibrated); "
-                                   "pass pixel_size_m")
-    return pixel
+    return pixel_size(path, pixel_size_m, h["lateral_res_m"], "lateral_res_m",
+                      f"camera resolution is {h['lateral_res_m']} (not calibrated)")
 
 
 def _read_text(path):

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError
+from metrology.formats.plausibility import pixel_size
 
 __all__ = ["FIELDS", "INVALID_INTENSITY", "INVALID_PHASE", "MAGIC", "MAGIC_BY_FORMAT", "PHASE_RES_COUNTS",
            "counts_to_height", "height_step_m", "height_to_counts", "read_dat", "read_header", "unix_to_iso"]
@@ -221,10 +222,8 @@ def read_dat(path: str | Path, pixel_size_m: float | None = None) -> Measurement
     counts = np.fromfile(path, dtype=">i4", count=cw * ch,
                          offset=h["header_size"] + 2 * n_intensity).reshape(ch, cw)
     height = counts_to_height(counts, step, h["phase_sign"] != 0)
-    pixel = pixel_size_m if pixel_size_m is not None else h["lateral_res"]
-    if not pixel or pixel <= 0:
-        raise MeasurementFileError(f"{path}: lateral_res is {h['lateral_res']} (not calibrated); "
-                                   "pass pixel_size_m")
+    pixel = pixel_size(path, pixel_size_m, h["lateral_res"], "lateral_res_m",
+                       f"lateral_res is {h['lateral_res']} (not calibrated)")
     metadata = {
         "source_file": str(path),
         "format": "metropro_dat",

@@ -12,7 +12,10 @@ fringes is ``value * S * O * wavelength`` metres) and ``X Converter``, a compoun
 whose numeric ``Parameters`` field holds the pixel size in metres at index 1.
 
 Only the surface dataset and its attributes are read: some files hold small side
-datasets compressed with a vendor filter h5py cannot decode. The array keeps camera
+datasets compressed with a vendor filter h5py cannot decode. Links are looked at before
+they are followed and the surface's storage is checked: an external link, external raw
+storage or a virtual dataset mapped from another file would read someone else's data (or
+/dev/zero) as the surface, so they are refused. The array keeps camera
 order (row 0 at the top of the camera image).
 """
 
@@ -25,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
-from metrology.formats.plausibility import check_claimed_pixels, check_value
+from metrology.formats.plausibility import check_claimed_pixels, check_value, pixel_size
 
 if TYPE_CHECKING:
     import h5py
@@ -49,6 +52,8 @@ HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 # A No Data value at least this large marks every value at or above it (Zygo writes the type's
 # maximum); a smaller one marks only itself, so a marker below the data cannot hide valid pixels.
 NO_DATA_SENTINEL_MIN = 1e30
+# Soft links followed in a row before a chain is taken for a loop.
+MAX_SOFT_LINKS = 16
 
 
 def _decode(value):
@@ -101,11 +106,64 @@ def _numbers(value):
     return out
 
 
-def _metadata_table(f):
+def _resolve(f, name, path, hops=0):
+    """The object at ``name`` in ``f``, None when missing, never leaving the file.
+
+    Each path component's link is looked at before it is followed: an external link
+    (another file, /dev/zero, a pipe) is refused, a soft link is resolved inside the file
+    (a dangling one is missing). h5py would otherwise follow both silently.
+    """
+    import h5py
+
+    node, where = f["/"], ""
+    for part in [p for p in name.split("/") if p]:
+        if not isinstance(node, h5py.Group):
+            return None
+        link = node.get(part, getlink=True)
+        parent, where = where, f"{where}/{part}"
+        if link is None:
+            return None
+        if isinstance(link, h5py.ExternalLink):
+            raise MeasurementFileError(f"{path}: {where} is an external link to {link.filename}:{link.path}; "
+                                       "a .datx must hold its own data")
+        if isinstance(link, h5py.SoftLink):
+            if hops >= MAX_SOFT_LINKS:
+                raise MeasurementFileError(f"{path}: {where}: more than {MAX_SOFT_LINKS} soft links in a row (a loop?)")
+            target = link.path if link.path.startswith("/") else f"{parent}/{link.path}"
+            node = _resolve(f, target, path, hops + 1)
+            if node is None:
+                return None
+        elif isinstance(link, h5py.HardLink):
+            node = node[part]
+        else:
+            raise MeasurementFileError(f"{path}: {where} is a {type(link).__name__}, not a group or dataset")
+    return node
+
+
+def _check_storage(dset, path):
+    """Refuse a dataset whose values live outside the file (external raw storage, virtual sources)."""
+    import h5py
+
+    plist = dset.id.get_create_plist()
+    if plist.get_external_count():
+        target = _decode(plist.get_external(0)[0])
+        raise MeasurementFileError(f"{path}: {dset.name} keeps its values in an external file ({target}); "
+                                   "a .datx must hold its own data")
+    if plist.get_layout() == h5py.h5d.VIRTUAL:
+        outside = sorted({_decode(plist.get_virtual_filename(i)) for i in range(plist.get_virtual_count())} - {"."})
+        if outside:
+            raise MeasurementFileError(f"{path}: {dset.name} is a virtual dataset mapped from {', '.join(outside)}; "
+                                       "a .datx must hold its own data")
+    return dset
+
+
+def _metadata_table(f, path):
     """Map (source, link) -> destination from ``/MetaData``; {} when absent or odd."""
-    if "MetaData" not in f or not hasattr(f["MetaData"], "dtype"):
+    meta = _resolve(f, "MetaData", path)
+    if meta is None or not hasattr(meta, "dtype"):
         return {}
-    table = f["MetaData"][()]
+    check_claimed_pixels(path, meta.shape, what="/MetaData")
+    table = _check_storage(meta, path)[()]
     names = table.dtype.names
     if not names or len(names) < 3:
         return {}
@@ -114,11 +172,12 @@ def _metadata_table(f):
     return {(_decode(row[src]), _decode(row[link])): _decode(row[dst]) for row in table.reshape(-1)}
 
 
-def _first_dataset(group):
-    keys = sorted(k for k in group.keys() if hasattr(group[k], "shape"))
+def _first_dataset(f, group, path):
+    found = {k: _resolve(f, f"{group.name}/{k}", path) for k in sorted(group.keys())}
+    keys = [k for k, obj in found.items() if hasattr(obj, "shape")]
     if len(keys) > 1:
         log.warning("%s holds %d surfaces; reading %s", group.name, len(keys), keys[0])
-    return group[keys[0]] if keys else None
+    return found[keys[0]] if keys else None
 
 
 def find_surface(f: h5py.File, path: str | Path) -> tuple[h5py.Dataset, str]:
@@ -129,23 +188,25 @@ def find_surface(f: h5py.File, path: str | Path) -> tuple[h5py.Dataset, str]:
     (h5py.Dataset, str)
         The dataset and one of "metadata", "data_surface", "measurement_surface".
     """
-    table = _metadata_table(f)
+    table = _metadata_table(f, path)
     measurement = table.get(("Root", "Measurement"))
     surface = table.get((measurement, "Surface")) if measurement else None
     if surface:
         target = table.get((surface, "Path"), f"/Data/Surface/{surface}")
-        if target in f and hasattr(f[target], "shape"):
-            return f[target], "metadata"
+        obj = _resolve(f, target, path)
+        if hasattr(obj, "shape"):
+            return _check_storage(obj, path), "metadata"
         log.warning("%s: /MetaData points to %s, which is missing; searching the usual places", path, target)
-    if "Data/Surface" in f and not hasattr(f["Data/Surface"], "shape"):
-        dset = _first_dataset(f["Data/Surface"])
+    group = _resolve(f, "Data/Surface", path)
+    if group is not None and not hasattr(group, "shape"):
+        dset = _first_dataset(f, group, path)
         if dset is not None:
-            return dset, "data_surface"
-    if "Measurement/Surface" in f:
-        obj = f["Measurement/Surface"]
-        dset = obj if hasattr(obj, "shape") else _first_dataset(obj)
+            return _check_storage(dset, path), "data_surface"
+    obj = _resolve(f, "Measurement/Surface", path)
+    if obj is not None:
+        dset = obj if hasattr(obj, "shape") else _first_dataset(f, obj, path)
         if dset is not None:
-            return dset, "measurement_surface"
+            return _check_storage(dset, path), "measurement_surface"
     raise MeasurementFileError(f"{path}: no surface dataset (looked through /MetaData, /Data/Surface/*, "
                                "/Measurement/Surface)")
 
@@ -231,9 +292,8 @@ def _read_surface(path, dset, found, pixel_size_m):
     data *= factor
     data[invalid] = np.nan
     params = converter_parameters(attrs["X Converter"][()].reshape(-1)[0]) if "X Converter" in attrs else None
-    pixel = pixel_size_m if pixel_size_m is not None else (params[1] if params is not None else None)
-    if pixel is None or not pixel > 0:
-        raise MeasurementFileError(f"{path}: no lateral pixel size in the X Converter; pass pixel_size_m")
+    pixel = pixel_size(path, pixel_size_m, params[1] if params is not None else None, "X Converter pixel size",
+                       "no lateral pixel size in the X Converter")
     metadata = {
         "source_file": str(path),
         "format": "mx_datx",

@@ -80,7 +80,7 @@ CASES = [
     (["psf", "{d}", "--aperture-mm", "nan"], "'nan'"),
     (["masks", "{d}", "--clear-aperture-mm", "0"], "> 0"),
     (["calibrate", "psf", "--captures", "x", "--pixel-pitch-um", "0"], "> 0"),
-    (["calibrate", "psf", "--captures", "{d}", "--window", "100000,100000"], "0..8192"),
+    (["calibrate", "psf", "--captures", "{d}", "--window", "100000,100000"], "8..8192"),
     (["demo", "--doe-px", "0"], ">= 16"),
     (["inspect", "{d}", "--pixel-size-m", "inf"], "'inf'"),
 ]
@@ -125,3 +125,63 @@ def test_named_pipe_input_refused_not_hung(tmp_path, capsys):
 def test_zero_is_a_value_not_a_default():
     assert Number(int, 0)("0") == 0
     assert math.isinf(Number(float, 0, lo_open=True, allow_inf=True)("inf"))
+
+
+ONE_LINE_CASES = [
+    (["calibrate", "psf", "--captures", "{d}", "--window", "0,0"], "--window '0,0': each must lie in 8..8192"),
+    (["calibrate", "psf", "--captures", "{d}", "--window", "4,512"], "8..8192"),
+    (["calibrate", "psf", "--captures", "{d}", "--orders", "a"], "--orders must be integers"),
+    (["calibrate", "psf", "--captures", "{d}", "--orders", "0,1,100000"], "each must lie in -1000..1000"),
+    (["diagnose", "--design", "{d}", "--measured", "{m}", "--effects", ","], "names no effect"),
+    (["diagnose", "--design", "{d}", "--measured", "{m}", "--effects", ""], "names no effect"),
+    (["diagnose", "--design", "{d}", "--measured", "{m}", "--effects", "mask_overlay,nope"], "unknown effect 'nope'"),
+    (["diagnose", "--design", "{d}", "--measured-psf", "{m}", "--effects", "mask_overlay"],
+     "belongs to the height domain"),
+]
+
+
+@pytest.mark.parametrize("argv,match", ONE_LINE_CASES, ids=[" ".join(c[0][:1] + c[0][-2:]) for c in ONE_LINE_CASES])
+def test_cli_refuses_bad_value_in_one_line_before_work(tmp_path, capsys, argv, match):
+    d = _design(tmp_path)
+    out = tmp_path / "out"
+    argv = [a.format(d=d, m=d) for a in argv] + ["--out", str(out)]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert match in captured.err and captured.err.count("\n") == 1 and "Traceback" not in captured.err, captured.err
+    assert not captured.out and not out.exists()
+
+
+def test_camera_entry_errors_name_the_design_file(tmp_path, capsys):
+    import json
+
+    path = tmp_path / "badcam.npz"
+    d = Design(np.zeros((16, 16)), 5.4e-6, metadata={"name": "internal-name", "camera": {"pixel_pitch_m": -1.0}})
+    np.savez(path, height_m=d.height_m, pitch_m=np.float64(d.pitch_m), material=np.str_(d.material),
+             design_wavelength_m=np.float64(d.design_wavelength_m), metadata=np.str_(json.dumps(d.metadata)))
+    stack = tmp_path / "stack.npz"
+    np.savez(stack, psf=np.ones((2, 1, 16, 16)), wavelengths_m=np.array([550e-9]), pixel_pitch_m=np.float64(5.4e-6),
+             views=np.array(["coded", "uncoded"]))
+    out = tmp_path / "out"
+    assert main(["diagnose", "--design", str(path), "--measured-psf", str(stack), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"doe diagnose: error: {path}: metadata camera") and err.count("\n") == 1, err
+    assert "internal-name" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("text,match", [("a = " + "[" * 50_000 + "]" * 50_000 + "\n", "nested too deeply"),
+                                        ("a = " + "9" * 5000 + "\n", "not valid TOML")])
+def test_hostile_toml_is_one_line(tmp_path, capsys, text, match):
+    from doedesign import targets
+    from doedesign.errors import DoeError
+
+    path = tmp_path / "hostile.toml"
+    path.write_text(text)
+    with pytest.raises(DoeError, match=match):
+        targets.load_toml(path)
+    out = tmp_path / "out.npz"
+    for argv in (["design", "bayer", "--config", str(path), "--out", str(out)],
+                 ["design", str(path), "--out", str(out)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(path) in err and match in err and "Traceback" not in err, err
+    assert not out.exists()

@@ -95,3 +95,19 @@ def test_calibrate_psf_marks_its_folder_until_every_output_is_written(tmp_path, 
     assert cli.main(argv) == 0
     assert not (out / INCOMPLETE_MARKER).exists()
     assert _results(out) == ["psf_network.npy", "psf_stack.npz", "psf_stack.png", "report.json"]
+
+
+def test_calibrate_psf_checks_the_prediction_before_writing(tmp_path, captures, capsys):
+    """A --predicted file that does not fit the captures (no 450/500 nm PSF) is refused before any output."""
+    from doedesign.psf import PSFEngine
+
+    cam = Camera(aperture_diameter_m=48 * 5.4e-6, window_shape=(48, 48), axis_pixel=(24, 24))
+    predicted = PSFEngine(cam, 5.4e-6, (48, 48), wavelengths_m=[600e-9], depths_m=[np.inf]).psf(np.zeros((48, 48)))
+    predicted_path = predicted.save(tmp_path / "predicted_600nm.npz")
+    out = tmp_path / "cal"
+    argv = ["calibrate", "psf", "--captures", str(captures), "--coded-view", "other", "--window", "32,32",
+            "--background", "none", "--predicted", str(predicted_path), "--out", str(out)]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(predicted_path) in err and "Traceback" not in err, err
+    assert not out.exists()

@@ -165,6 +165,127 @@ def _datx(tmp_path, **kw):
     return path
 
 
+def _replace_surface(tmp_path, make, name="links.datx"):
+    """A .datx whose surface dataset is replaced by ``make(f, surface_path, values)`` (attributes kept)."""
+    import h5py
+
+    path = tmp_path / name
+    write_datx(path, _height(), PIXEL)
+    with h5py.File(path, "a") as f:
+        where = f"/Data/Surface/{next(iter(f['Data/Surface']))}"
+        values, attrs = f[where][()], dict(f[where].attrs)
+        del f[where]
+        made = make(f, where, values)
+        if made is not None:
+            for k, v in attrs.items():
+                made.attrs[k] = v
+    return path
+
+
+def _other_file(tmp_path, values=None):
+    """A second, valid .datx beside the first (whose surface an external link would read)."""
+    other = tmp_path / "other.datx"
+    write_datx(other, np.full((12, 10), 1e-6) if values is None else values, PIXEL)
+    return other
+
+
+def _external_link(tmp_path):
+    import h5py
+
+    other = _other_file(tmp_path)
+    with h5py.File(other, "r") as g:
+        target = f"/Data/Surface/{next(iter(g['Data/Surface']))}"
+    return _replace_surface(tmp_path, lambda f, where, v: f.__setitem__(where, h5py.ExternalLink(other.name, target)))
+
+
+def _external_group(tmp_path):
+    """/Data itself is an external link: the MetaData path walks through it."""
+    import h5py
+
+    _other_file(tmp_path)
+    path = tmp_path / "group.datx"
+    write_datx(path, _height(), PIXEL)
+    with h5py.File(path, "a") as f:
+        del f["Data"]
+        f["Data"] = h5py.ExternalLink("other.datx", "/Data")
+    return path
+
+
+def _external_storage(tmp_path, target):
+    """The surface's raw values live in ``target`` (another file's bytes, /dev/zero)."""
+    def make(f, where, values):
+        if target == "file":
+            raw = tmp_path / "raw.bin"
+            raw.write_bytes(np.ones(values.shape, "<f8").tobytes())  # 1 um everywhere, not the surface
+            ext = [(str(raw), 0, values.nbytes)]
+        else:
+            ext = [(target, 0, values.nbytes)]
+        return f.create_dataset(where, shape=values.shape, dtype="<f8", external=ext)
+    return _replace_surface(tmp_path, make)
+
+
+def _virtual(tmp_path):
+    import h5py
+
+    other = _other_file(tmp_path)
+
+    def make(f, where, values):
+        with h5py.File(other, "r") as g:
+            name = f"/Data/Surface/{next(iter(g['Data/Surface']))}"
+        layout = h5py.VirtualLayout(shape=values.shape, dtype="<f8")
+        layout[:] = h5py.VirtualSource(str(other), name, shape=values.shape)
+        return f.create_virtual_dataset(where, layout)
+    return _replace_surface(tmp_path, make)
+
+
+def _soft_to_external(tmp_path):
+    """The surface is a soft link (inside the file) to an external link."""
+    import h5py
+
+    other = _other_file(tmp_path)
+
+    def make(f, where, values):
+        with h5py.File(other, "r") as g:
+            name = f"/Data/Surface/{next(iter(g['Data/Surface']))}"
+        f["/Elsewhere/surface"] = h5py.ExternalLink(other.name, name)
+        f[where] = h5py.SoftLink("/Elsewhere/surface")
+    return _replace_surface(tmp_path, make)
+
+
+def _soft_loop(tmp_path):
+    import h5py
+
+    def make(f, where, values):
+        f["/Loop/a"] = h5py.SoftLink("/Loop/b")
+        f["/Loop/b"] = h5py.SoftLink("/Loop/a")
+        f[where] = h5py.SoftLink("/Loop/a")
+    return _replace_surface(tmp_path, make)
+
+
+def _external_metadata(tmp_path):
+    import h5py
+
+    other = _other_file(tmp_path)
+    path = tmp_path / "meta.datx"
+    write_datx(path, _height(), PIXEL)
+    with h5py.File(path, "a") as f:
+        del f["MetaData"]
+        f["MetaData"] = h5py.ExternalLink(other.name, "/MetaData")
+    return path
+
+
+DATX_LINKS = [
+    ("datx surface is an external link", _external_link, "external link"),
+    ("datx /Data is an external link", _external_group, "external link"),
+    ("datx surface stored in another file", lambda t: _external_storage(t, "file"), "external file"),
+    ("datx surface stored in /dev/zero", lambda t: _external_storage(t, "/dev/zero"), "external file"),
+    ("datx virtual surface from another file", _virtual, "virtual dataset"),
+    ("datx soft link to an external link", _soft_to_external, "external link"),
+    ("datx soft link loop", _soft_loop, "soft links"),
+    ("datx MetaData is an external link", _external_metadata, "external link"),
+]
+
+
 def _csv_long_field(tmp_path):
     path = tmp_path / "long.csv"
     path.write_text("X (um),Y (um)\n0," + "1" * 200_000 + "\n1,2\n")
@@ -220,6 +341,8 @@ NAMED = [
     ("asc nan in integer field", lambda t: _edit_ascii(_write(t, "asc"), 4, 3, "nan"), "not a number"),
     ("csv field over the parser limit", _csv_long_field, "field"),
     ("datx text surface", lambda t: _datx_text(t), "not numbers"),
+    # data from outside the file read as the surface
+    *DATX_LINKS,
     # not a regular file
     *[(f"{fmt} named pipe", lambda t, fmt=fmt: _fifo(t, fmt), "not a regular file") for fmt in FORMATS],
     ("folder as input", lambda t: (t / "d.datx").mkdir() or t / "d.datx", "folder"),
@@ -249,6 +372,29 @@ def _datx_text(tmp_path):
 @pytest.mark.parametrize("name,build,match", NAMED, ids=[n[0] for n in NAMED])
 def test_named_case_is_refused_cleanly(tmp_path, name, build, match):
     _refused(build(tmp_path), match)
+
+
+@pytest.mark.parametrize("name,build,match", DATX_LINKS, ids=[n[0] for n in DATX_LINKS])
+def test_datx_outside_data_refused_by_the_cli(tmp_path, capsys, name, build, match):
+    from doedesign.cli import main
+
+    path = build(tmp_path)
+    assert main(["inspect", str(path)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1 and str(path) in captured.err and match in captured.err, captured.err
+    assert "Traceback" not in captured.err and not captured.out
+
+
+def test_datx_soft_link_inside_the_file_reads(tmp_path):
+    import h5py
+
+    def make(f, where, values):
+        real = f.create_dataset("/Elsewhere/surface", data=values)
+        f[where] = h5py.SoftLink("/Elsewhere/surface")
+        return real
+    meas = read_measurement(_replace_surface(tmp_path, make))
+    expected = read_measurement(write_datx(tmp_path / "plain.datx", _height(), PIXEL))
+    np.testing.assert_array_equal(meas.height_m, expected.height_m)
 
 
 def test_zip_bomb_refused_before_inflating(tmp_path):
@@ -367,3 +513,63 @@ def test_levels_disagreeing_with_heights_name_count_and_first_pixel(tmp_path):
     with pytest.raises(DesignFileError, match=r"at 1 pixel\(s\); first at row 1, col 2"):
         Design.load(_levels_off(tmp_path))
     assert Design.load(_design_npz(tmp_path)).levels[3, 3] == 15
+
+
+# -- JSON inside user files: nesting deeper than the parser's recursion, integers over the digit limit --------
+DEEP_JSON = "[" * 50_000 + "]" * 50_000
+HUGE_INT_JSON = '{"name": ' + "9" * 5000 + "}"
+HOSTILE_JSON = [("nested 50000 deep", DEEP_JSON, "nested too deeply"),
+                ("5000-digit integer", HUGE_INT_JSON, "not valid JSON")]
+
+
+def _one_line_refusal(capsys, argv, path):
+    from doedesign.cli import main
+
+    assert main(argv) == 2, argv
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1 and str(path) in captured.err, captured.err
+    assert "Traceback" not in captured.err and "RecursionError" not in captured.err
+    return captured.err
+
+
+@pytest.mark.parametrize("name,text,match", HOSTILE_JSON, ids=[h[0] for h in HOSTILE_JSON])
+def test_hostile_design_metadata_is_one_line(tmp_path, capsys, name, text, match):
+    path = _design_npz(tmp_path, metadata=np.str_(text))
+    with pytest.raises(DesignFileError, match=match):
+        Design.load(path)
+    out = tmp_path / "out"
+    for argv in (["inspect", str(path)], ["diagnose", "--design", str(path), "--measured", str(path), "--out", str(out)]):
+        assert match in _one_line_refusal(capsys, argv, path)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name,text,match", HOSTILE_JSON, ids=[h[0] for h in HOSTILE_JSON])
+def test_hostile_json_in_metrology_files(tmp_path, capsys, name, text, match, caplog):
+    from metrology.calibration.dualpixel import CrosstalkCalibration
+    from metrology.calibration.psfstack import read_stack
+
+    stack = tmp_path / "stack.npz"
+    np.savez(stack, psf=np.ones((2, 1, 16, 16)), wavelengths_m=np.array([550e-9]), pixel_pitch_m=np.float64(5.4e-6),
+             views=np.array(["coded", "uncoded"]), info=np.str_(text))
+    with pytest.raises(DoeError, match=match):
+        read_stack(stack)
+    out = tmp_path / "out"
+    design = Design(np.zeros((16, 16)), 5.4e-6).save(tmp_path / "flat.npz")
+    _one_line_refusal(capsys, ["diagnose", "--design", str(design), "--measured-psf", str(stack), "--out", str(out)],
+                      stack)
+    cal = tmp_path / "crosstalk.npz"
+    np.savez(cal, ratio=np.zeros((2, 4, 16)), raw_ratio=np.zeros((2, 4, 16)), metadata=np.str_(text))
+    with pytest.raises(DoeError, match=match):
+        CrosstalkCalibration.load(cal)
+    captures = tmp_path / "caps"
+    captures.mkdir()
+    for kind in ("sum", "view"):
+        np.save(captures / f"550nm_{kind}.npy", np.ones((32, 32)))
+    _one_line_refusal(capsys, ["calibrate", "psf", "--captures", str(captures), "--crosstalk", str(cal),
+                               "--out", str(out)], cal)
+    assert not out.exists()
+    # A measurement's metadata is provenance: unreadable, it is left out with a warning.
+    meas = tmp_path / "meas.npz"
+    np.savez(meas, height_m=np.zeros((4, 4)), pixel_size_m=np.float64(1e-6), metadata=np.str_(text))
+    assert read_measurement(meas).metadata["format"] == "npz"
+    assert match in caplog.text
