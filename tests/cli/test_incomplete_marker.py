@@ -99,7 +99,7 @@ def test_calibrate_psf_marks_its_folder_until_every_output_is_written(tmp_path, 
 
 def test_calibrate_psf_checks_the_prediction_before_writing(tmp_path, captures, capsys):
     """A --predicted file that does not fit the captures (no 450/500 nm PSF) is refused before any output."""
-    from doedesign.psf import PSFEngine
+    from doedesign.engine import PSFEngine
 
     cam = Camera(aperture_diameter_m=48 * 5.4e-6, window_shape=(48, 48), axis_pixel=(24, 24))
     predicted = PSFEngine(cam, 5.4e-6, (48, 48), wavelengths_m=[600e-9], depths_m=[np.inf]).psf(np.zeros((48, 48)))
