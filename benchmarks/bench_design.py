@@ -118,7 +118,7 @@ def spot_array(n=64, maxiter=100):
     ]
 
 
-def bayer_design_time(size_px=1600, max_iter=None, anneal_iter=None, full_window=True):
+def bayer_design_time(size_px=1600, max_iter=None, anneal_iter=None, full_window=True, device="cpu"):
     """Time to design the demo's Bayer element (its settings, ``metrology.pipeline.DemoConfig``) at ``size_px``.
 
     The demo's element: RGGB geometry, soft minimum of the three colours' on-target light,
@@ -126,7 +126,8 @@ def bayer_design_time(size_px=1600, max_iter=None, anneal_iter=None, full_window
     and ``anneal_iter`` per annealing stage (default 5), camera focused at infinity. The loss
     reads the target pixels and the window energy, so the engine computes only those; with
     ``full_window`` the same design is run again through the whole 512 x 512 window (the peer
-    row) and the two height maps are compared.
+    row) and the two height maps are compared. ``device``: where the engine computes
+    (:mod:`doedesign.engine.backend`).
     """
     from metrology.pipeline import DemoConfig
 
@@ -134,7 +135,8 @@ def bayer_design_time(size_px=1600, max_iter=None, anneal_iter=None, full_window
     cam = Camera(aperture_diameter_m=size_px * PITCH, focus_distance_m=np.inf)
     target = targets.bayer(cam, rggb=demo.rggb)
     settings = OptimizerSettings(max_iter=max_iter or demo.iterations, seed=demo.seed, objective=demo.objective,
-                                 init=targets.DEFAULT_INIT["bayer"], anneal_iter=anneal_iter or demo.anneal_iterations)
+                                 init=targets.DEFAULT_INIT["bayer"], anneal_iter=anneal_iter or demo.anneal_iterations,
+                                 device=device)
     loss = LossSpec.parse(targets.DEFAULT_LOSS["bayer"])
 
     def design(full):

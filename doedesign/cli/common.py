@@ -88,6 +88,15 @@ def print_json(obj: Any) -> None:
     sys.stdout.write(dumps_json(obj) + "\n")
 
 
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device cpu|gpu|auto`` (:func:`doedesign.engine.backend.select_backend`)."""
+    from ..engine.backend import DEVICES
+
+    parser.add_argument("--device", choices=DEVICES, default="auto",
+                        help="where PSFs and gradients are computed: gpu (CuPy), cpu, or auto (the GPU when "
+                             "CuPy finds a usable one, else the CPU; default)")
+
+
 def add_camera_options(parser: argparse.ArgumentParser) -> None:
     """Camera options shared by the commands that simulate PSFs."""
     g = parser.add_argument_group("camera (defaults: the seed camera)")

@@ -16,7 +16,7 @@ from ..fileio import ensure_output_dir, ensure_output_file, output_run, parse_to
 from ..optimizer.losses import LossSpec
 from ..optimizer.optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
-from .common import Number
+from .common import Number, add_device_option
 
 __all__ = ["cmd_design", "cmd_evaluate_bayer", "quick_bayer_design", "register",
            "robust_perturbations"]
@@ -96,6 +96,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--robust", metavar="SPEC",
                    help='robust design over process samples of this spec (TOML, a doe compare report.json, or '
                         '"default"), from the doe.perturbations entry points')
+    add_device_option(p)
     p.add_argument("--robust-samples", type=Number(int, 1, 1000), default=4, help="process samples per iteration (default 4)")
     p.add_argument("--robust-measure", choices=("mean", "cvar"), help="expected loss (default) or CVaR")
     p.set_defaults(func=cmd_design)
@@ -221,6 +222,7 @@ def cmd_design(args: argparse.Namespace) -> int:
     unknown = set(opt) - set(OptimizerSettings.__dataclass_fields__)
     if unknown:
         raise DoeError(f"{source}: unknown [optimize] key(s) {', '.join(sorted(unknown))}")
+    opt.setdefault("device", args.device)
     settings = OptimizerSettings(**opt)
     init = None
     if args.init_design:

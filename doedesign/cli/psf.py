@@ -10,7 +10,7 @@ import numpy as np
 from ..design import Design
 from ..engine.psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 from ..progress import Progress
-from .common import Number, NumberList, add_camera_options, camera_from_args
+from .common import Number, NumberList, add_camera_options, add_device_option, camera_from_args
 
 __all__ = ["cmd_psf", "register"]
 
@@ -29,7 +29,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm)
     depths = args.depth_m
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths, depths,
-                       doe_oversample=args.doe_oversample)
+                       doe_oversample=args.doe_oversample, device=args.device)
     steps = 2 * engine.depths_m.size * wavelengths.size
     with Progress(steps, desc="psf") as bar:
         result = engine.psf(design.height_m, progress=bar, threads=args.threads)
@@ -54,5 +54,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"wavelengths computed side by side (default {DEFAULT_THREADS}: the cores, at most 4)")
     p.add_argument("--out", required=True, help="output PSF .npz")
     p.add_argument("--png", help="optional PNG montage")
+    add_device_option(p)
     add_camera_options(p)
     p.set_defaults(func=cmd_psf)

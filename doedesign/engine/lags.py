@@ -46,92 +46,117 @@ def axis_nodes(n_pix: int, axis: float, pixel_m: float, max_lag: int,
     return centres, nodes * pixel_m / 2, weights * pixel_m / 2
 
 
-def axis_kernel(n_pix: int, axis: float, pixel_m: float, lags: np.ndarray, freq: float) -> np.ndarray:
+def sinc(x, xp=np):
+    """Normalized ``sin(pi x) / (pi x)`` (1 at 0) in namespace ``xp`` (the standard has no sinc)."""
+    px = np.pi * x
+    zero = px == 0
+    return xp.where(zero, 1.0, xp.sin(px) / xp.where(zero, 1.0, px))
+
+
+def axis_kernel(n_pix: int, axis: float, pixel_m: float, lags: np.ndarray, freq: float, xp=np):
     """``K[j, k]``: sensor pixel ``j`` integral of ``sinc^2(f x) exp(-2 pi i k f x)`` for each lag.
 
-    Parameters as :func:`axis_nodes`; ``lags`` are the integer lags (columns of the result).
+    Parameters as :func:`axis_nodes`; ``lags`` are the integer lags (columns of the result), a
+    host array; the kernel is built in namespace ``xp`` (:mod:`doedesign.engine.backend`).
     """
     lags = np.asarray(lags)
+    freq = float(freq)  # a NumPy scalar would pull the namespace's arrays back into NumPy
     centres, u, w = axis_nodes(n_pix, axis, pixel_m, int(np.abs(lags).max()), freq)
-    env = np.sinc(freq * (centres[:, None] + u[None, :])) ** 2 * w
-    within = np.exp(-2j * np.pi * freq * np.outer(u, lags))
-    return np.exp(-2j * np.pi * freq * np.outer(centres, lags)) * (env @ within)
+    centres, u, w, k = (xp.asarray(v, dtype=xp.float64) for v in (centres, u, w, lags))
+    env = sinc(freq * (centres[:, None] + u[None, :]), xp) ** 2 * w
+    within = xp.exp(-2j * np.pi * freq * (u[:, None] * k[None, :]))
+    return xp.exp(-2j * np.pi * freq * (centres[:, None] * k[None, :])) * (env @ within)
 
 
-def fft_shape(t: np.ndarray) -> tuple[int, int]:
+def fft_shape(t) -> tuple[int, int]:
     """FFT size holding a linear autocorrelation of ``t`` without wrap-around."""
     return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
 
 
-def paired_lags(t: np.ndarray, workers: int = -1) -> tuple[np.ndarray, np.ndarray, int]:
+def _flipped_rows(r, a: int, ly: int, xp):
+    """Rows ``(-k) mod ly`` of ``r`` for k = 0..a-1: row 0, then ly-1 down to ly-a+1 (a gather
+    written as slices: the standard indexes with integer arrays only on one axis)."""
+    if a == 1:
+        return r[0:1, ...]
+    return xp.concat([r[0:1, ...], xp.flip(r[ly - a + 1:ly, ...], axis=0)], axis=0)
+
+
+def paired_lags(t, backend, workers: int = -1) -> tuple:
     """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
 
-    ``workers`` is the FFTs' thread count (-1: all cores; 1 when wavelengths run side by side).
+    ``backend`` is the :class:`~doedesign.engine.backend.Backend` that holds ``t``; ``workers``
+    the FFTs' thread count on the CPU (-1: all cores; 1 when wavelengths run side by side).
 
     Returns ``(S, D, n_fft)``, ``S`` and ``D`` shaped (2, a, b) each as (real, imaginary) planes, with
     ``S[ky] = C[ky] + C[-ky]`` and ``D[ky] = C[ky] - C[-ky]`` for ky = 0..a-1. Because
     ``C[-ky, kx]`` meets ``conj(K_y)``, the row transform of the pair is ``Re K_y S + i Im K_y D``:
     real-by-complex products, half the work of the complex ones.
     """
+    xp = backend.xp
     a, b = t.shape
     ly, lx = fft_shape(t)
-    spec = sfft.fft(t, n=lx, axis=1, workers=workers)
-    spec = sfft.fft(spec, n=ly, axis=0, workers=workers, overwrite_x=True)
-    planes = spec.view(spec.real.dtype)
-    np.square(planes, out=planes)
-    power = planes[:, 0::2] + planes[:, 1::2]
-    del spec, planes
+    spec = backend.fft(t, n=lx, axis=1, workers=workers)
+    spec = backend.fft(spec, n=ly, axis=0, workers=workers)
+    # |spec|^2 in place where the library gives views of the real and imaginary parts.
+    power = xp.real(spec)
+    power *= power
+    im = xp.imag(spec)
+    im *= im
+    power += im
+    del spec, im
     # C[k] = conj(R[k]) / N: the conjugate is taken below by the sign of the imaginary planes.
-    r = sfft.rfft2(power, workers=workers)
+    r = backend.rfftn(power, axes=(0, 1), workers=workers)
     del power
     plus = r[:a, :b]
-    minus = r[(-np.arange(a)) % ly, :b]
-    s = np.empty((2, a, b), dtype=t.real.dtype)
-    d = np.empty_like(s)
-    np.add(plus.real, minus.real, out=s[0])
-    np.add(plus.imag, minus.imag, out=s[1])
-    np.negative(s[1], out=s[1])
-    np.subtract(plus.real, minus.real, out=d[0])
-    np.subtract(minus.imag, plus.imag, out=d[1])
+    minus = _flipped_rows(r, a, ly, xp)[:, :b]
+    pr, pi, mr, mi = xp.real(plus), xp.imag(plus), xp.real(minus), xp.imag(minus)
+    s = xp.stack([pr + mr, -(pi + mi)])
+    d = xp.stack([pr - mr, mi - pi])
     return s, d, ly * lx
 
 
-def folded_psf(s: np.ndarray, d: np.ndarray, kernels: tuple[np.ndarray, ...]) -> np.ndarray:
+def folded_psf(s, d, kernels: tuple) -> object:
     """``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (unscaled): six real matrix products.
 
     ``kernels`` are ``(Re K_y, Im K_y, Re K_x^T, Im K_x^T)`` with the ky = 0 column of ``K_y``
     halved (the +-ky pairing counts it twice) and the Hermitian fold (factor 2 for kx > 0) in ``K_x``.
     """
     kyr, kyi, kxr, kxi = kernels
-    zr = kyr @ s[0]
-    zi = kyr @ s[1]
-    zr -= kyi @ d[1]
-    zi += kyi @ d[0]
+    zr = kyr @ s[0, ...]
+    zi = kyr @ s[1, ...]
+    zr -= kyi @ d[1, ...]
+    zi += kyi @ d[0, ...]
     psf = zr @ kxr
     psf -= zi @ kxi
     return psf
 
 
-def phase_gradient(t: np.ndarray, d_half: np.ndarray) -> np.ndarray:
+def phase_gradient(t, d_half, backend):
     """d loss / d phase of each pupil sample from d loss / d C (lags ky >= 0, all kx).
 
     Parameters
     ----------
-    t : ndarray (a, b), complex
+    t : array (a, b), complex
         Pupil samples.
-    d_half : ndarray (a, 2 b - 1), complex
+    d_half : array (a, 2 b - 1), complex
         d loss / d C for ky = 0..a-1 and kx = -(b-1)..b-1.
+    backend : Backend
+        Where ``t`` and ``d_half`` live.
     """
+    xp = backend.xp
     a, b = t.shape
-    shape = fft_shape(t)
-    # Full Hermitian lag array in circular layout: D_{-k} = conj(D_k).
-    d_full = np.zeros(shape, dtype=complex)
-    kx_idx = np.r_[shape[1] - (b - 1):shape[1], 0:b]
-    d_full[np.arange(a)[:, None], kx_idx[None, :]] = d_half
-    neg_rows = (-np.arange(1, a)) % shape[0]
-    neg_cols = (-np.arange(-(b - 1), b)) % shape[1]
-    d_full[neg_rows[:, None], neg_cols[None, :]] = d_half[1:].conj()
+    ly, lx = fft_shape(t)
+    # Full Hermitian lag array in circular layout: D_{-k} = conj(D_k). Columns kx >= 0 sit at
+    # 0..b-1, kx < 0 at lx-(b-1)..lx-1; row -ky at ly-ky.
+    d_full = xp.zeros((ly, lx), dtype=xp.complex128)
+    d_full[:a, :b] = d_half[:, b - 1:]
+    d_full[:a, lx - (b - 1):] = d_half[:, :b - 1]
+    if a > 1:
+        # conj(D[ky, kx]) lands at (-ky, -kx): the kx axis reversed, rows 1..a-1 reversed.
+        neg = xp.flip(xp.conj(d_half[1:, ...]), axis=(0, 1))
+        d_full[ly - (a - 1):, :b] = neg[:, b - 1:]
+        d_full[ly - (a - 1):, lx - (b - 1):] = neg[:, :b - 1]
     # alpha_n = sum_k D_k conj(t_{n-k}); dL/dphi_n = -2 Im(alpha_n t_n).
-    alpha = sfft.ifft2(sfft.fft2(d_full, workers=-1) * sfft.fft2(t.conj(), s=shape, workers=-1),
-                       workers=-1)[:a, :b]
-    return -2.0 * np.imag(alpha * t)
+    spectrum = backend.fftn(d_full, axes=(0, 1)) * backend.fftn(xp.conj(t), s=(ly, lx), axes=(0, 1))
+    alpha = backend.ifftn(spectrum, axes=(0, 1))[:a, :b]
+    return -2.0 * xp.imag(alpha * t)

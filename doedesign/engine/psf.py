@@ -43,6 +43,7 @@ from threadpoolctl import threadpool_limits
 from ..camera import Camera
 from ..errors import DoeError, SamplingError
 from ..materials import get_material
+from .backend import Backend, select_backend
 from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
 from .reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
 from .result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
@@ -96,14 +97,19 @@ class PSFEngine:
         Where the autocorrelation lags of the uncoded view in focus are kept. Its pupil has no
         phase, so its lags do not depend on the wavelength: engines of one camera, pitch, shape
         and ``doe_oversample`` that pass the same dict compute them once between them.
+    device : {"cpu", "gpu", "auto"} or Backend
+        Where the transforms run (:mod:`doedesign.engine.backend`): the same functions on NumPy
+        or CuPy. Heights go in and PSFs and gradients come out as NumPy arrays either way.
     """
 
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
                  material: str | Material = "fused_silica", wavelengths_m: ArrayLike = (550e-9,),
                  depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double",
-                 lag_cache: dict | None = None) -> None:
+                 lag_cache: dict | None = None, device: str | Backend = "cpu") -> None:
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
+        self.backend = select_backend(device)
+        self.xp = self.backend.xp
         self.camera = camera
         self.pitch_m = float(pitch_m)
         self.shape = tuple(int(v) for v in shape)
@@ -139,6 +145,9 @@ class PSFEngine:
             self._views[name] = (box, amp[box[0]:box[1], box[2]:box[3]])
         self._energy = {name: float(np.sum(amp ** 2)) for name, (_, amp) in self._views.items()}
         self._opd = {float(d): self._defocus_opd(d) for d in self.depths_m}
+        # The same amplitudes and defocus paths on the backend's device, copied once.
+        self._amp_dev = {name: self.backend.asarray(amp) for name, (_, amp) in self._views.items()}
+        self._opd_dev = {d: None if opd is None else self.backend.asarray(opd) for d, opd in self._opd.items()}
         self.sampling = self._check_sampling()
         self._uncoded_cache = {}
         self._kernel_cache = {}
@@ -197,9 +206,11 @@ class PSFEngine:
 
     # -- pupil and transforms ------------------------------------------------------------------
     def _pupil(self, view, height_m, wavelength, depth):
-        """Complex pupil samples of a view inside its bounding box."""
-        (r0, r1, c0, c1), amp = self._views[view]
-        phase = np.zeros(amp.shape)
+        """Complex pupil samples of a view inside its bounding box (``height_m`` on the device)."""
+        xp = self.xp
+        (r0, r1, c0, c1), _ = self._views[view]
+        amp = self._amp_dev[view]
+        phase = xp.zeros(amp.shape, dtype=xp.float64)
         if view == "coded":
             q, (oy, ox) = self.q, self._offset
             # Design pixels covering the box (the grid around the design is unetched, height 0).
@@ -207,20 +218,20 @@ class PSFEngine:
             e0, e1 = max(c0 // q - ox, 0), min(-(-c1 // q) - ox, self.shape[1])
             part = height_m[d0:d1, e0:e1]
             if q > 1:
-                part = np.repeat(np.repeat(part, q, axis=0), q, axis=1)
+                part = xp.repeat(xp.repeat(part, q, axis=0), q, axis=1)
             y0, x0 = (d0 + oy) * q - r0, (e0 + ox) * q - c0
             sy = slice(max(y0, 0), min(y0 + part.shape[0], r1 - r0))
             sx = slice(max(x0, 0), min(x0 + part.shape[1], c1 - c0))
-            phase[sy, sx] = self.material.phase(part[sy.start - y0:sy.stop - y0, sx.start - x0:sx.stop - x0],
-                                                wavelength)
-        opd = self._opd[float(depth)]
+            # The phase is linear in the height: the material's phase per metre at this wavelength.
+            phase[sy, sx] = self._phase_per_m(wavelength) * part[sy.start - y0:sy.stop - y0,
+                                                                 sx.start - x0:sx.stop - x0]
+        opd = self._opd_dev[float(depth)]
         if opd is not None:
-            phase += 2 * np.pi / wavelength * opd[r0:r1, c0:c1]
-        t = np.empty(amp.shape, dtype=complex)
-        np.cos(phase, out=t.real)
-        np.sin(phase, out=t.imag)
-        t *= amp
-        return t
+            phase += float(2 * np.pi / wavelength) * opd[r0:r1, c0:c1]
+        return amp * xp.exp(1j * xp.astype(phase, xp.complex128))
+
+    def _phase_per_m(self, wavelength):
+        return float(self.material.phase(1.0, wavelength))
 
     def _kernels(self, view, wavelength):
         """Kernels from autocorrelation lags to pixel-integrated intensity, per axis.
@@ -242,7 +253,7 @@ class PSFEngine:
         kern_y = self._axis_kernel(cam.window_shape[0], cam.axis_pixel[0], ky, lz)
         kern_y[:, 1:] *= 2.0
         kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], kx, lz)
-        out = (kern_y, kern_x, self.step_m ** 2 / lz ** 2)
+        out = (kern_y, kern_x, float(self.step_m ** 2 / lz ** 2))
         self._cache_put(key, out)
         return out
 
@@ -251,7 +262,7 @@ class PSFEngine:
         return axis_nodes(n_pix, axis, self.camera.pixel_pitch_m, max_lag, self.step_m / lz)
 
     def _axis_kernel(self, n_pix, axis, lags, lz):
-        return axis_kernel(n_pix, axis, self.camera.pixel_pitch_m, lags, self.step_m / lz)
+        return axis_kernel(n_pix, axis, self.camera.pixel_pitch_m, lags, self.step_m / lz, self.xp)
 
     def _forward_kernels(self, view, wavelength, dtype):
         """Real and imaginary parts of the per-axis kernels for :meth:`_view_psf`'s folded transform.
@@ -270,8 +281,10 @@ class PSFEngine:
         kern_y[:, 0] *= 0.5
         kern_x = self._axis_kernel(cam.window_shape[1], cam.axis_pixel[1], np.arange(c1 - c0), lz)
         kern_x[:, 1:] *= 2.0
-        out = tuple(np.ascontiguousarray(part, dtype=dtype)
-                    for part in (kern_y.real, kern_y.imag, kern_x.real.T, kern_x.imag.T))
+        xp = self.xp
+        dtype = xp.float32 if np.dtype(dtype) == np.float32 else xp.float64
+        out = tuple(xp.asarray(xp.astype(part, dtype), copy=True)
+                    for part in (xp.real(kern_y), xp.imag(kern_y), xp.real(kern_x).T, xp.imag(kern_x).T))
         self._cache_put(key, out)
         return out
 
@@ -298,15 +311,15 @@ class PSFEngine:
             t = self._pupil(view, height_m, wavelength, depth)
             energy = self._energy[view]  # a phase does not change it
             if precision == "single":
-                t = t.astype(np.complex64)
-            lags = paired_lags(t, fft_workers) + (energy,)
+                t = self.xp.astype(t, self.xp.complex64)
+            lags = paired_lags(t, self.backend, fft_workers) + (energy,)
             if view == "uncoded" and self._opd[float(depth)] is None:
                 self._lag_cache[key] = lags
         s, d, n_fft, energy = lags
         kernels = self._forward_kernels(view, wavelength, dtype)
         lz = wavelength * self.camera.sensor_distance_m
         scale = self.step_m ** 2 / lz ** 2 / energy / n_fft
-        return scale * folded_psf(s, d, kernels).astype(float, copy=False)
+        return self.backend.to_host(folded_psf(s, d, kernels)).astype(float, copy=False) * scale
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
@@ -315,7 +328,7 @@ class PSFEngine:
             raise DoeError(f"height map has shape {h.shape}, the engine was built for {self.shape}")
         if not np.all(np.isfinite(h)):
             raise DoeError(f"height map holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
-        return h
+        return self.backend.asarray(h)
 
     def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
             threads: int = 1) -> PSFResult:
@@ -323,9 +336,12 @@ class PSFEngine:
 
         ``threads`` > 1 computes that many wavelengths side by side, each with one FFT and one
         BLAS thread (the transforms release the GIL), for the same result; each thread holds one
-        wavelength's transforms (about 0.3 GB for a 1600 px element in double precision).
+        wavelength's transforms (about 0.3 GB for a 1600 px element in double precision). On a
+        GPU the wavelengths run one after another (the device is busy with one).
         """
         h = self._check_height(height_m)
+        if not self.backend.is_numpy:
+            threads = 1
         for v in views:
             if v not in VIEWS:
                 raise DoeError(f"unknown view {v!r}; views are {VIEWS}")
@@ -387,6 +403,7 @@ class PSFEngine:
         if reads is not None and not full_window:
             return self._value_and_grad_reads(h, loss_fn, reads)
         nd, nw = self.depths_m.size, self.wavelengths_m.size
+        xp = self.xp
         psf = np.empty((nd, nw) + self.camera.window_shape)
         saved = {}
         for di, depth in enumerate(self.depths_m):
@@ -394,30 +411,31 @@ class PSFEngine:
                 psf[di, wi] = self._view_psf("coded", h, wl, depth)
                 t = self._pupil("coded", h, wl, depth)
                 kern_y, kern_x, const = self._kernels("coded", wl)
-                saved[di, wi] = (t, kern_y, kern_x, const / np.sum(np.abs(t) ** 2))
+                saved[di, wi] = (t, kern_y, kern_x, const / self._energy["coded"])
         loss, dpsf = loss_fn(psf)
         dpsf = np.asarray(dpsf, dtype=float)
         if dpsf.shape != psf.shape:
             raise DoeError(f"loss gradient has shape {dpsf.shape}, expected {psf.shape}")
         (r0, r1, c0, c1), _ = self._views["coded"]
-        grad_pupil = np.zeros((r1 - r0, c1 - c0))
+        grad_pupil = xp.zeros((r1 - r0, c1 - c0), dtype=xp.float64)
         for (di, wi), (t, kern_y, kern_x, scale) in saved.items():
             wl = self.wavelengths_m[wi]
             # dL/dC_k for lags with ky >= 0 (the fold factor 2 of ky > 0 splits over +-ky).
-            d_half = scale * (kern_y.T @ dpsf[di, wi] @ kern_x)
-            d_half[1:] *= 0.5
-            grad_pupil += float(self.material.phase(1.0, wl)) * phase_gradient(t, d_half)
+            d_half = scale * (kern_y.T @ xp.astype(self.backend.asarray(dpsf[di, wi]), xp.complex128) @ kern_x)
+            d_half[1:, ...] *= 0.5
+            grad_pupil += self._phase_per_m(wl) * phase_gradient(t, d_half, self.backend)
         return float(loss), self._height_gradient(grad_pupil)
 
     def _height_gradient(self, grad_pupil):
         """d loss / d height on the design grid from d loss / d height on the coded view's samples."""
+        xp = self.xp
         (r0, r1, c0, c1), _ = self._views["coded"]
-        grad = np.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q))
+        grad = xp.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q), dtype=xp.float64)
         grad[r0:r1, c0:c1] = grad_pupil
         if self.q > 1:
-            grad = grad.reshape(self.grid_shape[0], self.q, self.grid_shape[1], self.q).sum(axis=(1, 3))
+            grad = xp.sum(xp.reshape(grad, (self.grid_shape[0], self.q, self.grid_shape[1], self.q)), axis=(1, 3))
         oy, ox = self._offset
-        return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
+        return self.backend.to_host(grad[oy:oy + self.shape[0], ox:ox + self.shape[1]])
 
     def _read_axes(self, wavelength, rows, cols, energy):
         """Cached :class:`~doedesign.engine.reads.ReadAxis` pair for the coded view."""
@@ -432,13 +450,14 @@ class PSFEngine:
         for n, n_pix, axis, lines in ((r1 - r0, cam.window_shape[0], cam.axis_pixel[0], rows),
                                       (c1 - c0, cam.window_shape[1], cam.axis_pixel[1], cols)):
             centres, u, w = self._axis_nodes(n_pix, axis, n - 1, lz)
-            lag_sum = self._axis_kernel(n_pix, axis, np.arange(-(n - 1), n), lz).sum(axis=0) if energy else None
-            out.append(read_axis(centres[np.asarray(lines)], u, w, self.step_m / lz, n, lag_sum))
+            lag_sum = (self.xp.sum(self._axis_kernel(n_pix, axis, np.arange(-(n - 1), n), lz), axis=0)
+                       if energy else None)
+            out.append(read_axis(centres[np.asarray(lines)], u, w, self.step_m / lz, n, lag_sum, self.backend))
         self._cache_put(key, tuple(out))
         return tuple(out)
 
     def _value_and_grad_reads(self, h, loss_fn, reads):
-        """:meth:`value_and_grad` for a loss of a few pixels and the window energy (see :mod:`.psf_reads`)."""
+        """:meth:`value_and_grad` for a loss of a few pixels and the window energy (see :mod:`.reads`)."""
         rows, r_idx = np.unique(np.asarray(reads.rows, dtype=int), return_inverse=True)
         cols, c_idx = np.unique(np.asarray(reads.cols, dtype=int), return_inverse=True)
         nd, nw = self.depths_m.size, self.wavelengths_m.size
@@ -449,25 +468,26 @@ class PSFEngine:
             for wi, wl in enumerate(self.wavelengths_m):
                 t = self._pupil("coded", h, wl, depth)
                 ay, ax = self._read_axes(wl, rows, cols, reads.energy)
-                scale = self.step_m ** 2 / (wl * self.camera.sensor_distance_m) ** 2 / np.sum(np.abs(t) ** 2)
-                grid, field = read_pixels(t, ay, ax, scale)
-                values[di, wi] = grid[r_idx, c_idx]
-                v = apply_energy_operator(t, ay, ax, self._work) if reads.energy else None
+                scale = float(self.step_m ** 2 / (wl * self.camera.sensor_distance_m) ** 2 / self._energy["coded"])
+                grid, field = read_pixels(t, ay, ax, scale, self.backend)
+                values[di, wi] = self.backend.to_host(grid)[r_idx, c_idx]
+                v = apply_energy_operator(t, ay, ax, self.backend, self._work) if reads.energy else None
                 if v is not None:
-                    energy[di, wi] = scale * np.vdot(t, v).real
+                    energy[di, wi] = scale * float(self.xp.sum(self.xp.real(self.xp.conj(t) * v)))
                 saved[di, wi] = (t, field, v, scale)
         loss, dvalues, denergy = loss_fn.sparse(values, energy)
+        xp = self.xp
         (r0, r1, c0, c1), _ = self._views["coded"]
-        grad_pupil = np.zeros((r1 - r0, c1 - c0))
+        grad_pupil = xp.zeros((r1 - r0, c1 - c0), dtype=xp.float64)
         for (di, wi), (t, field, v, scale) in saved.items():
             wl = self.wavelengths_m[wi]
             ay, ax = self._read_axes(wl, rows, cols, reads.energy)
             dgrid = np.zeros((rows.size, cols.size))
             np.add.at(dgrid, (r_idx, c_idx), dvalues[di, wi])
-            g = read_pixels_adjoint(dgrid, field, ay, ax, scale)
+            g = read_pixels_adjoint(self.backend.asarray(dgrid), field, ay, ax, scale, self.backend)
             if v is not None:
-                g += (denergy[di, wi] * scale) * v
-            grad_pupil += float(self.material.phase(1.0, wl)) * 2.0 * np.imag(t.conj() * g)
+                g += (float(denergy[di, wi]) * scale) * v
+            grad_pupil += self._phase_per_m(wl) * 2.0 * xp.imag(xp.conj(t) * g)
         return float(loss), self._height_gradient(grad_pupil)
 
 

@@ -24,6 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+from .backend import numpy_backend
+from .lags import sinc
+
 __all__ = ["ReadAxis", "apply_energy_operator", "read_axis", "read_pixels", "read_pixels_adjoint"]
 
 
@@ -34,81 +37,100 @@ class ReadAxis:
     ``fringe`` (lines * nodes, n): ``exp(-2 pi i f m y)`` at each node ``y`` for pupil index ``m``;
     ``weight`` (lines, nodes): Gauss-Legendre weight times the sinc^2 envelope;
     ``symbol_fft``: FFT of the circulant embedding of the energy Toeplitz operator (or None).
+    All three are arrays of the engine's backend.
     """
 
-    fringe: np.ndarray
-    weight: np.ndarray
-    symbol_fft: np.ndarray | None
+    fringe: object
+    weight: object
+    symbol_fft: object | None
 
 
 def read_axis(centres: np.ndarray, u: np.ndarray, w: np.ndarray, freq: float, n: int,
-              lag_sum: np.ndarray | None = None) -> ReadAxis:
-    """:class:`ReadAxis` for pixel ``centres`` read, node offsets ``u`` and weights ``w`` in a pixel.
+              lag_sum=None, backend=None) -> ReadAxis:
+    """:class:`ReadAxis` for pixel ``centres`` read, node offsets ``u`` and weights ``w`` in a pixel
+    (host arrays), on ``backend`` (default NumPy).
 
-    ``lag_sum``: the window-summed kernel ``s(k)`` for lags ``-(n-1)..(n-1)`` when the energy is needed.
+    ``lag_sum``: the window-summed kernel ``s(k)`` for lags ``-(n-1)..(n-1)`` (a backend array)
+    when the energy is needed.
     """
-    y = centres[:, None] + u[None, :]
-    fringe = np.exp(-2j * np.pi * freq * np.outer(y.ravel(), np.arange(n)))
-    weight = np.sinc(freq * y) ** 2 * w[None, :]
+    backend = backend or numpy_backend()
+    xp = backend.xp
+    freq = float(freq)  # a NumPy scalar would pull the namespace's arrays back into NumPy
+    y = xp.asarray((centres[:, None] + u[None, :]).ravel(), dtype=xp.float64)
+    m = xp.arange(n, dtype=xp.float64)
+    fringe = xp.exp(-2j * np.pi * freq * (y[:, None] * m[None, :]))
+    weight = xp.reshape(sinc(freq * y, xp) ** 2, (centres.size, u.size)) * xp.asarray(w, dtype=xp.float64)[None, :]
     symbol = None
     if lag_sum is not None:
         size = sfft.next_fast_len(2 * n - 1)
-        g = np.zeros(size, dtype=complex)
-        k = np.arange(-(n - 1), n)
-        # (T t)[m] = sum_m' s(m' - m) t[m'] is a convolution with g[k] = s(-k).
-        g[(-k) % size] = lag_sum
-        symbol = sfft.fft(g)
+        # (T t)[m] = sum_m' s(m' - m) t[m'] is a convolution with g[k] = s(-k) (circular index):
+        # lags k = -(n-1)..0 of s go to 0..n-1 reversed, k = 1..n-1 to size-1 down to size-n+1.
+        g = xp.zeros(size, dtype=xp.complex128)
+        g[:n] = xp.flip(lag_sum[:n])
+        if n > 1:
+            g[size - (n - 1):] = xp.flip(lag_sum[n:])
+        symbol = backend.fft(g)
     return ReadAxis(fringe, weight, symbol)
 
 
-def apply_energy_operator(t: np.ndarray, ay: ReadAxis, ax: ReadAxis, work: dict | None = None) -> np.ndarray:
+def apply_energy_operator(t, ay: ReadAxis, ax: ReadAxis, backend=None, work: dict | None = None):
     """``Ty t Tx^T`` by FFT convolution along each axis (zero-padded, no wrap-around).
 
     ``work``: optional dict of reusable padded buffers (fresh large arrays cost page faults
-    at every evaluation); the transforms run in place in them.
+    at every evaluation).
     """
+    backend = backend or numpy_backend()
+    xp = backend.xp
     a, b = t.shape
     work = {} if work is None else work
-    ly, lx = ay.symbol_fft.size, ax.symbol_fft.size
+    ly, lx = ay.symbol_fft.shape[0], ax.symbol_fft.shape[0]
     col = work.get("col")
     if col is None or col.shape != (ly, b):
-        col = work["col"] = np.zeros((ly, b), dtype=complex)
+        col = work["col"] = xp.zeros((ly, b), dtype=xp.complex128)
     row = work.get("row")
     if row is None or row.shape != (a, lx):
-        row = work["row"] = np.zeros((a, lx), dtype=complex)
-    col[:a] = t
-    col[a:] = 0
-    v = sfft.fft(col, axis=0, workers=-1, overwrite_x=True)
+        row = work["row"] = xp.zeros((a, lx), dtype=xp.complex128)
+    col[:a, ...] = t
+    col[a:, ...] = 0
+    v = backend.fft(col, axis=0)
     v *= ay.symbol_fft[:, None]
-    v = sfft.ifft(v, axis=0, workers=-1, overwrite_x=True)
-    row[:, :b] = v[:a]
+    v = backend.ifft(v, axis=0)
+    row[:, :b] = v[:a, ...]
     row[:, b:] = 0
-    v = sfft.fft(row, axis=1, workers=-1, overwrite_x=True)
+    v = backend.fft(row, axis=1)
     v *= ax.symbol_fft[None, :]
-    v = sfft.ifft(v, axis=1, workers=-1, overwrite_x=True)
-    return v[:, :b].copy()
+    v = backend.ifft(v, axis=1)
+    return xp.asarray(v[:, :b], copy=True)
 
 
-def read_pixels(t: np.ndarray, ay: ReadAxis, ax: ReadAxis, scale: float) -> tuple[np.ndarray, np.ndarray]:
+def _node_intensity(field, ay: ReadAxis, ax: ReadAxis, xp):
+    nr, qy = ay.weight.shape
+    nc, qx = ax.weight.shape
+    return xp.reshape(xp.real(field) ** 2 + xp.imag(field) ** 2, (nr, qy, nc, qx))
+
+
+def read_pixels(t, ay: ReadAxis, ax: ReadAxis, scale: float, backend=None) -> tuple:
     """Pixel values on every (row line, column line) pair read, and the node field for the adjoint.
 
     Returns
     -------
-    values : ndarray (row lines, column lines)
-    field : ndarray (row lines * nodes, column lines * nodes), ``F`` at the node grid.
+    values : array (row lines, column lines)
+    field : array (row lines * nodes, column lines * nodes), ``F`` at the node grid.
     """
+    xp = (backend or numpy_backend()).xp
     field = ay.fringe @ t @ ax.fringe.T
-    nr, qy = ay.weight.shape
-    nc, qx = ax.weight.shape
-    inten = (field.real ** 2 + field.imag ** 2).reshape(nr, qy, nc, qx)
-    values = scale * np.einsum("rq,rqcs,cs->rc", ay.weight, inten, ax.weight)
+    inten = _node_intensity(field, ay, ax, xp)
+    # sum over nodes q (rows) and s (columns) of w_y[r, q] I[r, q, c, s] w_x[c, s]
+    per_row_node = xp.sum(inten * ax.weight[None, None, ...], axis=3)
+    values = scale * xp.sum(per_row_node * ay.weight[:, :, None], axis=1)
     return values, field
 
 
-def read_pixels_adjoint(dvalues: np.ndarray, field: np.ndarray, ay: ReadAxis, ax: ReadAxis,
-                        scale: float) -> np.ndarray:
+def read_pixels_adjoint(dvalues, field, ay: ReadAxis, ax: ReadAxis, scale: float, backend=None):
     """``dL / dt*`` from ``dL / dvalues`` (row lines, column lines) through :func:`read_pixels`."""
+    xp = (backend or numpy_backend()).xp
     nr, qy = ay.weight.shape
     nc, qx = ax.weight.shape
-    node = scale * np.einsum("rc,rq,cs->rqcs", dvalues, ay.weight, ax.weight).reshape(nr * qy, nc * qx)
-    return ay.fringe.conj().T @ (node * field) @ ax.fringe.conj()
+    node = scale * (dvalues[:, None, :, None] * ay.weight[:, :, None, None] * ax.weight[None, None, ...])
+    node = xp.reshape(node, (nr * qy, nc * qx))
+    return xp.conj(ay.fringe).T @ (node * field) @ xp.conj(ax.fringe)

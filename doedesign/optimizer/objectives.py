@@ -196,7 +196,7 @@ def maxmin_stage(engine: PSFEngine, target: Target, weights: np.ndarray, h0: np.
     grid, so all planes together cost one forward and one adjoint pass, as one loss would.
     """
     engines = [PSFEngine(engine.camera, engine.pitch_m, engine.shape, engine.material, [wl], target.depths_m,
-                         engine.q) for wl in target.wavelengths_m]
+                         engine.q, device=engine.backend) for wl in target.wavelengths_m]
     nd, nw = target.intensity.shape[:2]
     losses = [[_single_plane_loss(target.mask, d, w) for w in range(nw)] for d in range(nd)]
 

@@ -141,7 +141,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
         raise DoeError(f"target window {tuple(target.window_shape)} / axis {target.axis_pixel} does not match the "
                        f"camera's {camera.window_shape} / {camera.axis_pixel}")
     t0 = time.perf_counter()
-    engine = PSFEngine(camera, pitch_m, shape, material, target.wavelengths_m, target.depths_m, doe_oversample)
+    engine = PSFEngine(camera, pitch_m, shape, material, target.wavelengths_m, target.depths_m, doe_oversample,
+                       device=settings.device)
     step = level_step_m(material, design_wavelength_m, settings.n_levels)
     lower, upper = height_bounds(step, settings.n_levels, settings.height_range)
     support = coded_support(camera, pitch_m, tuple(shape))

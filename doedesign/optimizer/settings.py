@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..engine.backend import DEVICES
 from ..errors import DoeError
 from ..levels import N_LEVELS
 from .nlopt_driver import ALGORITHMS
@@ -63,8 +64,11 @@ class OptimizerSettings:
     start_iter: int | None = None  # None: max(max_iter // 4, 3)
     router_grid_px: int = 100
     router_iter: int = 150
+    device: str = "cpu"  # where the PSF engine computes: "cpu", "gpu" or "auto" (doedesign.engine.backend)
 
     def __post_init__(self):
+        if self.device not in DEVICES:
+            raise DoeError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
         if self.objective not in OBJECTIVES:
             raise DoeError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
         self.starts = tuple(self.starts)

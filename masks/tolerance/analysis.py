@@ -51,7 +51,7 @@ def nominal_depths(design: Design) -> np.ndarray:
 
 def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design", oversample: int = 2,
                     process_upsample: int | None = None, wavelengths_m: np.ndarray | None = None,
-                    metric_script: str | None = None) -> tuple[Evaluator, dict, float]:
+                    metric_script: str | None = None, device: str = "cpu") -> tuple[Evaluator, dict, float]:
     """The evaluator of ``design`` under ``spec`` and the nominal (ideal element) metrics."""
     camera = design.camera()
     wls, depths = design_wavelengths_depths(design, camera)
@@ -61,7 +61,7 @@ def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design",
     base = nominal_process(nominal_depths(design))
     ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
                    wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),
-                   process_upsample=process_upsample)
+                   process_upsample=process_upsample, device=device)
     t0 = time.perf_counter()
     ideal = {p.name: 0.0 for p in spec.params}
     psf = ev.coded_psf(ev.height(ideal))
@@ -87,7 +87,7 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
                        workers: int | None = None, oversample: int = 2, process_upsample: int | None = None,
                        wavelengths_m: np.ndarray | None = None, sobol_base: int = 8,
                        one_at_a_time: bool = True, thresholds: dict | None = None,
-                       metric_script: str | None = None, yield_goal: float | None = None) -> dict:
+                       metric_script: str | None = None, yield_goal: float | None = None, device: str = "cpu") -> dict:
     """Run the study and write ``report.json``, ``report.md``, ``distributions.png``, ``tornado.png``.
 
     Parameters
@@ -95,6 +95,9 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
     yield_goal : float, optional
         Share of elements that must meet every threshold, in (0, 1); default the spec's
         (``[yield] goal``, else 0.9).
+    device : {"cpu", "gpu", "auto"}
+        Where each sample's PSFs are computed (:mod:`doedesign.engine.backend`); the process
+        render and the metrics stay on the host.
 
     Returns
     -------
@@ -108,7 +111,7 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
     goal = spec.yield_goal if yield_goal is None else check_yield_goal(yield_goal, "yield goal")
     t_start = time.perf_counter()
     ev, nominal, t_nominal = build_evaluator(design, spec, design_name, oversample, process_upsample,
-                                             wavelengths_m, metric_script)
+                                             wavelengths_m, metric_script, device)
     directions = {**DIRECTIONS, **ev.metrics.directions()}
     primary = ev.metrics.primary
     thresholds = dict(spec.thresholds, **(thresholds or {}))

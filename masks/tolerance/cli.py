@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from doedesign.cli.common import Number
+from doedesign.cli.common import Number, add_device_option
 from doedesign.errors import DoeError
 
 __all__ = ["cmd_tolerance", "register"]
@@ -35,6 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scheduler", default="processes",
                    help="processes (default, a LocalCluster), threads, inline (no dask) or tcp://HOST:PORT")
     p.add_argument("--workers", type=Number(int, 1, 4096), help="local workers (default: the machine's cores)")
+    add_device_option(p)
     p.add_argument("--oversample", type=Number(int, 1, 16), default=2, help="PSF samples per design pixel (default 2)")
     p.add_argument("--process-upsample", type=Number(int, 1, 64),
                    help="process-model samples per design pixel, a multiple of --oversample (default equal)")
@@ -72,7 +73,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
                                 scheduler=args.scheduler, workers=args.workers, oversample=args.oversample,
                                 process_upsample=args.process_upsample, wavelengths_m=wls,
                                 sobol_base=args.sobol_base, one_at_a_time=not args.no_oat, thresholds=thresholds,
-                                metric_script=args.metric_script, yield_goal=args.yield_goal)
+                                metric_script=args.metric_script, yield_goal=args.yield_goal, device=args.device)
     primary = report["primary_metric"]
     m = report["metrics"][primary]
     print_json({"report": f"{args.out}/report.json", "spec": report["spec"]["source"], "primary_metric": primary,

@@ -45,6 +45,7 @@ class Evaluator:
     metrics: MetricSet
     oversample: int = 2
     process_upsample: int | None = None
+    device: str = "cpu"  # where the PSFs are computed (doedesign.engine.backend)
 
     def __post_init__(self):
         self._local = threading.local()
@@ -65,7 +66,7 @@ class Evaluator:
             q = self.oversample
             shape = (self.levels.shape[0] * q, self.levels.shape[1] * q)
             engine = PSFEngine(self.camera, self.pitch_m / q, shape, self.material, self.wavelengths_m,
-                               self.depths_m)
+                               self.depths_m, device=self.device)
             self._local.engine = engine
         return engine
 

@@ -1,0 +1,169 @@
+"""Where the engine's arrays live: NumPy on the CPU, CuPy on a GPU, one copy of the physics.
+
+The PSF engine and the functions of :mod:`doedesign.engine.lags` and :mod:`doedesign.engine.reads`
+are written against the Python array API standard: they take an array namespace ``xp`` and call
+only what the standard defines (plus the FFTs below), so the same code runs on NumPy, on CuPy,
+and on ``array_api_strict``, a namespace that refuses everything outside the standard (the tests
+run the engine on it, so a NumPy-only call fails on a CPU machine before it fails on a GPU).
+
+A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`` with its
+thread count on NumPy (faster than NumPy's own), ``cupyx.scipy.fft`` on CuPy (cuFFT plans
+cached), the standard's ``xp.fft`` elsewhere. Written here because no library does this choice:
+``array_api_compat`` gives the namespace but not the fastest FFT of each library.
+
+The device is chosen once per run (``--device cpu|gpu|auto``): ``auto`` takes the GPU when CuPy
+imports and a real allocation on the device succeeds, else the CPU, with one log line saying why.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import DoeError
+
+__all__ = ["DEVICES", "Backend", "gpu_unavailable_reason", "numpy_backend", "select_backend", "strict_backend"]
+
+log = logging.getLogger(__name__)
+
+DEVICES = ("auto", "cpu", "gpu")
+
+
+@dataclass(frozen=True)
+class Backend:
+    """An array namespace and its FFTs.
+
+    Attributes
+    ----------
+    name : str
+        "numpy", "cupy" or "array_api_strict".
+    xp : module
+        The array namespace (array API standard).
+    device : str
+        "cpu" or "gpu".
+    """
+
+    name: str
+    xp: Any
+    device: str
+    _fft: Any = None
+
+    @property
+    def is_numpy(self) -> bool:
+        return self.name == "numpy"
+
+    def asarray(self, a, dtype=None):
+        """``a`` on this backend's device (a host array is copied over once)."""
+        if self.name == "cupy":
+            import cupy
+
+            return cupy.asarray(a, dtype=dtype)
+        if self.name == "array_api_strict" and isinstance(a, np.ndarray):
+            a = a.tolist() if a.ndim == 0 else a
+        return self.xp.asarray(a, dtype=dtype)
+
+    def to_host(self, a) -> np.ndarray:
+        """A NumPy array of ``a`` (a device-to-host copy on the GPU)."""
+        if self.name == "cupy":
+            return a.get()
+        return np.asarray(a)
+
+    # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads.
+    def fft(self, x, n=None, axis=-1, workers=-1):
+        if self.is_numpy:
+            return self._fft.fft(x, n=n, axis=axis, workers=workers)
+        return self._fft.fft(x, n=n, axis=axis)
+
+    def ifft(self, x, n=None, axis=-1, workers=-1):
+        if self.is_numpy:
+            return self._fft.ifft(x, n=n, axis=axis, workers=workers)
+        return self._fft.ifft(x, n=n, axis=axis)
+
+    def fftn(self, x, s=None, axes=None, workers=-1):
+        if self.is_numpy:
+            return self._fft.fftn(x, s=s, axes=axes, workers=workers)
+        return self._fft.fftn(x, s=s, axes=axes)
+
+    def ifftn(self, x, s=None, axes=None, workers=-1):
+        if self.is_numpy:
+            return self._fft.ifftn(x, s=s, axes=axes, workers=workers)
+        return self._fft.ifftn(x, s=s, axes=axes)
+
+    def rfftn(self, x, s=None, axes=None, workers=-1):
+        if self.is_numpy:
+            return self._fft.rfftn(x, s=s, axes=axes, workers=workers)
+        return self._fft.rfftn(x, s=s, axes=axes)
+
+
+def numpy_backend() -> Backend:
+    """The CPU backend: NumPy arrays (through ``array_api_compat``'s NumPy namespace, which
+    returns plain ``ndarray``) and ``scipy.fft``."""
+    import array_api_compat.numpy as xnp
+    import scipy.fft
+
+    return Backend("numpy", xnp, "cpu", scipy.fft)
+
+
+def strict_backend() -> Backend:
+    """``array_api_strict`` on the CPU: the standard and nothing else (for tests)."""
+    import array_api_strict
+
+    return Backend("array_api_strict", array_api_strict, "cpu", array_api_strict.fft)
+
+
+def _cupy_backend() -> Backend:
+    import array_api_compat.cupy as xcp
+    import cupyx.scipy.fft
+
+    return Backend("cupy", xcp, "gpu", cupyx.scipy.fft)
+
+
+def gpu_unavailable_reason() -> str | None:
+    """None when CuPy imports and a real allocation on the current device works, else why not."""
+    try:
+        import cupy
+    except ImportError as exc:
+        return f"CuPy is not installed ({exc}; pip install 'doe-toolkit[gpu]')"
+    except Exception as exc:  # a broken CUDA installation raises other errors at import
+        return f"CuPy does not import: {exc}"
+    try:
+        if cupy.cuda.runtime.getDeviceCount() < 1:
+            return "CuPy finds no CUDA device"
+        probe = cupy.ones(1024, dtype=cupy.float64)
+        if float(probe.sum()) != 1024.0:
+            return "a test computation on the GPU gave a wrong result"
+    except Exception as exc:
+        return f"the GPU did not take a test allocation: {exc}"
+    return None
+
+
+_CHOSEN: dict[str, Backend] = {}
+
+
+def select_backend(device: str | Backend = "auto") -> Backend:
+    """The backend for ``device``: "cpu", "gpu" (refused with a clear error if there is none) or
+    "auto" (the GPU when usable, else the CPU with one log line saying why). A
+    :class:`Backend` is returned as it is."""
+    if isinstance(device, Backend):
+        return device
+    if device not in DEVICES:
+        raise DoeError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device in _CHOSEN:
+        return _CHOSEN[device]
+    if device == "cpu":
+        chosen = numpy_backend()
+    else:
+        why = gpu_unavailable_reason()
+        if why is None:
+            chosen = _cupy_backend()
+        elif device == "gpu":
+            raise DoeError(f"--device gpu: {why}")
+        else:
+            log.info("computing on the CPU: %s", why)
+            chosen = numpy_backend()
+    _CHOSEN[device] = chosen
+    return chosen
+
