@@ -11,7 +11,7 @@ import dataclasses
 import logging
 from pathlib import Path
 
-from doedesign.cli.common import Number, NumberList
+from doedesign.cli.common import Number, NumberList, add_device_option
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    default=[75, 150, 300, 600],
                    help="etch depths the process was asked for, one per mask (the ideal model; "
                         "default 75,150,300,600 as in doe masks)")
+    add_device_option(p)
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.add_argument("--force", action="store_true",
@@ -153,5 +154,6 @@ def _psf(design, path, args, candidates):
     camera = dataclasses.replace(camera, window_shape=(rows, cols), axis_pixel=axis,
                                  pixel_pitch_m=stack["pixel_pitch_m"])
     diag = diagnose_psf(design, camera, stack["psf"], stack["wavelengths_m"], views=stack["views"],
-                        depth_m=stack["depth_m"], candidates=candidates, threshold=args.threshold)
+                        depth_m=stack["depth_m"], candidates=candidates, threshold=args.threshold,
+                        device=args.device)
     return diag, {"measured_psf": str(path), "camera": camera.to_dict(), "views": list(stack["views"])}

@@ -62,13 +62,15 @@ class PsfRenderer:
     ----------
     precision : {"double", "single"}
         Arithmetic of the transforms (:class:`doedesign.engine.psf.PSFEngine`); "single" for screening.
+    device : {"cpu", "gpu", "auto"}
+        Where the engines compute (:mod:`doedesign.engine.backend`).
     """
 
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
                  material: str | Material = "fused_silica", doe_oversample: int = 1, cache_size: int = 4,
-                 precision: str = "double") -> None:
+                 precision: str = "double", device: str = "cpu") -> None:
         self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
-        self.material, self.q, self.precision = material, int(doe_oversample), precision
+        self.material, self.q, self.precision, self.device = material, int(doe_oversample), precision, device
         self._engines = {}
         self._channels = {}
         self._lags = {}
@@ -84,7 +86,8 @@ class PsfRenderer:
             if len(self._engines) >= self.cache_size:
                 self._engines.pop(next(iter(self._engines)))
             self._engines[key] = PSFEngine(self.camera, self.pitch_m, self.shape, self.material, wavelengths,
-                                           (depth_m,), self.q, precision=self.precision, lag_cache=self._lags)
+                                           (depth_m,), self.q, precision=self.precision, lag_cache=self._lags,
+                                           device=self.device)
         return self._engines[key]
 
     def __call__(self, height_m, wavelengths_m, depth_m):
@@ -188,7 +191,8 @@ class PsfProblem(Problem):
                  views: Sequence[str], wavelengths_m: Sequence[float] | np.ndarray, depth_m: float,
                  effects: Sequence[Effect], material: str | Material = "fused_silica", doe_oversample: int = 1,
                  renderer: RenderFn | None = None,
-                 screen_window_px: int | None = SCREEN_WINDOW_PX, noise: NoiseEstimate | None = None) -> None:
+                 screen_window_px: int | None = SCREEN_WINDOW_PX, noise: NoiseEstimate | None = None,
+                 device: str = "cpu") -> None:
         meas = np.asarray(measured, dtype=float)
         self.views = tuple(views)
         self.wavelengths_m = np.asarray(wavelengths_m, dtype=float)
@@ -203,7 +207,9 @@ class PsfProblem(Problem):
         self.pitch_m, self.material, self.doe_oversample = float(pitch_m), material, doe_oversample
         self.depth_m = float(depth_m)
         self.camera = camera
-        self.render = renderer or PsfRenderer(camera, pitch_m, self.height_m.shape, material, doe_oversample)
+        self.device = device
+        self.render = renderer or PsfRenderer(camera, pitch_m, self.height_m.shape, material, doe_oversample,
+                                              device=device)
         self.channels = [f"{v}_{wl * 1e9:.0f}nm" for v in self.views for wl in self.wavelengths_m]
         self._effect_list = list(effects)
         self.effects = {e.name: e.for_channels(self.channels) for e in self._effect_list}
@@ -239,7 +245,7 @@ class PsfProblem(Problem):
         per pixel, against the double-precision ``light``) is below a hundredth of the noise floor.
         The single-precision renderer keeps the ideal channels it rendered for the comparison."""
         single = PsfRenderer(self.camera, self.pitch_m, self.height_m.shape, self.material, self.doe_oversample,
-                             precision="single")
+                             precision="single", device=self.device)
         ideal = single(self.height_m, self.wavelengths_m, self.depth_m)
         self.single_precision_error = float(np.abs(ideal / ideal.sum(axis=(-2, -1), keepdims=True) - light).max())
         if self.single_precision_error < SINGLE_PRECISION_NOISE_FRACTION * self.noise.sigma:
@@ -258,10 +264,10 @@ class PsfProblem(Problem):
         log.info("candidates screened on the %d x %d window at (%d, %d)", h, w, r0, c0)
         # Single precision there: a few 1e-7 of the peak, far below any measured noise.
         render = PsfRenderer(camera, self.pitch_m, self.height_m.shape, self.material, self.doe_oversample,
-                             precision="single")
+                             precision="single", device=self.device)
         return PsfProblem(self.height_m, self.pitch_m, camera, self.measured[..., r0:r0 + h, c0:c0 + w], self.views,
                           self.wavelengths_m, self.depth_m, self._effect_list, self.material, self.doe_oversample,
-                          renderer=render, noise=self.noise)
+                          renderer=render, noise=self.noise, device=self.device)
 
     def stack(self, model: dict[str, np.ndarray]) -> np.ndarray:
         return psf_forward(model, self.effects, self.render, self.height_m, self.wavelengths_m, self.depth_m,
@@ -317,7 +323,8 @@ class PsfProblem(Problem):
 def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
                  wavelengths_m: Sequence[float] | np.ndarray, views: Sequence[str] = ("coded",),
                  depth_m: float | None = None, candidates: Sequence[str] | None = None,
-                 threshold: float = DEFAULT_THRESHOLD, max_steps: int = 5, doe_oversample: int = 1) -> Diagnosis:
+                 threshold: float = DEFAULT_THRESHOLD, max_steps: int = 5, doe_oversample: int = 1,
+                 device: str = "cpu") -> Diagnosis:
     """Find, name and fit the effects that explain a measured PSF stack.
 
     Parameters
@@ -336,6 +343,8 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
         Point-source distance; default where the camera is focused.
     candidates : list of str, optional
         Effects to try (default every registered PSF-domain effect).
+    device : {"cpu", "gpu", "auto"}
+        Where the model's PSFs are rendered (:mod:`doedesign.engine.backend`).
 
     Returns
     -------
@@ -350,5 +359,6 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
         raise DoeError(f"views {tuple(views)} do not match a stack of {stack.shape[0]} view(s)")
     depth = camera.focus_distance_m if depth_m is None else float(depth_m)
     problem = PsfProblem(design.height_m, design.pitch_m, camera, stack, views, wavelengths_m, depth,
-                         effects_for("psf", candidates), material=design.material, doe_oversample=doe_oversample)
+                         effects_for("psf", candidates), material=design.material, doe_oversample=doe_oversample,
+                         device=device)
     return run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="psf")

@@ -86,3 +86,36 @@ def test_device_choice(caplog, monkeypatch):
     assert [r.getMessage() for r in caplog.records] == ["computing on the CPU: CuPy is not installed (test)"]
     with pytest.raises(DoeError, match="--device gpu: CuPy is not installed"):
         be.select_backend("gpu")
+
+
+def _tiny_design(tmp_path):
+    from doedesign.design import Design
+
+    d = Design(height_m=-np.random.default_rng(2).uniform(0, 1.1e-6, (16, 16)), pitch_m=PITCH)
+    path = tmp_path / "d.npz"
+    d.save(path)
+    return path
+
+
+@pytest.mark.skipif(be.gpu_unavailable_reason() is None, reason="a GPU is present")
+def test_psf_command_device_gpu_without_one_is_refused_in_one_line(tmp_path, capsys):
+    from doedesign.cli import main
+
+    out = tmp_path / "psf.npz"
+    argv = ["psf", str(_tiny_design(tmp_path)), "--aperture-mm", "0", "--out", str(out), "--device", "gpu"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--device gpu:" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_psf_command_same_stack_on_cpu_and_auto(tmp_path):
+    from doedesign.cli import main
+    from doedesign.engine import PSFResult
+
+    d = _tiny_design(tmp_path)
+    for device in ("cpu", "auto"):
+        assert main(["psf", str(d), "--aperture-mm", "0", "--wavelengths-nm", "550", "--out",
+                     str(tmp_path / f"{device}.npz"), "--device", device]) == 0
+    a, b = (PSFResult.load(tmp_path / f"{k}.npz").psf for k in ("cpu", "auto"))
+    assert np.abs(a - b).max() <= 1e-10 * a.max()
