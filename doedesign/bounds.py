@@ -30,14 +30,15 @@ __all__ = ["bound_report", "diffraction_limited_psf", "spot_bound"]
 
 
 def diffraction_limited_psf(camera: Camera, pitch_m: float, shape: tuple[int, int], wavelengths_m: ArrayLike,
-                            material: str = "fused_silica") -> np.ndarray:
-    """Coded-view PSF (wavelengths, rows, cols) of a flat DOE in focus: the diffraction-limited spot."""
-    engine = PSFEngine(camera, pitch_m, shape, material, wavelengths_m, [camera.focus_distance_m])
+                            material: str = "fused_silica", device: str = "cpu") -> np.ndarray:
+    """Coded-view PSF (wavelengths, rows, cols) of a flat DOE in focus: the diffraction-limited spot
+    (computed on ``device``, :mod:`doedesign.engine.backend`)."""
+    engine = PSFEngine(camera, pitch_m, shape, material, wavelengths_m, [camera.focus_distance_m], device=device)
     return engine.psf(np.zeros(tuple(shape)), views=("coded",)).psf[0, 0]
 
 
 def spot_bound(camera: Camera, pitch_m: float, shape: tuple[int, int], target: Target,
-               material: str = "fused_silica", spot: np.ndarray | None = None) -> np.ndarray:
+               material: str = "fused_silica", spot: np.ndarray | None = None, device: str = "cpu") -> np.ndarray:
     """Single-colour bound per (depth, wavelength) plane of ``target`` (fractions of the coded view's light).
 
     Parameters
@@ -52,7 +53,7 @@ def spot_bound(camera: Camera, pitch_m: float, shape: tuple[int, int], target: T
     ndarray (depths, wavelengths)
     """
     if spot is None:
-        spot = diffraction_limited_psf(camera, pitch_m, shape, target.wavelengths_m, material)
+        spot = diffraction_limited_psf(camera, pitch_m, shape, target.wavelengths_m, material, device)
     r0, c0 = camera.axis_pixel
     rows, cols = camera.window_shape
     dy = (np.arange(rows) - r0) * camera.pixel_pitch_m

@@ -25,11 +25,13 @@ import numpy as np
 
 from ..errors import DoeError
 
-__all__ = ["DEVICES", "Backend", "gpu_unavailable_reason", "numpy_backend", "select_backend", "strict_backend"]
+__all__ = ["DEVICES", "Array", "Backend", "gpu_unavailable_reason", "numpy_backend", "select_backend", "strict_backend"]
 
 log = logging.getLogger(__name__)
 
 DEVICES = ("auto", "cpu", "gpu")
+#: An array of a backend's namespace (NumPy, CuPy or array_api_strict).
+Array = Any
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,7 @@ class Backend:
     def is_numpy(self) -> bool:
         return self.name == "numpy"
 
-    def asarray(self, a, dtype=None):
+    def asarray(self, a: Any, dtype: Any = None) -> Array:
         """``a`` on this backend's device (a host array is copied over once)."""
         if self.name == "cupy":
             import cupy
@@ -65,34 +67,34 @@ class Backend:
             a = a.tolist() if a.ndim == 0 else a
         return self.xp.asarray(a, dtype=dtype)
 
-    def to_host(self, a) -> np.ndarray:
+    def to_host(self, a: Array) -> np.ndarray:
         """A NumPy array of ``a`` (a device-to-host copy on the GPU)."""
         if self.name == "cupy":
             return a.get()
         return np.asarray(a)
 
     # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads.
-    def fft(self, x, n=None, axis=-1, workers=-1):
+    def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
         if self.is_numpy:
             return self._fft.fft(x, n=n, axis=axis, workers=workers)
         return self._fft.fft(x, n=n, axis=axis)
 
-    def ifft(self, x, n=None, axis=-1, workers=-1):
+    def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
         if self.is_numpy:
             return self._fft.ifft(x, n=n, axis=axis, workers=workers)
         return self._fft.ifft(x, n=n, axis=axis)
 
-    def fftn(self, x, s=None, axes=None, workers=-1):
+    def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
         if self.is_numpy:
             return self._fft.fftn(x, s=s, axes=axes, workers=workers)
         return self._fft.fftn(x, s=s, axes=axes)
 
-    def ifftn(self, x, s=None, axes=None, workers=-1):
+    def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
         if self.is_numpy:
             return self._fft.ifftn(x, s=s, axes=axes, workers=workers)
         return self._fft.ifftn(x, s=s, axes=axes)
 
-    def rfftn(self, x, s=None, axes=None, workers=-1):
+    def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
         if self.is_numpy:
             return self._fft.rfftn(x, s=s, axes=axes, workers=workers)
         return self._fft.rfftn(x, s=s, axes=axes)

@@ -9,8 +9,12 @@ holds those pieces as plain functions of arrays; :class:`doedesign.engine.psf.PS
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.fft as sfft
+
+from .backend import Array, Backend
 
 __all__ = ["axis_kernel", "axis_nodes", "fft_shape", "folded_psf", "paired_lags", "phase_gradient"]
 
@@ -46,14 +50,14 @@ def axis_nodes(n_pix: int, axis: float, pixel_m: float, max_lag: int,
     return centres, nodes * pixel_m / 2, weights * pixel_m / 2
 
 
-def sinc(x, xp=np):
+def sinc(x: Array, xp: Any = np) -> Array:
     """Normalized ``sin(pi x) / (pi x)`` (1 at 0) in namespace ``xp`` (the standard has no sinc)."""
     px = np.pi * x
     zero = px == 0
     return xp.where(zero, 1.0, xp.sin(px) / xp.where(zero, 1.0, px))
 
 
-def axis_kernel(n_pix: int, axis: float, pixel_m: float, lags: np.ndarray, freq: float, xp=np):
+def axis_kernel(n_pix: int, axis: float, pixel_m: float, lags: np.ndarray, freq: float, xp: Any = np) -> Array:
     """``K[j, k]``: sensor pixel ``j`` integral of ``sinc^2(f x) exp(-2 pi i k f x)`` for each lag.
 
     Parameters as :func:`axis_nodes`; ``lags`` are the integer lags (columns of the result), a
@@ -68,7 +72,7 @@ def axis_kernel(n_pix: int, axis: float, pixel_m: float, lags: np.ndarray, freq:
     return xp.exp(-2j * np.pi * freq * (centres[:, None] * k[None, :])) * (env @ within)
 
 
-def fft_shape(t) -> tuple[int, int]:
+def fft_shape(t: Array) -> tuple[int, int]:
     """FFT size holding a linear autocorrelation of ``t`` without wrap-around."""
     return tuple(sfft.next_fast_len(2 * n - 1) for n in t.shape)
 
@@ -81,7 +85,7 @@ def _flipped_rows(r, a: int, ly: int, xp):
     return xp.concat([r[0:1, ...], xp.flip(r[ly - a + 1:ly, ...], axis=0)], axis=0)
 
 
-def paired_lags(t, backend, workers: int = -1) -> tuple:
+def paired_lags(t: Array, backend: Backend, workers: int = -1) -> tuple[Array, Array, int]:
     """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
 
     ``backend`` is the :class:`~doedesign.engine.backend.Backend` that holds ``t``; ``workers``
@@ -115,7 +119,7 @@ def paired_lags(t, backend, workers: int = -1) -> tuple:
     return s, d, ly * lx
 
 
-def folded_psf(s, d, kernels: tuple) -> object:
+def folded_psf(s: Array, d: Array, kernels: tuple[Array, ...]) -> Array:
     """``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (unscaled): six real matrix products.
 
     ``kernels`` are ``(Re K_y, Im K_y, Re K_x^T, Im K_x^T)`` with the ky = 0 column of ``K_y``
@@ -131,7 +135,7 @@ def folded_psf(s, d, kernels: tuple) -> object:
     return psf
 
 
-def phase_gradient(t, d_half, backend):
+def phase_gradient(t: Array, d_half: Array, backend: Backend) -> Array:
     """d loss / d phase of each pupil sample from d loss / d C (lags ky >= 0, all kx).
 
     Parameters

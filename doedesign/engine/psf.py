@@ -53,7 +53,7 @@ if TYPE_CHECKING:
     from ..materials import Material
     from ..progress import Progress
 
-__all__ = ["DEFAULT_THREADS", "KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS", "PSFEngine", "PSFResult", "VIEWS",
+__all__ = ["DEFAULT_THREADS", "DEVICE_KERNEL_CACHE_SIZE", "KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS", "PSFEngine", "PSFResult", "VIEWS",
            "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
 
 log = logging.getLogger(__name__)
@@ -63,8 +63,10 @@ log = logging.getLogger(__name__)
 DEFAULT_THREADS = max(1, min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                              else os.cpu_count() or 1))
 # Kernel pairs kept per engine (each about 26 MB for the seed camera): enough for an
-# optimization over a few wavelengths, bounded for 31-band stacks.
+# optimization over a few wavelengths, bounded for 31-band stacks in host memory. A GPU keeps
+# a whole 31-band stack's (both views, both precisions) in under 4 GB of its memory.
 KERNEL_CACHE_SIZE = 8
+DEVICE_KERNEL_CACHE_SIZE = 128
 # Largest defocus phase step (rad) between adjacent pupil samples before the piecewise-constant
 # sampling of the smooth spherical term is refused, and before it is warned about.
 MAX_DEFOCUS_STEP_RAD = np.pi / 2
@@ -291,7 +293,7 @@ class PSFEngine:
     def _cache_put(self, key, value):
         """Keep ``value`` in the kernel cache, the oldest entry out beyond ``KERNEL_CACHE_SIZE``."""
         with self._cache_lock:
-            while len(self._kernel_cache) >= KERNEL_CACHE_SIZE:
+            while len(self._kernel_cache) >= (KERNEL_CACHE_SIZE if self.backend.is_numpy else DEVICE_KERNEL_CACHE_SIZE):
                 self._kernel_cache.pop(next(iter(self._kernel_cache)))
             self._kernel_cache[key] = value
 
@@ -318,8 +320,8 @@ class PSFEngine:
         s, d, n_fft, energy = lags
         kernels = self._forward_kernels(view, wavelength, dtype)
         lz = wavelength * self.camera.sensor_distance_m
-        scale = self.step_m ** 2 / lz ** 2 / energy / n_fft
-        return self.backend.to_host(folded_psf(s, d, kernels)).astype(float, copy=False) * scale
+        scale = float(self.step_m ** 2 / lz ** 2 / energy / n_fft)
+        return self.xp.astype(folded_psf(s, d, kernels), self.xp.float64) * scale
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
@@ -346,7 +348,9 @@ class PSFEngine:
             if v not in VIEWS:
                 raise DoeError(f"unknown view {v!r}; views are {VIEWS}")
         rows, cols = self.camera.window_shape
-        out = np.empty((len(views), self.depths_m.size, self.wavelengths_m.size, rows, cols))
+        # Planes are written where the engine computes and cross to the host once, at the end.
+        out = self.xp.empty((len(views), self.depths_m.size, self.wavelengths_m.size, rows, cols),
+                            dtype=self.xp.float64)
         tasks = [(di, wi) for di in range(self.depths_m.size) for wi in range(self.wavelengths_m.size)]
 
         def channel(task, fft_workers=-1 if threads <= 1 else 1):
@@ -358,9 +362,9 @@ class PSFEngine:
                     key = (float(depth), float(wl), self.precision)
                     if key not in self._uncoded_cache:
                         self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
-                    out[vi, di, wi] = self._uncoded_cache[key]
+                    out[vi, di, wi, ...] = self._uncoded_cache[key]
                 else:
-                    out[vi, di, wi] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
+                    out[vi, di, wi, ...] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
             return len(views)
 
         # The first channel alone: it fills the lag cache the others may share. Threads are
@@ -371,7 +375,7 @@ class PSFEngine:
             for n in itertools.chain([channel(tasks[0], -1)], mapper(channel, tasks[1:])):
                 if progress is not None:
                     progress.update(n)
-        return PSFResult(psf=out, views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
+        return PSFResult(psf=self.backend.to_host(out), views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
                          depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
                          axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
 
@@ -408,7 +412,7 @@ class PSFEngine:
         saved = {}
         for di, depth in enumerate(self.depths_m):
             for wi, wl in enumerate(self.wavelengths_m):
-                psf[di, wi] = self._view_psf("coded", h, wl, depth)
+                psf[di, wi] = self.backend.to_host(self._view_psf("coded", h, wl, depth))
                 t = self._pupil("coded", h, wl, depth)
                 kern_y, kern_x, const = self._kernels("coded", wl)
                 saved[di, wi] = (t, kern_y, kern_x, const / self._energy["coded"])

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from .backend import numpy_backend
+from .backend import Array, Backend, numpy_backend
 from .lags import sinc
 
 __all__ = ["ReadAxis", "apply_energy_operator", "read_axis", "read_pixels", "read_pixels_adjoint"]
@@ -46,7 +46,7 @@ class ReadAxis:
 
 
 def read_axis(centres: np.ndarray, u: np.ndarray, w: np.ndarray, freq: float, n: int,
-              lag_sum=None, backend=None) -> ReadAxis:
+              lag_sum: Array | None = None, backend: Backend | None = None) -> ReadAxis:
     """:class:`ReadAxis` for pixel ``centres`` read, node offsets ``u`` and weights ``w`` in a pixel
     (host arrays), on ``backend`` (default NumPy).
 
@@ -73,7 +73,8 @@ def read_axis(centres: np.ndarray, u: np.ndarray, w: np.ndarray, freq: float, n:
     return ReadAxis(fringe, weight, symbol)
 
 
-def apply_energy_operator(t, ay: ReadAxis, ax: ReadAxis, backend=None, work: dict | None = None):
+def apply_energy_operator(t: Array, ay: ReadAxis, ax: ReadAxis, backend: Backend | None = None,
+                          work: dict | None = None) -> Array:
     """``Ty t Tx^T`` by FFT convolution along each axis (zero-padded, no wrap-around).
 
     ``work``: optional dict of reusable padded buffers (fresh large arrays cost page faults
@@ -109,7 +110,7 @@ def _node_intensity(field, ay: ReadAxis, ax: ReadAxis, xp):
     return xp.reshape(xp.real(field) ** 2 + xp.imag(field) ** 2, (nr, qy, nc, qx))
 
 
-def read_pixels(t, ay: ReadAxis, ax: ReadAxis, scale: float, backend=None) -> tuple:
+def read_pixels(t: Array, ay: ReadAxis, ax: ReadAxis, scale: float, backend: Backend | None = None) -> tuple[Array, Array]:
     """Pixel values on every (row line, column line) pair read, and the node field for the adjoint.
 
     Returns
@@ -126,7 +127,8 @@ def read_pixels(t, ay: ReadAxis, ax: ReadAxis, scale: float, backend=None) -> tu
     return values, field
 
 
-def read_pixels_adjoint(dvalues, field, ay: ReadAxis, ax: ReadAxis, scale: float, backend=None):
+def read_pixels_adjoint(dvalues: Array, field: Array, ay: ReadAxis, ax: ReadAxis, scale: float,
+                        backend: Backend | None = None) -> Array:
     """``dL / dt*`` from ``dL / dvalues`` (row lines, column lines) through :func:`read_pixels`."""
     xp = (backend or numpy_backend()).xp
     nr, qy = ay.weight.shape

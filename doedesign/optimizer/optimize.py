@@ -173,7 +173,7 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     balanced = settings.objective != "loss"
     state = {"target": target, "loss": softmin_loss(target, weights, settings.softmin_tau) if balanced
              else make_loss(target, loss)}
-    bound = spot_bound(camera, pitch_m, tuple(shape), target, material)
+    bound = spot_bound(camera, pitch_m, tuple(shape), target, material, device=engine.backend)
 
     def objective(h, extra=None):
         if perturbations:
