@@ -1,4 +1,5 @@
-"""``doe masks``: design file -> verified GDSII of the binary etch masks, preview, report."""
+"""``doe masks``: design file -> verified GDSII and/or OASIS of the binary etch masks, KLayout
+layer properties, preview, report."""
 
 from __future__ import annotations
 
@@ -11,16 +12,21 @@ from doedesign.cli.common import Number
 from doedesign.errors import DoeError
 from doedesign.fileio import ensure_output_dir
 
-__all__ = ["register", "run_masks"]
+from .grid import GDS_VERTEX_CEILING, MAX_VERTICES, MIN_VERTICES, vertex_limits
+
+__all__ = ["VertexLimit", "register", "run_masks"]
 
 log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``doe masks`` to the root command's subparsers."""
-    p = subparsers.add_parser("masks", help="quantize, decompose into binary masks, write verified GDSII",
-                              description="Write DIR/<name>.gds (one layer per mask), DIR/masks.png and "
-                                          "DIR/report.json; the GDS is read back and verified pixel by pixel.")
+    p = subparsers.add_parser("masks", help="quantize, decompose into binary masks, write verified GDSII/OASIS",
+                              description="Write DIR/<name>.gds and/or DIR/<name>.oas (one layer per mask; design "
+                                          "rows row-major, row 0 at the top, run toward decreasing y), "
+                                          "DIR/<name>.lyp (KLayout layer names and colours), DIR/masks.png and "
+                                          "DIR/report.json; every layout file is read back and verified pixel by "
+                                          "pixel.")
     p.add_argument("design", help="design .npz")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--tone", choices=("dark", "clear"), default="dark",
@@ -32,11 +38,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--etch-order", default=None, help="mask index etched in each step, e.g. 3,2,1,0")
     p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
-    p.add_argument("--oasis", action="store_true", help="also write <name>.oas")
+    p.add_argument("--format", choices=("gds", "oasis", "both"), default="gds", dest="layout_format",
+                   help="layout file: GDSII <name>.gds (default), OASIS <name>.oas (the same verified geometry, "
+                        "14-55x smaller on 1600 px elements), or both")
+    p.add_argument("--max-vertices", type=VertexLimit(), default=None, metavar="N|none",
+                   help=f"largest vertex count of one polygon in every file written; larger ones are fractured "
+                        f"into whole pixel rows (integer >= {MIN_VERTICES}, at most {GDS_VERTEX_CEILING} for GDSII; "
+                        f"'none': no limit, OASIS only). Default {MAX_VERTICES} for GDSII, none for OASIS")
     p.add_argument("--plate", action="store_true",
-                   help="also write <name>_plate.gds: a full 4-inch wafer of this die by array references, "
-                        "with global alignment marks")
+                   help="also write <name>_plate.gds (.oas per --format, and its .lyp): a full 4-inch wafer "
+                        "of this die by array references, with global alignment marks")
     p.set_defaults(func=run_masks)
+
+
+NO_LIMIT = "none"
+
+
+class VertexLimit(Number):
+    """``--max-vertices``: an integer >= :data:`MIN_VERTICES`, or ``none`` (no limit)."""
+
+    def __init__(self) -> None:
+        super().__init__(int, MIN_VERTICES)
+
+    def describe(self) -> str:
+        return super().describe() + " or none"
+
+    def __call__(self, text):
+        return NO_LIMIT if str(text).strip().lower() == "none" else super().__call__(text)
 
 
 def _int_list(text, what):
@@ -63,16 +91,20 @@ def run_masks(args: argparse.Namespace) -> int:
 
     from .element import write_element
 
+    formats = ("gds", "oasis") if args.layout_format == "both" else (args.layout_format,)
+    max_vertices = {None: "default", NO_LIMIT: None}.get(args.max_vertices, args.max_vertices)
+    vertex_limits(formats, max_vertices)  # a limit GDSII cannot hold costs nothing
     ensure_output_dir(args.out)  # before loading and exporting: a bad --out costs nothing
     depths = None if args.depths_nm is None else [d * 1e-9 for d in _float_list(args.depths_nm, "depths-nm")]
     report = write_element(
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=_int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
-        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, oasis=args.oasis,
-        plate=args.plate)
-    summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification")}
+        clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, formats=formats,
+        max_vertices=max_vertices, plate=args.plate)
+    summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification", "layer_properties_file")}
+    summary["files"] = [{k: f[k] for k in ("format", "file", "file_size_bytes", "max_vertices")} for f in report["files"]]
     if args.plate:
-        summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "dies", "seconds")}
+        summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "files", "dies", "seconds")}
     print_json(summary)
     return 0

@@ -19,6 +19,7 @@ from doedesign.levels import N_LEVELS, quantize_design
 
 from .decompose import binary_depths_m, levels_to_masks
 from .gds import export_masks
+from .grid import vertex_limits
 from .plate import PlateDesign, export_plate
 
 __all__ = ["DIE_SIZE_M", "LEVEL_COLOURS", "PREVIEW_PX", "clear_aperture_m", "preview", "write_element"]
@@ -89,11 +90,14 @@ def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str)
 def write_element(design: Design, out: str | Path, *, source: str | None = None, tone: str = "dark",
                   mirrored: bool = False, depths_m: Sequence[float] | None = None,
                   layers: Sequence[int] = (1, 2, 3, 4), etch_order: Sequence[int] | None = None,
-                  clear_aperture: float | None = None, oasis: bool = False, plate: bool = False) -> dict:
-    """Write ``OUT/<name>.gds`` (read back and verified), ``OUT/masks.png`` and ``OUT/report.json``.
+                  clear_aperture: float | None = None, formats: Sequence[str] = ("gds",),
+                  max_vertices: int | None | str = "default", plate: bool = False) -> dict:
+    """Write ``OUT/<name>.gds`` and/or ``OUT/<name>.oas`` (each read back and verified),
+    ``OUT/<name>.lyp`` (KLayout layer names and colours), ``OUT/masks.png`` and ``OUT/report.json``.
 
-    With ``plate``, also ``OUT/<name>_plate.gds``: a full 4-inch wafer of this die placed by
-    array references, with global alignment marks (:func:`masks.plate.export_plate`).
+    With ``plate``, also ``OUT/<name>_plate.gds`` (and/or ``.oas``, and its ``.lyp``): a
+    full 4-inch wafer of this die placed by array references, with global alignment marks
+    (:func:`masks.plate.export_plate`).
 
     Parameters
     ----------
@@ -103,7 +107,7 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         Output directory.
     source : str, optional
         The design's file name (reports and messages).
-    tone, mirrored, layers, etch_order, oasis
+    tone, mirrored, layers, etch_order, formats, max_vertices
         See :func:`masks.gds.export_masks`.
     plate : bool
         Also write the full-wafer plate (see above).
@@ -119,6 +123,7 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         The report written to ``report.json``.
     """
     source = source or design.name
+    vertex_limits(formats, max_vertices)  # a bad format or limit costs nothing
     levels, quantization = quantize_design(design, N_LEVELS, source)
     step = design.level_step_m(N_LEVELS)
     masks = levels_to_masks(levels, 4)
@@ -133,12 +138,13 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
     with output_run(out, f"doe masks {source}"):
         report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
                               tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
-                              clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, oasis=oasis)
+                              clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, formats=formats,
+                              max_vertices=max_vertices)
         if plate:
             report["plate"] = export_plate(
                 out / f"{Path(name).name or 'design'}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
-                layers=layers, tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order,
-                die_size_m=DIE_SIZE_M)
+                formats=formats, max_vertices=max_vertices, layers=layers, tone=tone, mirrored=mirrored,
+                depths_m=depths, etch_order=etch_order, die_size_m=DIE_SIZE_M)
         report["design"] = source
         report["level_step_nm"] = step * 1e9
         report["quantization"] = None if quantization is None else quantization.summary()

@@ -22,7 +22,8 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.fileio import TEMP_SUFFIX
 
-from .grid import DEFAULT_LAYERS, ELEMENT_CELL, MAX_VERTICES, PixelGrid, check_layers, drawn_masks
+from .grid import (DEFAULT_LAYERS, ELEMENT_CELL, GDS_VERTEX_CEILING, MAX_VERTICES, PixelGrid, check_layers,
+                   drawn_masks)
 from .polygons import PolygonSet, mask_polygons
 
 if TYPE_CHECKING:
@@ -42,17 +43,21 @@ BOUNDARY, LAYER, DATATYPE, XY, ENDEL = 0x0800, 0x0D02, 0x0E02, 0x1003, 0x1100
 STRNAME, ENDSTR, UNITS, ENDLIB = 0x0606, 0x0700, 0x0305, 0x0400
 
 
-def boundary_records(pset: PolygonSet, grid: PixelGrid, layer: int, datatype: int = 0) -> bytes:
+def boundary_records(pset: PolygonSet, grid: PixelGrid, layer: int, datatype: int = 0,
+                     max_vertices: int = MAX_VERTICES) -> bytes:
     """GDSII BOUNDARY elements for a :class:`PolygonSet`, as one big-endian byte string.
 
     Each polygon is written as BOUNDARY, LAYER, DATATYPE, XY (its vertices in database
     units, closed by repeating the first) and ENDEL, all built with numpy in one pass.
+    Vertex ``(col, row)`` goes to ``x = x0 + col p``, ``y = y0 - row p`` (rows row-major,
+    row 0 at the top, so rows run toward decreasing GDS y; x negated when mirrored).
     """
     counts = np.diff(pset.offsets)
     if counts.size == 0:
         return b""
-    if counts.max() > MAX_VERTICES:
-        raise DoeError(f"layer {layer}: polygon with {int(counts.max())} vertices exceeds {MAX_VERTICES}")
+    if counts.max() > min(max_vertices, GDS_VERTEX_CEILING):
+        raise DoeError(f"layer {layer}: polygon with {int(counts.max())} vertices exceeds "
+                       f"{min(max_vertices, GDS_VERTEX_CEILING)}")
     x0, y0 = grid.origin_dbu
     x = x0 + pset.vertices[:, 0] * grid.pitch_dbu
     y = y0 - pset.vertices[:, 1] * grid.pitch_dbu
@@ -96,12 +101,15 @@ def structure_end(data: bytes, name: str) -> int:
 
 def write_element_gds(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid: PixelGrid,
                       layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0, tone: str = "dark",
-                      cell_name: str = ELEMENT_CELL, progress: Progress | None = None) -> list[dict]:
+                      cell_name: str = ELEMENT_CELL, progress: Progress | None = None,
+                      max_vertices: int = MAX_VERTICES) -> list[dict]:
     """Write ``lib`` (holding an empty element cell) with the element's polygons streamed in.
 
-    gdstk writes everything else (marks, aperture, labels, references); the element's
-    BOUNDARY records are built with numpy per mask layer and spliced into its structure,
-    so no Python object is made per polygon and one layer is in memory at a time.
+    gdstk writes everything else (marks, aperture, labels, references), fracturing its
+    polygons to ``max_vertices``; the element's BOUNDARY records are built with numpy per
+    mask layer (polygons of at most ``max_vertices`` vertices, :func:`boundary_records`)
+    and spliced into its structure, so no Python object is made per polygon and one layer
+    is in memory at a time.
 
     Returns
     -------
@@ -120,17 +128,17 @@ def write_element_gds(lib: gdstk.Library, path: str | Path, masks: np.ndarray, g
     os.close(fd)
     skeleton_path = Path(skeleton_name)
     try:
-        lib.write_gds(str(skeleton_path), max_points=MAX_VERTICES)
+        lib.write_gds(str(skeleton_path), max_points=max_vertices)
         skeleton = skeleton_path.read_bytes()
     finally:
         skeleton_path.unlink(missing_ok=True)
     cut = structure_end(skeleton, cell_name)
 
     def one_layer(j):
-        pset = mask_polygons(drawn[j], MAX_VERTICES)
+        pset = mask_polygons(drawn[j], max_vertices)
         stat = {"layer": layers[j], "datatype": int(datatype), "polygons": pset.n_polygons,
                 "vertices": pset.n_vertices, "max_vertices": pset.max_vertices}
-        return boundary_records(pset, grid, layers[j], datatype), stat
+        return boundary_records(pset, grid, layers[j], datatype, max_vertices), stat
 
     stats = []
     # numpy releases the GIL in its array loops: two layers at a time use both cores

@@ -25,13 +25,17 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-__all__ = ["APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER", "ELEMENT_CELL", "MAX_VERTICES", "PRECISION_M",
-           "PixelGrid", "TEXT_LAYER", "TONES", "UNIT_M", "check_layers", "drawn_masks", "rasterize_layer",
-           "rasterize_points"]
+__all__ = ["APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER", "ELEMENT_CELL", "FORMATS", "GDS_VERTEX_CEILING",
+           "MAX_VERTICES", "MIN_VERTICES", "PRECISION_M", "PixelGrid", "SUFFIXES", "TEXT_LAYER", "TONES", "UNIT_M",
+           "check_layers", "drawn_masks", "rasterize_layer", "rasterize_points", "vertex_limits"]
 
 UNIT_M = 1e-6
 PRECISION_M = 1e-9
-MAX_VERTICES = 199
+MAX_VERTICES = 199  # GDSII default: the vertex limit most mask-shop tools accept
+MIN_VERTICES = 5  # gdstk's fracture returns nothing for 4 and write_gds then ignores the limit
+GDS_VERTEX_CEILING = 8190  # an XY record's 16-bit length holds 8191 points, the closing one included
+FORMATS = ("gds", "oasis")
+SUFFIXES = {"gds": ".gds", "oasis": ".oas"}
 TONES = ("dark", "clear")
 DEFAULT_LAYERS = (1, 2, 3, 4)
 APERTURE_LAYER = 10
@@ -132,6 +136,37 @@ def check_layers(layers: Sequence[int], n_masks: int) -> tuple:
     return layers
 
 
+def vertex_limits(formats: Sequence[str], max_vertices: int | None | str = "default") -> dict:
+    """Largest vertex count of one polygon in each layout format written.
+
+    Parameters
+    ----------
+    formats : sequence of {"gds", "oasis"}
+    max_vertices : int, None or "default"
+        One limit for every file (None: no limit, OASIS only); "default" gives GDSII
+        :data:`MAX_VERTICES` and OASIS no limit (the format has none).
+
+    Returns
+    -------
+    dict
+        Format -> int, or None for no limit.
+    """
+    formats = tuple(formats)
+    if not formats or any(f not in FORMATS for f in formats) or len(set(formats)) != len(formats):
+        raise DoeError(f"layout formats must be distinct ones of {', '.join(FORMATS)}, got {list(formats)}")
+    if isinstance(max_vertices, str):
+        if max_vertices != "default":
+            raise DoeError(f"max_vertices must be a number, None or 'default', got {max_vertices!r}")
+        return {f: MAX_VERTICES if f == "gds" else None for f in formats}
+    if max_vertices is not None:
+        if int(max_vertices) != max_vertices or max_vertices < MIN_VERTICES:
+            raise DoeError(f"--max-vertices must be an integer >= {MIN_VERTICES} or none, got {max_vertices}")
+        max_vertices = int(max_vertices)
+    if "gds" in formats and (max_vertices is None or max_vertices > GDS_VERTEX_CEILING):
+        raise DoeError(f"--max-vertices {'none' if max_vertices is None else max_vertices}: a GDSII polygon "
+                       f"holds at most {GDS_VERTEX_CEILING} vertices; give a smaller limit or --format oasis")
+    return {f: max_vertices for f in formats}
+
 
 def rasterize_layer(polygons: list[np.ndarray], grid: PixelGrid) -> tuple[np.ndarray, list[str]]:
     """Scanline fill of polygons on the pixel grid (pixel-exact Manhattan input only).
@@ -155,17 +190,19 @@ def rasterize_layer(polygons: list[np.ndarray], grid: PixelGrid) -> tuple[np.nda
     return rasterize_points(grid.to_index(np.concatenate(polygons)), counts, grid)
 
 
-def rasterize_points(idx: np.ndarray, counts: np.ndarray, grid: PixelGrid) -> tuple[np.ndarray, list[str]]:
+def rasterize_points(idx: np.ndarray, counts: np.ndarray, grid: PixelGrid,
+                     max_vertices: int | None = MAX_VERTICES) -> tuple[np.ndarray, list[str]]:
     """:func:`rasterize_layer` on flat arrays: ``idx`` (n, 2) (col, row) indices of the
     vertices of all polygons (float: checked to lie on the grid; integer: taken as exact),
-    ``counts`` vertices per polygon."""
+    ``counts`` vertices per polygon; polygons over ``max_vertices`` (None: no limit) are a
+    problem."""
     rows, cols = grid.shape
     problems = []
     counts = np.asarray(counts, np.int64)
     if counts.size == 0:
         return np.zeros(grid.shape, np.int32), problems
-    if counts.max() > MAX_VERTICES:
-        problems.append(f"{int((counts > MAX_VERTICES).sum())} polygons exceed {MAX_VERTICES} vertices")
+    if max_vertices is not None and counts.max() > max_vertices:
+        problems.append(f"{int((counts > max_vertices).sum())} polygons exceed {max_vertices} vertices")
     if np.asarray(idx).dtype.kind in "iu":
         pts = np.array(idx, np.int64)  # exact indices (a copy: clipped below)
     else:

@@ -17,11 +17,12 @@ import numpy as np
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path
 
-from .grid import DEFAULT_LAYERS, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid
-from .gds import element_cell
+from .grid import DEFAULT_LAYERS, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid, vertex_limits
+from .gds import element_cell, write_layouts
 from .gds_records import gds_name
 from .layout import DieSettings, die_cells, mark_site
-from .verify import verify_file, write_verified
+from .lyp import LayerStyle, die_layer_styles, write_lyp
+from .verify import verify_file
 
 __all__ = ["EDGE_EXCLUSION_M", "GLOBAL_MARK_STEP_UM", "GLOBAL_MARK_X_M", "PLATE_LAYER", "PLATE_SIZE_M", "PlateDesign",
            "STREET_M", "WAFER_DIAMETER_M", "WAFER_LAYER", "die_sites", "export_plate", "global_mark_sites_um",
@@ -238,18 +239,12 @@ def wafer_plate(design: PlateDesign, *, layers: Sequence[int] = DEFAULT_LAYERS, 
 
 def write_plate(path: str | Path, lib: gdstk.Library, dies: list[dict], layers: Sequence[int] = DEFAULT_LAYERS,
                 datatype: int = 0, tone: str = "dark") -> dict:
-    """Write a plate library and verify every die's element; DoeError and no file on mismatch.
-
-    A single die whose element cell is empty (``inline``, :func:`wafer_plate`) has its
-    polygons streamed in by :func:`masks.verify.write_verified`.
+    """Write a plate library (:func:`plate_layout`) as GDSII and verify every die's element;
+    DoeError and no file on mismatch. A full wafer of one design (:func:`wafer_plate`, its
+    element streamed in) is written by :func:`export_plate`.
     """
-    if len(dies) == 1 and dies[0].get("inline"):
-        d = dies[0]
-        res = write_verified(lib, path, d["masks"], d["grid"], layers, datatype, tone, cell_name=d["cell"])
-        d["layers"] = res["stats"]
-        return {d["name"]: {"mismatched_pixels": res["mismatched_pixels"], "passed": True}}
     if any(d.get("inline") for d in dies):
-        raise DoeError("write_plate: only a plate of one design streams its element")
+        raise DoeError("write_plate: a plate whose element is streamed in is written by export_plate")
     with atomic_path(path) as tmp:
         lib.write_gds(str(tmp), max_points=MAX_VERTICES)
         results = {}
@@ -262,21 +257,38 @@ def write_plate(path: str | Path, lib: gdstk.Library, dies: list[dict], layers: 
     return results
 
 
-def export_plate(path: str | Path, design: PlateDesign, **options: object) -> dict:
+def export_plate(path: str | Path, design: PlateDesign, *, formats: Sequence[str] = ("gds",),
+                 max_vertices: int | None | str = "default", **options: object) -> dict:
     """Write a verified full-wafer plate of one design (:func:`wafer_plate`) to ``path``.
 
-    ``options`` go to :func:`wafer_plate`. Returns the ``plate`` entry of the report: the
-    file, its size, the die count and lattice, the global mark positions and the seconds.
+    ``formats`` and ``max_vertices`` as in :func:`masks.gds.export_masks` (``path``'s suffix
+    becomes ``.gds`` / ``.oas``, and a KLayout ``.lyp`` is written beside them); ``options``
+    go to :func:`wafer_plate`. Returns the ``plate`` entry of the report: the files and
+    their sizes (``file`` and ``file_size_bytes``: the first), the die count and lattice, the
+    global mark positions and the seconds.
     """
     t0 = time.perf_counter()
+    limits = vertex_limits(formats, max_vertices)
     lib, dies = wafer_plate(design, **options)
-    verification = write_plate(path, lib, dies, options.get("layers", DEFAULT_LAYERS), options.get("datatype", 0),
-                               options.get("tone", "dark"))
     die = dies[0]
-    return {"file": str(path), "file_size_bytes": Path(path).stat().st_size, "dies": die["count"],
+    layers = options.get("layers", DEFAULT_LAYERS)
+    datatype = options.get("datatype", 0)
+    element = next(c for c in lib.cells if c.name == die["cell"])
+    files = write_layouts(lib, element, path, die["masks"], die["grid"], limits, layers, datatype,
+                          options.get("tone", "dark"))
+    depths = options.get("depths_m", (75e-9, 150e-9, 300e-9, 600e-9))
+    extra = [LayerStyle(PLATE_LAYER, 0, f"5-inch plate frame (L{PLATE_LAYER}/0)", "#606060", "I1", 2),
+             LayerStyle(WAFER_LAYER, 0, f"4-inch wafer outline (L{WAFER_LAYER}/0)", "#a06030", "I0")]
+    lyp = write_lyp(Path(path).with_suffix(".lyp"),
+                    die_layer_styles(layers, datatype, depths, options.get("etch_order"),
+                                     bool(design.clear_aperture_m), extra))
+    return {"file": files[0]["file"], "file_size_bytes": files[0]["file_size_bytes"],
+            "files": [{k: f[k] for k in ("format", "file", "file_size_bytes", "max_vertices")} for f in files],
+            "layer_properties_file": str(lyp), "dies": die["count"],
             "die_pitch_um": die["pitch_um"], "die_footprint_um": die["footprint_um"],
             "array_references": len(die["rows"]),
             "usable_diameter_m": round(options.get("wafer_diameter_m", WAFER_DIAMETER_M) - 2 * EDGE_EXCLUSION_M, 9),
             "global_marks_um": [list(c) for c in global_mark_sites_um(len(die["masks"]))],
             "seconds": time.perf_counter() - t0,
-            "verification": verification[die["name"]]}
+            "verification": {"passed": all(f["verification"]["passed"] for f in files),
+                             "mismatched_pixels": max(f["verification"]["mismatched_pixels"] for f in files)}}

@@ -3,8 +3,11 @@
 Each 4-connected component of set pixels becomes one polygon: its outline is traced on the
 pixel-corner lattice (:func:`traced_outlines`) and its holes are joined to it by zero-width
 cut lines along pixel-corner rows (keyholes: GDSII has no holes). Components whose outline
-would exceed ``max_vertices`` (199 is the GDSII limit most tools accept) are cut into
-stacks of row runs instead (:func:`run_chain_polygons`). Every edge is axis-parallel,
+would exceed ``max_vertices`` (199 is the GDSII limit most tools accept; None, for OASIS,
+sets none) are cut into stacks of row runs instead (:func:`run_chain_polygons`): the
+fracturing is done here, on the pixel lattice, rather than by gdstk's ``Polygon.fracture``
+afterwards, because the pieces are then whole pixel rows by construction (no slivers, every
+cut on a pixel edge) and no Python object is made per polygon. Every edge is axis-parallel,
 every vertex lies on a pixel corner, and no two polygons overlap.
 
 Coordinates here are integer pixel-corner indices ``(col, row)``: pixel ``(r, c)`` spans
@@ -59,7 +62,7 @@ class PolygonSet:
         return [self.vertices[a:b] for a, b in zip(off[:-1], off[1:])]
 
 
-def mask_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
+def mask_polygons(mask: np.ndarray, max_vertices: int | None = 199) -> PolygonSet:
     """Fully merged Manhattan polygons covering exactly the True pixels of ``mask``.
 
     Each 4-connected component whose outline (holes joined by keyhole cuts) has at most
@@ -69,8 +72,9 @@ def mask_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     Parameters
     ----------
     mask : ndarray of bool, shape (rows, cols)
-    max_vertices : int
-        Largest vertex count of one polygon (at least 8).
+    max_vertices : int or None
+        Largest vertex count of one polygon (at least 4: then every polygon is a
+        rectangle); None: no limit, every component one polygon.
 
     Returns
     -------
@@ -81,8 +85,10 @@ def mask_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != bool:
         raise DoeError(f"mask must be a 2-D boolean array, got {mask.dtype} shape {mask.shape}")
-    if max_vertices < 8:
-        raise DoeError(f"max_vertices must be at least 8, got {max_vertices}")
+    if max_vertices is None:
+        max_vertices = np.iinfo(np.int64).max
+    if max_vertices < 4:
+        raise DoeError(f"max_vertices must be at least 4, got {max_vertices}")
     traced, done = traced_outlines(mask, max_vertices)
     rest = run_chain_polygons(mask & ~done, max_vertices)
     return PolygonSet(np.concatenate([traced.vertices, rest.vertices]),
@@ -328,7 +334,8 @@ def run_chain_polygons(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
     cum = np.cumsum(contrib)
     chain_start = np.maximum.accumulate(np.where(has_pred, 0, np.arange(n)))
     cum_local = cum - cum[chain_start]
-    segment = cum_local // (max_vertices - 4)
+    # a piece's steps add fewer than max_vertices - 4 corners to its 4 (at 4 or 5: none)
+    segment = cum_local // max(max_vertices - 4, 1)
     first = ~has_pred
     first[1:] |= segment[1:] != segment[:-1]
     poly = np.cumsum(first) - 1

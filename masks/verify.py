@@ -31,18 +31,21 @@ __all__ = ["verify_file", "write_verified"]
 
 
 def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Sequence[int] = DEFAULT_LAYERS,
-                datatype: int = 0, tone: str = "dark", cell_name: str = ELEMENT_CELL) -> dict:
+                datatype: int = 0, tone: str = "dark", cell_name: str = ELEMENT_CELL,
+                max_vertices: int | None = MAX_VERTICES) -> dict:
     """Read an exported file back, rasterize every mask layer, recompose and compare levels.
 
     GDSII files are read by :func:`read_gds_boundaries` (numpy, written apart from the
-    writer), OASIS files by gdstk.
+    writer), OASIS files by gdstk. The file's coordinates map back to pixels by
+    :class:`masks.grid.PixelGrid`: rows row-major, row 0 at the top, rows toward decreasing y.
 
     Returns
     -------
     dict
         ``mismatched_pixels``, ``passed``, per-layer ``layers`` (mismatches, overlaps) and
         ``problems`` (empty when passed). Geometry of the other (non-element) cells on the
-        mask layers, all placed in die coordinates, must not reach the element's area.
+        mask layers, all placed in die coordinates, must not reach the element's area, and
+        no polygon of any cell may have more than ``max_vertices`` vertices (None: no limit).
     """
     masks = np.asarray(masks, dtype=bool)
     layers = check_layers(layers, masks.shape[0])
@@ -65,7 +68,7 @@ def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Se
         np.subtract(y0, pts[:, 1], out=pts[:, 1])
         off = int((pts % grid.pitch_dbu != 0).any(axis=1).sum())
         pts //= grid.pitch_dbu
-        coverage, probs = rasterize_points(pts, cell["counts"][sel], grid)
+        coverage, probs = rasterize_points(pts, cell["counts"][sel], grid, max_vertices=None)
         del pts
         return coverage, probs + ([f"{off} vertices off the pixel grid"] if off else [])
 
@@ -82,6 +85,12 @@ def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Se
         per_layer.append({"layer": layer, "mismatched_pixels": int((opened != masks[j]).sum()),
                           "overlapping_pixels": overlaps})
     mismatch = int((masks_to_levels(np.array(recovered)) != masks_to_levels(masks)).sum())
+    if max_vertices is not None:
+        for name, c in cells.items():
+            over = int((c["counts"] > max_vertices).sum())
+            if over:
+                problems.append(f"cell {name}: {over} polygons exceed {max_vertices} vertices "
+                                f"(largest {int(c['counts'].max())})")
     (gx0, gy0), (gx1, gy1) = grid.bbox_um()
     for name, other in cells.items():
         if name.startswith(ELEMENT_CELL) or other["counts"].size == 0:
@@ -101,12 +110,14 @@ def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Se
 def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid: PixelGrid,
                    layers: Sequence[int] = DEFAULT_LAYERS, datatype: int = 0, tone: str = "dark",
                    cell_name: str = ELEMENT_CELL, element_inline: bool = True,
-                   progress: Progress | None = None) -> dict:
+                   progress: Progress | None = None, max_vertices: int | None = MAX_VERTICES) -> dict:
     """Write ``lib`` to ``path`` (.gds, or .oas for OASIS), verify, then rename into place.
 
     With ``element_inline`` (GDSII only) the element cell in ``lib`` is empty and its
     polygons are streamed in by :func:`write_element_gds` (``progress`` advanced per mask);
-    otherwise ``lib`` holds them.
+    otherwise ``lib`` holds them. No polygon written has more than ``max_vertices``
+    vertices (None: no limit, OASIS only): gdstk fractures the other cells' larger ones
+    (for OASIS in ``lib`` itself, before writing), the element's come within the limit.
 
     Returns
     -------
@@ -122,15 +133,19 @@ def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid
     path = Path(path)
     oasis = path.suffix.lower() == ".oas"
     stats = None
+    if max_vertices is None and not oasis:
+        raise DoeError(f"{path}: a GDSII file needs a vertex limit")
     with atomic_path(path) as tmp:
         if oasis:
+            if max_vertices is not None:
+                _fracture_cells(lib, max_vertices)
             lib.write_oas(str(tmp))
         elif element_inline:
             stats = write_element_gds(lib, tmp, masks, grid, layers, datatype, tone, cell_name,
-                                      progress)
+                                      progress, max_vertices)
         else:
-            lib.write_gds(str(tmp), max_points=MAX_VERTICES)
-        result = verify_file(tmp, masks, grid, layers, datatype, tone, cell_name)
+            lib.write_gds(str(tmp), max_points=max_vertices)
+        result = verify_file(tmp, masks, grid, layers, datatype, tone, cell_name, max_vertices)
         if not result["passed"]:
             raise DoeError(f"{path}: verification failed, file not written: "
                            f"{result['mismatched_pixels']} mismatched pixels; "
@@ -139,3 +154,13 @@ def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid
     if stats is not None:
         result["stats"] = stats
     return result
+
+
+def _fracture_cells(lib: gdstk.Library, max_vertices: int) -> None:
+    """Replace every polygon of ``lib`` with more than ``max_vertices`` vertices by gdstk's
+    fractured pieces (what ``write_gds(max_points=...)`` does for GDSII on the way out)."""
+    for cell in lib.cells:
+        big = [p for p in cell.polygons if p.size > max_vertices]
+        if big:
+            cell.remove(*big)
+            cell.add(*[q for p in big for q in p.fracture(max_points=max_vertices, precision=PRECISION_M / UNIT_M)])

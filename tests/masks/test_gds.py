@@ -164,7 +164,7 @@ def _design_file(tmp_path, levels=None, height=None, name="lens"):
 def test_cli_masks_writes_verified_outputs(tmp_path):
     p = _design_file(tmp_path)
     out = tmp_path / "out"
-    assert main(["masks", str(p), "--out", str(out), "--mirror", "--tone", "clear", "--oasis"]) == 0
+    assert main(["masks", str(p), "--out", str(out), "--mirror", "--tone", "clear", "--format", "both"]) == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["verification"]["passed"] and rep["verification"]["mismatched_pixels"] == 0
     assert [layer["layer"] for layer in rep["layers"]] == [1, 2, 3, 4]

@@ -49,6 +49,6 @@ def test_kill_mid_write_then_rerun(tmp_path):
     rerun = _masks(design, out)
     assert rerun.wait(timeout=300) == 0, rerun.stderr.read().decode()
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["kill.gds", "masks.png", "report.json"], names
+    assert names == ["kill.gds", "kill.lyp", "masks.png", "report.json"], names
     report = json.loads((out / "report.json").read_text())
     assert report["verification"]["passed"]
