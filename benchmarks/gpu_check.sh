@@ -17,6 +17,6 @@ export PYTHONPATH=$PWD:$PYTHONPATH PYTHONUNBUFFERED=1
 {
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
   "$py" -c "import cupy, numpy; print('cupy', cupy.__version__, 'numpy', numpy.__version__)"
-  "$py" -m pytest -q -p no:cacheprovider -m gpu tests/doedesign/test_backend.py
+  "$py" -m pytest -q -p no:cacheprovider -m gpu tests/doedesign/test_backend.py tests/masks/test_tolerance_device.py
   "$py" -m benchmarks.bench_gpu --out "$out/gpu_rows.json" "${@:2}"
 } 2>&1 | tee "$out/gpu_check.log"

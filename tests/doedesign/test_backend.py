@@ -2,7 +2,7 @@
 refuses everything outside the array API standard) and on CuPy gives NumPy's answers.
 
 The strict runs make non-portable code fail on a CPU machine; the ``gpu`` tests run the same
-cases on CuPy and skip where no GPU is present. The NumPy engine is itself checked against
+cases on CuPy and skip where no GPU is present (the ``namespace_backend`` fixture, tests/conftest.py). The NumPy engine is itself checked against
 analytic results in test_psf.py; here each namespace is checked against it.
 """
 
@@ -21,17 +21,6 @@ from doedesign.optimizer.losses import LossSpec, make_loss
 PITCH = 5.4e-6
 
 
-def _gpu():
-    why = be.gpu_unavailable_reason()
-    if why is not None:
-        pytest.skip(f"no GPU: {why}")
-    return be.select_backend("gpu")
-
-
-BACKENDS = [pytest.param(be.strict_backend, id="array_api_strict"),
-            pytest.param(_gpu, id="cupy", marks=pytest.mark.gpu)]
-
-
 def _case(q=1, focus=np.inf, depths=None, n=40):
     cam = Camera(aperture_diameter_m=n * PITCH, focus_distance_m=focus, window_shape=(48, 40),
                  axis_pixel=(24, 21))
@@ -41,25 +30,23 @@ def _case(q=1, focus=np.inf, depths=None, n=40):
     return cam, target, h, kw
 
 
-@pytest.mark.parametrize("make", BACKENDS)
 @pytest.mark.parametrize("q, focus, depths", [(1, np.inf, None), (2, 5.0, (2.0, 5.0))])
-def test_psf_stack_equals_numpy(make, q, focus, depths):
+def test_psf_stack_equals_numpy(namespace_backend, q, focus, depths):
     cam, _, h, kw = _case(q, focus, depths)
     ref = PSFEngine(cam, PITCH, h.shape, device="cpu", **kw).psf(h)
-    other = PSFEngine(cam, PITCH, h.shape, device=make(), **kw).psf(h)
+    other = PSFEngine(cam, PITCH, h.shape, device=namespace_backend, **kw).psf(h)
     assert isinstance(other.psf, np.ndarray)
     assert np.abs(other.psf - ref.psf).max() <= 1e-10 * ref.psf.max()
-    single = PSFEngine(cam, PITCH, h.shape, device=make(), precision="single", **kw).psf(h)
+    single = PSFEngine(cam, PITCH, h.shape, device=namespace_backend, precision="single", **kw).psf(h)
     assert np.abs(single.psf - ref.psf).max() <= 1e-5 * ref.psf.max()
 
 
-@pytest.mark.parametrize("make", BACKENDS)
 @pytest.mark.parametrize("spec, full", [("l1,energy", False), ("l1,energy", True), ("energy", False)])
-def test_value_and_grad_equals_numpy(make, spec, full):
+def test_value_and_grad_equals_numpy(namespace_backend, spec, full):
     cam, target, h, kw = _case(q=2, focus=5.0)
     loss = make_loss(target, LossSpec.parse(spec))
     v_ref, g_ref = PSFEngine(cam, PITCH, h.shape, device="cpu", **kw).value_and_grad(h, loss, full_window=full)
-    v, g = PSFEngine(cam, PITCH, h.shape, device=make(), **kw).value_and_grad(h, loss, full_window=full)
+    v, g = PSFEngine(cam, PITCH, h.shape, device=namespace_backend, **kw).value_and_grad(h, loss, full_window=full)
     assert isinstance(g, np.ndarray) and g.shape == h.shape
     assert v == pytest.approx(v_ref, rel=1e-10)
     assert np.abs(g - g_ref).max() <= 1e-10 * np.abs(g_ref).max()
@@ -119,3 +106,4 @@ def test_psf_command_same_stack_on_cpu_and_auto(tmp_path):
                      str(tmp_path / f"{device}.npz"), "--device", device]) == 0
     a, b = (PSFResult.load(tmp_path / f"{k}.npz").psf for k in ("cpu", "auto"))
     assert np.abs(a - b).max() <= 1e-10 * a.max()
+
