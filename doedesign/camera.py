@@ -15,9 +15,12 @@ import numpy as np
 
 from .errors import DoeError
 
-__all__ = ["Camera", "SIDES"]
+__all__ = ["Camera", "MAX_WINDOW_PX", "SIDES"]
 
 SIDES = ("left", "right", "full")
+# Largest sensor window simulated (pixels per side): 8192^2 float64 per wavelength and view is
+# already 0.5 GB; a design file's camera or an option claiming more is refused.
+MAX_WINDOW_PX = 8192
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,8 @@ class Camera:
         object.__setattr__(self, "axis_pixel", tuple(int(v) for v in self.axis_pixel))
         if len(self.window_shape) != 2 or min(self.window_shape) < 1:
             raise DoeError(f"camera: window_shape must be (rows, cols), got {self.window_shape}")
+        if max(self.window_shape) > MAX_WINDOW_PX:
+            raise DoeError(f"camera: window_shape {self.window_shape} is over {MAX_WINDOW_PX} pixels a side")
 
     @property
     def focal_length_m(self) -> float:

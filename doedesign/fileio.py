@@ -2,16 +2,21 @@
 strict JSON encoder (:func:`json_ready`, :func:`dumps_json`, :func:`write_json`).
 
 A failure part-way leaves no partial file behind, so a mask shop or a later
-pipeline step never sees a half-written result. Temporary names never end in the
-final extension (``.NAME.<pid>-<random>.part``), so a killed run cannot leave
-something that looks like a result; the next write into the same folder removes
-temporaries whose process is gone. :func:`output_run` marks a folder incomplete
-while a command fills it, so a kill between two outputs is visible.
+pipeline step never sees a half-written result. Temporary names are short and never end
+in the final extension (``.tmp.<pid>-<random>.part``, 30 bytes at most, so any name the
+file system allows can be written), so a killed run cannot leave something that looks
+like a result; the next write into the same folder removes temporaries whose process is
+gone. :func:`output_run` marks a folder incomplete while a command fills it, so a kill
+between two outputs is visible, and removes what the command wrote when it fails.
+Output paths are checked once, here (:func:`check_output_path`): a device, pipe or
+socket is never replaced by a file, and names longer than the system allows are refused
+as one line.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import datetime as _dt
 import errno
 import json
@@ -33,16 +38,90 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
-           "check_input_file", "ensure_output_dir", "ensure_output_file", "load_npy", "output_run", "parse_json",
-           "parse_toml"]
+           "check_input_file", "check_output_path", "ensure_output_dir", "ensure_output_file", "load_npy",
+           "make_temporary", "output_run", "parse_json", "parse_toml", "read_json", "read_text_file", "read_toml",
+           "safe_file_name", "shown_path"]
 
 TEMP_SUFFIX = ".part"
 INCOMPLETE_MARKER = "INCOMPLETE"
 _TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)-[^.]+" + re.escape(TEMP_SUFFIX) + "$")
+# Longest file name and path (bytes) where the system does not say (Linux's NAME_MAX, PATH_MAX).
+_NAME_MAX, _PATH_MAX = 255, 4096
+# Results written by atomic_path inside the innermost output_run: (path, existed before).
+_RUN_WRITES: contextvars.ContextVar[list | None] = contextvars.ContextVar("doe_run_writes", default=None)
+
+
+def shown_path(path: str | Path, limit: int = 120) -> str:
+    """``path`` for a one-line message: long paths cut in the middle, control characters escaped."""
+    text = str(path)
+    if len(text) > limit:
+        text = f"{text[:limit // 2]}...{text[-limit // 2:]}"
+    return text.encode("unicode_escape").decode("ascii") if not text.isprintable() else text
 
 
 def _os_message(path, exc, doing="write"):
-    return f"{path}: cannot {doing} ({exc.strerror or exc})"
+    return f"{shown_path(path)}: cannot {doing} ({exc.strerror or exc})"
+
+
+def _limit(folder, name, default):
+    try:
+        return int(os.pathconf(folder, name))
+    except (OSError, ValueError):
+        return default
+
+
+def check_output_path(path: str | Path, what: str = "--out") -> Path:
+    """``path`` as a Path after checking that it names something a file may be written to.
+
+    Refused (one line each): a NUL character, a path or one of its names longer than the
+    system allows (ENAMETOOLONG would only show up after the work), and an existing
+    device, pipe or socket (writing a result must never replace ``/dev/null``).
+    An existing folder is left to the caller (a folder is right for ``--out DIR``).
+    """
+    text = os.fsencode(path) if not isinstance(path, bytes) else path
+    if b"\0" in text:
+        raise DoeError(f"{shown_path(path)}: {what} holds a NUL character; give a plain path")
+    path = Path(path)
+    folder = next((p for p in [path.absolute(), *path.absolute().parents] if _is_dir(p)), Path("/"))
+    name_max, path_max = _limit(folder, "PC_NAME_MAX", _NAME_MAX), _limit(folder, "PC_PATH_MAX", _PATH_MAX)
+    if len(os.fsencode(path.absolute())) >= path_max:
+        raise DoeError(f"{shown_path(path)}: {what} is {len(os.fsencode(path.absolute()))} bytes long, over the "
+                       f"system's {path_max}-byte path limit")
+    for part in path.parts:
+        if len(os.fsencode(part)) > name_max:
+            raise DoeError(f"{shown_path(path)}: {what} holds a name of {len(os.fsencode(part))} bytes, over the "
+                           f"file system's {name_max}-byte limit")
+    try:
+        st = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return path
+    except OSError as exc:
+        raise DoeError(_os_message(path, exc, f"use {what}")) from None
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        raise DoeError(f"{shown_path(path)}: {what} is not a regular file (a device, pipe or socket); "
+                       "give a new file name or a regular file")
+    return path
+
+
+def _is_dir(path):
+    try:
+        return stat.S_ISDIR(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
+def safe_file_name(text: str, suffix: str = "", fallback: str = "design") -> str:
+    """A file name made from ``text`` (a design's name, say) followed by ``suffix``.
+
+    Path separators and control characters (NUL included) become ``_``, leading dots are
+    dropped (no hidden files), and the name is cut at a character boundary so that
+    name and suffix fit the file system's 255-byte limit. An empty result is ``fallback``.
+    """
+    name = re.sub(r"[\x00-\x1f\x7f/\\]", "_", str(text)).lstrip(". ").rstrip()
+    budget = _NAME_MAX - len(os.fsencode(suffix))
+    raw = name.encode("utf-8", "surrogateescape")[:max(budget, 1)]
+    name = raw.decode("utf-8", "ignore").rstrip()
+    return (name or fallback) + suffix
 
 
 def _pid_alive(pid):
@@ -87,9 +166,9 @@ def ensure_output_dir(path: str | Path, what: str = "--out", create: bool = Fals
     DoeError
         ``path`` is an existing file, cannot be created, or is not writable (one line).
     """
-    path = Path(path)
+    path = check_output_path(path, what)
     if path.exists() and not path.is_dir():
-        raise DoeError(f"{path}: {what} is an existing file; it must be a folder")
+        raise DoeError(f"{shown_path(path)}: {what} is an existing file; it must be a folder")
     if create:
         try:
             path.mkdir(parents=True, exist_ok=True)
@@ -119,23 +198,28 @@ def ensure_output_file(path: str | Path, what: str = "--out") -> Path:
     Raises
     ------
     DoeError
-        A folder sits at ``path`` or its folder cannot be created or written.
+        A folder, a device, a pipe or a socket sits at ``path``, the path is too long, or its
+        folder cannot be created or written.
     """
-    path = Path(path)
+    path = check_output_path(path, what)
     if path.is_dir():
-        raise DoeError(f"{path}: {what} is an existing folder; it must be a file name")
+        raise DoeError(f"{shown_path(path)}: {what} is an existing folder; it must be a file name")
     ensure_output_dir(path.parent if str(path.parent) else Path("."), f"the folder of {what}")
     return path
 
 
 @contextlib.contextmanager
-def output_run(folder: str | Path, command: str) -> Iterator[Path]:
+def output_run(folder: str | Path, command: str, keep_partial: bool = False) -> Iterator[Path]:
     """Mark ``folder`` incomplete while ``command`` writes its outputs there.
 
     The marker file :data:`INCOMPLETE_MARKER` is written first and removed only when the
     block finishes without an exception, so after a kill or a failure the folder says that
-    its files may come from different runs. A failure that wrote nothing leaves the folder
-    as it was (a refused run leaves nothing behind).
+    its files may come from different runs. When the block fails with an error (a full
+    disk, a refused input), the results it wrote through :func:`atomic_path` that did not
+    exist before are removed again (unless ``keep_partial``: resumable work such as
+    finished Monte Carlo samples is kept, under the marker); the marker stays only while
+    something of this run remains (a result it replaced, kept work) or when it was
+    interrupted (Ctrl-C). A failure that leaves the folder as it was leaves nothing behind.
     """
     folder = Path(folder)
     created = not folder.exists()
@@ -144,18 +228,36 @@ def output_run(folder: str | Path, command: str) -> Iterator[Path]:
     marker = folder / INCOMPLETE_MARKER
     before = _snapshot(folder)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    with atomic_path(marker) as tmp:
-        tmp.write_text(f"`{command}` started {started} UTC (pid {os.getpid()}) and has not finished: "
-                       "the files in this folder may be partial or from different runs.\n")
+    try:
+        with atomic_path(marker) as tmp:
+            tmp.write_text(f"`{command}` started {started} UTC (pid {os.getpid()}) and has not finished: "
+                           "the files in this folder may be partial or from different runs.\n")
+    except DoeError:
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+    written: list = []
+    token = _RUN_WRITES.set(written)
     try:
         yield folder
-    except BaseException:
+    except BaseException as exc:
+        if isinstance(exc, Exception) and not keep_partial:
+            for path, existed in written:
+                if not existed:
+                    with contextlib.suppress(OSError):
+                        os.unlink(path)
         if _snapshot(folder) == before:
             marker.unlink(missing_ok=True)
             if created:
                 with contextlib.suppress(OSError):
                     folder.rmdir()
         raise
+    finally:
+        _RUN_WRITES.reset(token)
+    outer = _RUN_WRITES.get()
+    if outer is not None:
+        outer.extend(written)
     marker.unlink(missing_ok=True)
 
 
@@ -169,12 +271,25 @@ def _snapshot(folder):
     return out
 
 
+def make_temporary(folder: str | Path) -> Path:
+    """A new empty file ``.tmp.<pid>-<random>.part`` in ``folder`` (at most 30 bytes of name).
+
+    Named so that :func:`remove_stale_temporaries` removes it once its process is gone, and
+    short so that it fits wherever the final name fits.
+    """
+    fd, tmp = tempfile.mkstemp(prefix=f".tmp.{os.getpid()}-", suffix=TEMP_SUFFIX, dir=folder)
+    os.close(fd)
+    return Path(tmp)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
 
-    The temporary is ``.NAME.<pid>-<random>.part`` (never the final extension; writers that
-    pick a format from the name must be told the format or given an open file).
+    The temporary is ``.tmp.<pid>-<random>.part`` (never the final extension; writers that
+    pick a format from the name must be told the format or given an open file). Any
+    operating-system error while writing (full disk, file-size limit, read-only folder)
+    becomes one :class:`~doedesign.errors.DoeError` naming ``path``; the temporary is removed.
 
     Parameters
     ----------
@@ -189,36 +304,34 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     Raises
     ------
     DoeError
-        The folder cannot be created or written, or a folder sits at ``path``.
+        The folder cannot be created or written, a folder, device, pipe or socket sits at
+        ``path``, or writing failed.
     """
-    path = Path(path)
+    path = check_output_path(path, "the result path")
     if path.is_dir():
-        raise DoeError(f"{path}: the result path is taken by a folder")
+        raise DoeError(f"{shown_path(path)}: the result path is taken by a folder")
+    existed = path.exists()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(path.parent)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=TEMP_SUFFIX, dir=path.parent)
+        tmp = make_temporary(path.parent)
     except OSError as exc:
         raise DoeError(_os_message(path, exc)) from None
-    os.close(fd)
-    tmp = Path(tmp)
-    # mkstemp creates 0600; give the result the permissions a plain open() would.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
     try:
+        # mkstemp creates 0600; give the result the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         yield tmp
-        try:
-            os.replace(tmp, path)
-        except OSError as exc:
-            raise DoeError(_os_message(path, exc)) from None
+        os.replace(tmp, path)
     except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EACCES, errno.EROFS, errno.EDQUOT, errno.EISDIR):
-            raise DoeError(_os_message(path, exc)) from None
-        raise
+        raise DoeError(_os_message(path, exc)) from None
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+    writes = _RUN_WRITES.get()
+    if writes is not None:
+        writes.append((path, existed))
 
 
 # Largest array an input file may make the tool allocate (claimed sizes are checked first).
@@ -242,6 +355,43 @@ def check_input_file(path: str | Path, error: type[Exception] | None = None) -> 
         kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a pipe, socket or device)"
         raise error(f"{path}: is {kind}; give a file")
     return path
+
+
+# Largest text input (a TOML spec or configuration, a JSON report) read whole: a 2 GB file
+# claiming to be a spec is refused from its size before it is read.
+MAX_TEXT_BYTES = 16 * 1024**2
+
+
+def read_text_file(path: str | Path, what: str = "text file", error: type[Exception] | None = None,
+                   max_bytes: int = MAX_TEXT_BYTES) -> str:
+    """The UTF-8 text of ``path`` after checking it is a regular file of at most ``max_bytes``."""
+    error = error or DoeError
+    path = check_input_file(path, error)
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > max_bytes:
+                raise error(f"{shown_path(path)}: {format(size, ',')} bytes is too large for a {what} "
+                            f"(at most {max_bytes // 1024**2} MiB)")
+            data = fh.read(max_bytes + 1)
+    except OSError as exc:
+        raise error(_os_message(path, exc, "read")) from None
+    if len(data) > max_bytes:
+        raise error(f"{shown_path(path)}: too large for a {what} (at most {max_bytes // 1024**2} MiB)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{shown_path(path)}: not a {what}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+
+
+def read_toml(path: str | Path, what: str = "TOML file", error: type[Exception] | None = None) -> dict:
+    """A TOML file as a dict: its size checked before it is read, then :func:`parse_toml`."""
+    return parse_toml(read_text_file(path, what, error), str(path), error)
+
+
+def read_json(path: str | Path, what: str = "JSON file", error: type[Exception] | None = None) -> Any:
+    """A JSON file's value: its size checked before it is read, then :func:`parse_json`."""
+    return parse_json(read_text_file(path, what, error), str(path), error)
 
 
 def check_npy_header(fh: BinaryIO, available_bytes: int, where: str,

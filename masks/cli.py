@@ -6,17 +6,22 @@ from __future__ import annotations
 import argparse
 import logging
 
-import numpy as np
-
-from doedesign.cli.common import Number
+from doedesign.cli.common import Number, NumberList
 from doedesign.errors import DoeError
 from doedesign.fileio import ensure_output_dir
 
+from .effects import effect_spec
 from .grid import GDS_VERTEX_CEILING, MAX_VERTICES, MIN_VERTICES, vertex_limits
 
 __all__ = ["VertexLimit", "register", "run_masks"]
 
 log = logging.getLogger(__name__)
+
+# An etch deeper than the process model's plausible bound (5 um, about 60 level steps of a
+# 16-level fused-silica DOE) is no DOE etch (a 1e300 nm "depth" passed verification as chrome),
+# nor is one shallower than a few atomic layers.
+MAX_ETCH_DEPTH_NM = effect_spec("etch_depth").params[0].upper * 1e9
+MIN_ETCH_DEPTH_NM = 1.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +38,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="dark: draw the etched (open) areas (default); clear: draw the chrome")
     p.add_argument("--mirror", action="store_true", help="mirror x -> -x (contact printing)")
     p.add_argument("--depths-nm", default=None,
-                   help="etch depth per mask, comma separated (default 2**j times the level step)")
+                   type=NumberList(Number(float, MIN_ETCH_DEPTH_NM, MAX_ETCH_DEPTH_NM, unit="nm"), max_len=16),
+                   help="etch depth per mask, comma separated (default 2**j times the level step; each "
+                        f"in [{MIN_ETCH_DEPTH_NM:g}, {MAX_ETCH_DEPTH_NM:g}] nm)")
     p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask")
     p.add_argument("--etch-order", default=None, help="mask index etched in each step, e.g. 3,2,1,0")
     p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
@@ -74,16 +81,6 @@ def _int_list(text, what):
         raise DoeError(f"--{what} must be comma-separated integers, got {text!r}") from None
 
 
-def _float_list(text, what):
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise DoeError(f"--{what} must be comma-separated numbers, got {text!r}") from None
-    if not all(np.isfinite(vals)) or min(vals) <= 0:
-        raise DoeError(f"--{what} must be positive, got {text!r}")
-    return vals
-
-
 def run_masks(args: argparse.Namespace) -> int:
     """Run ``doe masks``: write the verified GDS (and plate), preview and report."""
     from doedesign.cli.common import print_json
@@ -95,7 +92,7 @@ def run_masks(args: argparse.Namespace) -> int:
     max_vertices = {None: "default", NO_LIMIT: None}.get(args.max_vertices, args.max_vertices)
     vertex_limits(formats, max_vertices)  # a limit GDSII cannot hold costs nothing
     ensure_output_dir(args.out)  # before loading and exporting: a bad --out costs nothing
-    depths = None if args.depths_nm is None else [d * 1e-9 for d in _float_list(args.depths_nm, "depths-nm")]
+    depths = None if args.depths_nm is None else [d * 1e-9 for d in args.depths_nm]
     report = write_element(
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=_int_list(args.layers, "layers"),

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from doedesign.budget import check_memory, mask_export_bytes
 from doedesign.design import Design
-from doedesign.fileio import atomic_path, output_run, write_json
+from doedesign.errors import DoeError
+from doedesign.fileio import atomic_path, output_run, safe_file_name, write_json
 from doedesign.levels import N_LEVELS, quantize_design
 
 from .decompose import binary_depths_m, levels_to_masks
@@ -22,12 +24,15 @@ from .gds import export_masks
 from .grid import vertex_limits
 from .plate import PlateDesign, export_plate
 
-__all__ = ["DIE_SIZE_M", "LEVEL_COLOURS", "PREVIEW_PX", "clear_aperture_m", "preview", "write_element"]
+__all__ = ["DIE_SIZE_M", "LEVEL_COLOURS", "MIN_APERTURE_PX", "PREVIEW_PX", "clear_aperture_m", "preview",
+           "write_element"]
 
 log = logging.getLogger(__name__)
 
 #: Side of the square die (m).
 DIE_SIZE_M = 10e-3
+#: Smallest clear aperture one may ask for, in DOE pixels: a smaller circle chromes the element.
+MIN_APERTURE_PX = 4
 
 
 def clear_aperture_m(design: Design) -> float | None:
@@ -124,6 +129,11 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
     """
     source = source or design.name
     vertex_limits(formats, max_vertices)  # a bad format or limit costs nothing
+    check_memory(mask_export_bytes(design.shape),
+                 f"{source}: the masks of a {design.shape[0]} x {design.shape[1]} px design")
+    if clear_aperture is not None and not MIN_APERTURE_PX * design.pitch_m <= clear_aperture <= DIE_SIZE_M:
+        raise DoeError(f"clear aperture {clear_aperture * 1e3:g} mm: must lie between {MIN_APERTURE_PX} DOE pixels "
+                       f"({MIN_APERTURE_PX * design.pitch_m * 1e3:g} mm) and the {DIE_SIZE_M * 1e3:g} mm die")
     levels, quantization = quantize_design(design, N_LEVELS, source)
     step = design.level_step_m(N_LEVELS)
     masks = levels_to_masks(levels, 4)
@@ -133,16 +143,20 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         log.warning("%s: clear aperture %.2f mm does not fit the die; no Cr aperture drawn", source, aperture * 1e3)
         aperture = None
     out = Path(out)
-    name = design.name
+    # Cell names and labels in the GDS: printable text (a NUL would end a C string in the writer).
+    name = "".join(c if c.isprintable() else "_" for c in design.name)
+    # The file stem comes from the design's name: no separators or NULs, and short enough
+    # that the longest suffix written still fits the file system's name limit.
+    stem = safe_file_name(Path(name).name, "_plate.gds").removesuffix("_plate.gds")
     # The folder says INCOMPLETE until the GDS, the preview and the report are all written.
     with output_run(out, f"doe masks {source}"):
-        report = export_masks(out / f"{Path(name).name or 'design'}.gds", masks, design.pitch_m, layers=layers,
+        report = export_masks(out / f"{stem}.gds", masks, design.pitch_m, layers=layers,
                               tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
                               clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, formats=formats,
                               max_vertices=max_vertices)
         if plate:
             report["plate"] = export_plate(
-                out / f"{Path(name).name or 'design'}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
+                out / f"{stem}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
                 formats=formats, max_vertices=max_vertices, layers=layers, tone=tone, mirrored=mirrored,
                 depths_m=depths, etch_order=etch_order, die_size_m=DIE_SIZE_M)
         report["design"] = source

@@ -10,8 +10,6 @@ arrays of :mod:`masks.polygons`, one mask layer at a time, and spliced into that
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -20,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from doedesign.errors import DoeError
-from doedesign.fileio import TEMP_SUFFIX
+from doedesign.fileio import make_temporary
 
 from .grid import (DEFAULT_LAYERS, ELEMENT_CELL, GDS_VERTEX_CEILING, MAX_VERTICES, PixelGrid, check_layers,
                    drawn_masks)
@@ -121,12 +119,9 @@ def write_element_gds(lib: gdstk.Library, path: str | Path, masks: np.ndarray, g
     if drawn.shape[1:] != tuple(grid.shape):
         raise DoeError(f"masks shaped {drawn.shape} do not match the pixel grid {grid.shape}")
     path = Path(path)
-    # Named like doedesign.fileio.atomic_path's temporaries (.NAME.<pid>-<random>.part), so a
-    # killed run's skeleton is found and removed by the next run like any other temporary.
-    fd, skeleton_name = tempfile.mkstemp(prefix=f".{path.name.lstrip('.')}.skeleton.{os.getpid()}-",
-                                         suffix=TEMP_SUFFIX, dir=path.parent)
-    os.close(fd)
-    skeleton_path = Path(skeleton_name)
+    # A temporary like doedesign.fileio.atomic_path's, so a killed run's skeleton is found
+    # and removed by the next run like any other temporary.
+    skeleton_path = make_temporary(path.parent)
     try:
         lib.write_gds(str(skeleton_path), max_points=max_vertices)
         skeleton = skeleton_path.read_bytes()

@@ -10,14 +10,10 @@ import math
 import sys
 from typing import Any
 
-from ..camera import Camera
+from ..camera import MAX_WINDOW_PX, Camera
 from ..fileio import dumps_json
 
 __all__ = ["add_camera_options", "camera_from_args", "print_json", "Number", "NumberList", "MAX_WINDOW_PX"]
-
-# Largest sensor window a command simulates (pixels per side): 8192^2 float64 per wavelength
-# and view is already 0.5 GB.
-MAX_WINDOW_PX = 8192
 
 
 class Number:

@@ -9,10 +9,11 @@ import time
 from pathlib import Path
 
 from .. import bayer, targets
+from ..budget import check_memory, psf_bytes
 from ..camera import Camera
 from ..design import Design
 from ..errors import DoeError
-from ..fileio import ensure_output_dir, ensure_output_file, output_run, parse_toml, write_json
+from ..fileio import ensure_output_dir, ensure_output_file, output_run, read_toml, write_json
 from ..optimizer.losses import LossSpec
 from ..optimizer.optimize import ALGORITHMS, HEIGHT_RANGES, INITS, OBJECTIVES, OptimizerSettings, design_doe
 from ..targets import DEFAULT_INIT, DEFAULT_LOSS, DEFAULT_OBJECTIVE
@@ -29,6 +30,7 @@ FULL_APERTURE_PX = 1600
 # The paper's simulation: 1.8 um DOE pixels, 4500 across (8.1 mm); each 5.4 um sensor pixel is the
 # 3 x 3 pooling of 1.8 um samples, which the engine's exact pixel integral already is.
 PAPER_PITCH_M, PAPER_PX = 1.8e-6, 4500
+SIZE_PX = Number(int, 8, 16384, unit="px")
 
 DESIGN_HELP = """\
 TARGET is a built-in name (bayer, hdr-streak, hyperspectral, depth, spots) or a TOML file of
@@ -62,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("target", help="built-in target name or a target TOML file")
     p.add_argument("--config", help="run configuration TOML ([camera], [optimize], [target])")
     p.add_argument("--out", required=True, help="design file to write (.npz); report.json goes beside it")
-    p.add_argument("--size", type=Number(int, 8, 16384, unit="px"), help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
+    p.add_argument("--size", type=SIZE_PX, help=f"DOE size in pixels (square; default {DEFAULT_SIZE_PX})")
     p.add_argument("--full-aperture", action="store_true",
                    help=f"the camera's full 8.64 mm aperture: {FULL_APERTURE_PX} px at 5.4 um")
     p.add_argument("--paper-setting", action="store_true",
@@ -118,14 +120,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _read_toml(path):
-    path = Path(path)
-    if not path.is_file():
-        raise DoeError(f"{path}: no such file")
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError as exc:
-        raise DoeError(f"{path}: not valid TOML: {exc}") from None
-    return parse_toml(text, str(path))
+    return read_toml(path, "TOML file")
 
 
 def _camera(section, size_px, pitch_m, side, source):
@@ -139,6 +134,14 @@ def _camera(section, size_px, pitch_m, side, source):
     if "focus_distance_m" in opts and str(opts["focus_distance_m"]).lower() == "inf":
         opts["focus_distance_m"] = math.inf
     return Camera.from_dict(opts)
+
+
+def _config_size(value, source):
+    """``[optimize] size_px`` checked like ``--size``."""
+    try:
+        return SIZE_PX(str(value))
+    except argparse.ArgumentTypeError as exc:
+        raise DoeError(f"{source}: [optimize] size_px {exc}") from None
 
 
 def _floats(text, what):
@@ -159,8 +162,12 @@ def cmd_design(args: argparse.Namespace) -> int:
     config = _read_toml(args.config) if args.config else {}
     source = args.config or "configuration"
     opt = dict(config.get("optimize", {}))
-    size = args.size if args.size is not None else int(opt.pop("size_px", DEFAULT_SIZE_PX))
+    size = args.size if args.size is not None else _config_size(opt.pop("size_px", DEFAULT_SIZE_PX), source)
     opt.pop("size_px", None)
+    # Both presets fix the size (their help says how many pixels): a --size beside them contradicts them.
+    for flag, on in (("--full-aperture", args.full_aperture), ("--paper-setting", args.paper_setting)):
+        if on and args.size is not None:
+            raise DoeError(f"--size {args.size} contradicts {flag}, which sets the size; give one of them")
     if args.full_aperture:
         size = FULL_APERTURE_PX
     if size < 8:
@@ -200,6 +207,9 @@ def cmd_design(args: argparse.Namespace) -> int:
         if args.wavelengths:
             options["wavelengths_nm"] = list(parse_wavelengths_nm(args.wavelengths) * 1e9)
         target = targets.from_dict({"target": {"kind": args.target, **options}}, camera=camera, source=source)
+    # The optimizer holds the engine's arrays (and their gradients: twice the pupil work).
+    check_memory(2 * psf_bytes(camera, pitch, (size, size), np.size(target.wavelengths_m), np.size(target.depths_m),
+                               n_views=1), f"a {size} x {size} px design of {pitch * 1e6:g} um pixels")
     loss = LossSpec.parse(loss_text or DEFAULT_LOSS.get(kind, "l1"))
     for key, value in (("max_iter", args.iterations), ("seed", args.seed), ("algorithm", args.algorithm),
                        ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),

@@ -7,6 +7,7 @@ import logging
 
 import numpy as np
 
+from ..budget import check_memory, psf_bytes
 from ..design import Design
 from ..engine.psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 from ..progress import Progress
@@ -28,6 +29,11 @@ def cmd_psf(args: argparse.Namespace) -> int:
     camera = camera_from_args(args)
     wavelengths = parse_wavelengths_nm(args.wavelengths_nm)
     depths = args.depth_m
+    n_depths = 1 if depths is None else len(depths)
+    check_memory(psf_bytes(camera, design.pitch_m, design.shape, wavelengths.size, n_depths, args.doe_oversample,
+                           threads=args.threads),
+                 f"{args.design}: the PSFs of this {design.shape[0]} x {design.shape[1]} px design "
+                 f"({design.pitch_m:.3g} m pitch) on a {args.window} px window")
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths, depths,
                        doe_oversample=args.doe_oversample, device=args.device)
     steps = 2 * engine.depths_m.size * wavelengths.size

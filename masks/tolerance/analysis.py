@@ -6,17 +6,20 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from doedesign.budget import check_memory, format_bytes, psf_bytes
 from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.errors import DoeError
-from doedesign.fileio import write_json
+from doedesign.fileio import output_run, write_json
 from doedesign.levels import design_levels, level_step_m
 
 from ..decompose import binary_depths_m
@@ -28,7 +31,8 @@ from .runner import make_client, n_workers, open_store, run_jobs, run_key
 from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
 from .spec import ToleranceSpec, check_yield_goal, nominal_process
 
-__all__ = ["build_evaluator", "design_wavelengths_depths", "nominal_depths", "sampling_description",
+__all__ = ["build_evaluator", "design_wavelengths_depths", "evaluation_bytes", "nominal_depths",
+           "sampling_description",
            "tolerance_analysis"]
 
 log = logging.getLogger(__name__)
@@ -62,12 +66,23 @@ def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design",
     ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
                    wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),
                    process_upsample=process_upsample, device=device)
+    check_memory(evaluation_bytes(ev), f"{source}: one tolerance sample of this {design.shape[0]} x "
+                 f"{design.shape[1]} px design ({ev.wavelengths_m.size} wavelengths, {ev.depths_m.size} depths)")
     t0 = time.perf_counter()
     ideal = {p.name: 0.0 for p in spec.params}
     psf = ev.coded_psf(ev.height(ideal))
     ev.metrics = metric_set(design, camera, psf, wls, depths, metric_script)
     nominal = ev.metrics(psf)
     return ev, nominal, time.perf_counter() - t0
+
+
+def evaluation_bytes(ev: Evaluator) -> int:
+    """Peak bytes of one sample: the process model (about 64 bytes per process-grid sample,
+    measured) and the coded-view PSF engine on the oversampled grid."""
+    rows, cols = ev.levels.shape
+    q, u = ev.oversample, ev.process_upsample or ev.oversample
+    return 64 * rows * cols * u * u + psf_bytes(ev.camera, ev.pitch_m / q, (rows * q, cols * q),
+                                                ev.wavelengths_m.size, ev.depths_m.size, n_views=1)
 
 
 def sampling_description(ev: Evaluator) -> dict:
@@ -120,24 +135,42 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
             raise DoeError(f"threshold on unknown metric {m!r}; this design's metrics: {', '.join(nominal)}")
     if not thresholds:
         thresholds = default_thresholds(primary, nominal, directions.get(primary, "higher"))
-    jobs = []
-    for k in range(n_samples):
+    def mc_job(k):
         values, s = spec.draw(seed, k)
-        jobs.append({"id": f"mc-{k:05d}", "kind": "mc", "index": k, "seed": s, "values": values})
-    if one_at_a_time and spec.random_params:
-        jobs += oat_jobs(spec)
-    jobs += sobol_jobs(spec, sobol_base, seed)
+        return {"id": f"mc-{k:05d}", "kind": "mc", "index": k, "seed": s, "values": values}
+
+    # Monte Carlo samples are drawn as they are handed out (sample k from its own seed, so
+    # the same values whenever it is drawn); the sensitivity runs are few and listed.
+    extra = oat_jobs(spec) if one_at_a_time and spec.random_params else []
+    extra += sobol_jobs(spec, sobol_base, seed)
     sampling = sampling_description(ev)
     key = run_key({"design": hashlib.sha256(np.ascontiguousarray(ev.levels).tobytes()).hexdigest(),
                    "shape": ev.levels.shape, "pitch": ev.pitch_m, "spec": spec.describe()["parameters"],
                    "seed": seed, "sampling": sampling, "script": ev.metrics.script_source})
-    samples_dir = open_store(out_dir, key, {"design": design_name, "seed": seed})
     t_run = time.perf_counter()
+    # Connect first: a run that cannot reach its scheduler writes nothing. The folder says
+    # INCOMPLETE until the report is written; finished samples are kept for a rerun to resume.
+    if scheduler in ("processes", "threads"):
+        local = int(workers or os.cpu_count() or 1)
+        check_memory((local + 1) * evaluation_bytes(ev),
+                     f"{design_name}: {local} local tolerance worker(s) of {format_bytes(evaluation_bytes(ev))} each")
     with make_client(scheduler, workers) as client:
         n_threads = n_workers(client)
-        results = run_jobs(ev, jobs, samples_dir, client, seconds_per_job=t_nominal)
-    t_run = time.perf_counter() - t_run
-    mc = [results[j["id"]] for j in jobs if j["kind"] == "mc"]
+        with output_run(out_dir, f"doe tolerance {design_name}", keep_partial=True):
+            samples_dir = open_store(out_dir, key, {"design": design_name, "seed": seed})
+            results = run_jobs(ev, itertools.chain(map(mc_job, range(n_samples)), extra), samples_dir, client,
+                               seconds_per_job=t_nominal, total=n_samples + len(extra))
+            t_run = time.perf_counter() - t_run
+            report = _write_report(spec, ev, nominal, results, n_samples, extra, out_dir, design_name,
+                                   seed, scheduler, n_threads, sampling, thresholds, goal, directions, primary,
+                                   one_at_a_time, t_nominal, t_run, t_start)
+    return report
+
+
+def _write_report(spec, ev, nominal, results, n_samples, extra, out_dir, design_name, seed, scheduler,
+                  n_threads, sampling, thresholds, goal, directions, primary, one_at_a_time, t_nominal, t_run,
+                  t_start):
+    mc = [results[f"mc-{k:05d}"] for k in range(n_samples)]
     by_name = {p.name: p for p in spec.params}
     samples = [{"index": r["index"], "seed": r["seed"],
                 "effects": {n: by_name[n].to_report(v) for n, v in r["values"].items()},
@@ -151,10 +184,11 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
         "design": design_name,
         "spec": spec.describe(),
         "run": {"samples": n_samples, "seed": seed, "scheduler": scheduler, "workers": n_threads,
-                "jobs": len(jobs),
+                "jobs": n_samples + len(extra),
                 "seed_rule": "sample k uses numpy SeedSequence([seed, k])"},
         "sampling": sampling,
         "primary_metric": primary,
+        "metric_note": ev.metrics.note,
         "nominal": nominal,
         "metrics": metric_summary(samples, nominal, directions),
         "yield": yield_summary(samples, thresholds, goal),

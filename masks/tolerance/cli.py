@@ -56,9 +56,16 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     from doedesign.design import Design
     from doedesign.engine.psf import parse_wavelengths_nm
 
+    from doedesign.fileio import ensure_output_dir
+
     from .analysis import nominal_depths, tolerance_analysis
+    from .scheduler import parse_address
     from .spec import default_spec, load_spec, parse_threshold
 
+    # Refuse a bad --out or --scheduler before any work.
+    ensure_output_dir(args.out)
+    if "://" in args.scheduler:
+        parse_address(args.scheduler)
     design = Design.load(args.design)
     depths = nominal_depths(design)
     spec = load_spec(args.spec, depths) if args.spec else default_spec(depths)

@@ -76,6 +76,7 @@ class MetricSet:
     target_radii_px: np.ndarray | None = None
     script_source: str | None = None
     script_name: str = "metrics script"
+    note: str | None = None
 
     @property
     def primary(self) -> str:
@@ -187,10 +188,21 @@ def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, waveleng
             raise DoeError(f"{script}: no such metrics script")
         source = path.read_text()
         user_metric_functions(source, str(script))
+    if kind == "bayer" and np.size(wavelengths_m) != len(BAYER_CHANNELS):
+        raise DoeError(f"a bayer design is scored at {len(BAYER_CHANNELS)} wavelengths (R, G, B), got "
+                       f"{np.size(wavelengths_m)} (the design's target or --wavelengths)")
     target_mask = _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf)
+    note = None
+    if kind not in targets.KINDS:
+        # Warned, not refused: the generic figure still measures how much light stays where the
+        # ideal element puts it, and a design from another tool or a newer version may name a
+        # kind this one does not know; but a user must see that the kind's own metric is missing.
+        note = (f"target kind {kind[:60]!r} is unknown to this tool (known: {', '.join(targets.KINDS)}); scored by "
+                "the generic 'efficiency': light on the pixels that hold 90 % of the ideal element's PSF")
+        log.warning("%s", note)
     ms = MetricSet(kind=kind, wavelengths_m=np.asarray(wavelengths_m, float), depths_m=np.asarray(depths_m, float),
                    axis_pixel=tuple(camera.axis_pixel), target_mask=target_mask, script_source=source,
-                   script_name=str(script) if script else "metrics script")
+                   script_name=str(script) if script else "metrics script", note=note)
     if kind == "bayer":
         ms.bayer_cells = [[(0, 0)], [(1, 0), (0, 1)] if meta.get("rggb") else [(1, 0)], [(1, 1)]]
     if kind == "spots":

@@ -292,4 +292,6 @@ def tolerance_sections(report: dict, folder: str | Path, prefix: str = "", level
 def tolerance_page(report: dict, folder: str | Path) -> Path:
     """The whole ``report.md`` of ``doe tolerance``, beside its report.json."""
     title = f"# Tolerance analysis of `{report['design']}`"
-    return md.write_markdown(Path(folder) / "report.md", [title, *tolerance_sections(report, folder), md.json_link()])
+    warning = [f"**Warning:** {report['metric_note']}."] if report.get("metric_note") else []
+    return md.write_markdown(Path(folder) / "report.md",
+                             [title, *warning, *tolerance_sections(report, folder), md.json_link()])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -27,6 +28,7 @@ from doedesign.fileio import write_json
 from doedesign.progress import Progress
 
 from .evaluate import Evaluator, evaluate_batch
+from .scheduler import PROBE_TIMEOUT_S, probe_scheduler
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -77,13 +79,21 @@ def load_done(samples_dir: str | Path, ids: Iterable[str]) -> dict:
     """Results already written for these job ids."""
     done = {}
     for job_id in ids:
-        path = Path(samples_dir) / f"{job_id}.json"
-        if path.is_file():
-            try:
-                done[job_id] = json.loads(path.read_text())
-            except (json.JSONDecodeError, UnicodeDecodeError):
-                log.warning("%s: unreadable, recomputing", path)
+        result = _load_one(samples_dir, job_id)
+        if result is not None:
+            done[job_id] = result
     return done
+
+
+def _load_one(samples_dir, job_id):
+    path = Path(samples_dir) / f"{job_id}.json"
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        log.warning("%s: unreadable, recomputing", path)
+        return None
 
 
 def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
@@ -108,10 +118,11 @@ def make_client(scheduler: str = "processes", workers: int | None = None) -> Ite
     n = int(workers or os.cpu_count() or 1)
     if n < 1:
         raise DoeError(f"--workers {workers}: need at least one worker")
-    if scheduler.startswith("tcp://") or scheduler.startswith("tls://"):
+    if "://" in scheduler:
+        probe_scheduler(scheduler)  # a bounded check first: dask itself waits on a silent peer forever
         try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as exc:
+            client = Client(scheduler, timeout=f"{PROBE_TIMEOUT_S}s")
+        except (OSError, TimeoutError, ValueError) as exc:
             raise DoeError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
         with client:
             yield client
@@ -119,10 +130,29 @@ def make_client(scheduler: str = "processes", workers: int | None = None) -> Ite
     if scheduler not in SCHEDULERS:
         raise DoeError(f"--scheduler {scheduler!r}: use {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
     processes = scheduler == "processes"
-    cluster = LocalCluster(n_workers=n if processes else 1, threads_per_worker=1 if processes else n,
-                           processes=processes, dashboard_address=None, silence_logs=logging.ERROR)
-    with cluster, Client(cluster) as client:
-        yield client
+    with _quiet_dask():
+        cluster = LocalCluster(n_workers=n if processes else 1, threads_per_worker=1 if processes else n,
+                               processes=processes, dashboard_address=None, silence_logs=logging.CRITICAL)
+        with cluster, Client(cluster) as client:
+            yield client
+
+
+@contextlib.contextmanager
+def _quiet_dask():
+    """Keep dask's own log lines (cluster start, worker shutdown races) off a run without ``-v``.
+
+    A local cluster's shutdown, with workers still busy on few cores, makes the nannies kill
+    them and their heartbeats log tracebacks against the closed scheduler: noise, not errors
+    of the run (any failure of a task reaches :func:`run_jobs` as an exception).
+    """
+    dask_log = logging.getLogger("distributed")
+    level = dask_log.level
+    if logging.getLogger().getEffectiveLevel() > logging.INFO:
+        dask_log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        dask_log.setLevel(level)
 
 
 def n_workers(client: Client | None) -> int:
@@ -132,62 +162,88 @@ def n_workers(client: Client | None) -> int:
     return max(sum(client.nthreads().values()), 1)
 
 
-def run_jobs(evaluator: Evaluator, jobs: list[dict], samples_dir: str | Path, client: Client | None = None,
-             seconds_per_job: float = 1.0, desc: str = "tolerance") -> dict:
+def run_jobs(evaluator: Evaluator, jobs: Iterable[dict], samples_dir: str | Path, client: Client | None = None,
+             seconds_per_job: float = 1.0, desc: str = "tolerance", total: int | None = None) -> dict:
     """Evaluate ``jobs`` (skipping those already in ``samples_dir``); results by job id.
+
+    Jobs are taken from the iterable as work is handed out (at most a few tasks per worker
+    in flight), so a million samples start at once and are never all held as jobs.
 
     Parameters
     ----------
     evaluator : masks.tolerance.evaluate.Evaluator
         Scattered once to every worker.
-    jobs : list of dict
+    jobs : iterable of dict
     samples_dir : path
         One JSON file per finished job, written as it completes.
     client : distributed.Client or None
         None evaluates in this process.
     seconds_per_job : float
         Measured cost of one job, to size the batches.
+    total : int, optional
+        Number of jobs (default ``len(jobs)``).
     """
-    results = load_done(samples_dir, [j["id"] for j in jobs])
-    todo = [j for j in jobs if j["id"] not in results]
-    if results:
-        log.info("resuming: %d of %d jobs already done", len(results), len(jobs))
-    with Progress(len(jobs), desc=desc) as bar:
-        bar.update(len(results), status="resumed")
+    total = len(jobs) if total is None else int(total)
+    results = {}
+    with Progress(total, desc=desc) as bar:
 
         def keep(result):
             write_json(Path(samples_dir) / f"{result['id']}.json", result)
             results[result["id"]] = result
             bar.update(1, status=result["id"])
 
+        def todo_jobs():
+            for job in jobs:
+                done = _load_one(samples_dir, job["id"])
+                if done is None:
+                    yield job
+                else:
+                    results[job["id"]] = done
+                    bar.update(1, status="resumed")
+
+        todo = todo_jobs()
         if client is None:
             for job in todo:
                 keep(evaluator(job))
-        elif todo:
-            from distributed import as_completed
+            return results
+        from distributed import as_completed
 
-            _LOST_WORK = _lost_work_errors()
+        _LOST_WORK = _lost_work_errors()
+        workers = n_workers(client)
+        size = batch_size(seconds_per_job, total, workers)
+        remote = None
+        batches = {}
+        pending = as_completed()
 
-            size = batch_size(seconds_per_job, len(todo), n_workers(client))
-            remote = client.scatter(evaluator, broadcast=True, hash=False)
-            batches = {}
-            for i in range(0, len(todo), size):
-                batches[client.submit(evaluate_batch, remote, todo[i:i + size], pure=False)] = todo[i:i + size]
-            log.info("%d jobs in %d tasks of %d", len(todo), len(batches), size)
-            pending = as_completed(list(batches))
-            for future in pending:
-                batch = batches.pop(future)
-                try:
-                    results_of_batch = future.result()
-                except Exception as exc:  # a lost worker can take the scattered evaluator with it
-                    if not isinstance(exc, _LOST_WORK):
-                        raise
-                    log.warning("task lost (%s); resubmitting %d jobs", type(exc).__name__, len(batch))
-                    remote = client.scatter(evaluator, broadcast=True, hash=False)
-                    again = client.submit(evaluate_batch, remote, batch, pure=False)
-                    batches[again] = batch
-                    pending.add(again)
-                    continue
-                for result in results_of_batch:
-                    keep(result)
+        def submit(batch):
+            nonlocal remote
+            if remote is None:  # a lost worker can take the scattered evaluator with it: scatter again
+                remote = client.scatter(evaluator, broadcast=True, hash=False)
+            future = client.submit(evaluate_batch, remote, batch, pure=False)
+            batches[future] = batch
+            pending.add(future)
+
+        def submit_next():
+            batch = list(itertools.islice(todo, size))
+            if batch:
+                submit(batch)
+            return bool(batch)
+
+        while len(batches) < 4 * workers and submit_next():
+            pass
+        log.info("batches of %d jobs, at most %d tasks in flight", size, 4 * workers)
+        for future in pending:
+            batch = batches.pop(future)
+            try:
+                results_of_batch = future.result()
+            except Exception as exc:
+                if not isinstance(exc, _LOST_WORK):
+                    raise
+                log.warning("task lost (%s); resubmitting %d jobs", type(exc).__name__, len(batch))
+                remote = None
+                submit(batch)
+                continue
+            for result in results_of_batch:
+                keep(result)
+            submit_next()
     return results

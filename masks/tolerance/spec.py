@@ -46,7 +46,9 @@ import numpy as np
 from scipy import stats
 
 from doedesign.errors import DoeError
+from doedesign.fileio import read_json, read_toml
 
+from ..effects import effect_spec
 from ..process import ProcessParams
 from ..process_params import finite_float
 
@@ -91,6 +93,12 @@ DEFAULT_SPEC = {
 DEFAULT_SPEC_NOTE = ("built-in default: typical contact lithography and RIE control (etch depth sigma 2 % per "
                      "mask, overlay sigma 0.25 um per axis for masks 1.. relative to mask 0, linewidth bias "
                      "sigma 0.1 um per mask)")
+# The masks.effects parameter bounding each (effect, component): a spec's errors must stay within
+# the process model's plausible range (mask_rotation is the overlay's rotation in rad).
+_BOUNDED_BY = {("mask_overlay", "dx"): ("mask_overlay", 0), ("mask_overlay", "dy"): ("mask_overlay", 1),
+               ("mask_rotation", ""): ("mask_overlay", 2), ("microtrenching", "depth"): ("microtrenching", 0),
+               ("microtrenching", "width"): ("microtrenching", 1), ("etch_gradient", "x"): ("etch_gradient", 0),
+               ("etch_gradient", "y"): ("etch_gradient", 1)}
 _OPS = {">=": np.greater_equal, "<=": np.less_equal, ">": np.greater, "<": np.less}
 
 
@@ -358,24 +366,42 @@ def _param(effect, mask, component, values, nominal_depth_m, source):
         raise DoeError(f"{source}: {where}: negative width (sigma {b:g} SI); a sigma must be >= 0")
     if dist == "uniform" and b < a:
         raise DoeError(f"{source}: {where}: negative width (high < low)")
-    return Param(effect, mask, component, dist, a, b)
+    param = Param(effect, mask, component, dist, a, b)
+    _check_plausible(param, keys, a, b, f"{source}: {where}")
+    return param
+
+
+def _check_plausible(param, keys, a, b, where):
+    """Refuse values beyond the process model's plausible range (:data:`masks.effects.PROCESS_EFFECTS`).
+
+    Offsets and bounds may reach the largest magnitude the range allows, a sigma its whole
+    width: a sigma of 1e6 um is no process and would make the model allocate absurd grids.
+    """
+    name, index = _BOUNDED_BY.get((param.effect, param.component), (param.effect, 0))
+    bound = effect_spec(name).params[index]
+    reach, width = max(abs(bound.lower), abs(bound.upper)), bound.upper - bound.lower
+    for key, value in zip(keys, (a, b)):
+        limit = width if key == "sigma" else reach
+        if abs(value) > limit:
+            unit = param.unit
+            raise DoeError(f"{where}: {key} {param.to_report(value):g}{' ' + unit if unit else ''} is beyond the "
+                           f"process model's plausible range (|{key}| <= {param.to_report(limit):g}"
+                           f"{' ' + unit if unit else ''})")
 
 
 def load_spec(path: str | Path, nominal_depths_m: np.ndarray) -> ToleranceSpec:
-    """Read a spec: a TOML file, or a ``doe compare`` report.json (what the fab delivered)."""
-    import json
-    import tomllib
-    from pathlib import Path
+    """Read a spec: a TOML file, or a ``doe compare`` report.json (what the fab delivered).
 
+    The file's size is checked before it is read; a file nested too deeply or not UTF-8 is
+    refused as one line.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise DoeError(f"{path}: no such spec file")
-    try:
-        if path.suffix == ".json":
-            return spec_from_compare(json.loads(path.read_text()), nominal_depths_m, str(path))
-        return build_spec(tomllib.loads(path.read_text()), nominal_depths_m, str(path))
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DoeError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {exc}") from None
+    if path.suffix == ".json":
+        report = read_json(path, "doe compare report")
+        if not isinstance(report, dict):
+            raise DoeError(f"{path}: not a doe compare report (a JSON object)")
+        return spec_from_compare(report, nominal_depths_m, str(path))
+    return build_spec(read_toml(path, "tolerance spec"), nominal_depths_m, str(path))
 
 
 def default_spec(nominal_depths_m: np.ndarray) -> ToleranceSpec:

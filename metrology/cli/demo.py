@@ -18,8 +18,10 @@ ELEMENTS_PX, ELEMENTS_ITERATIONS = 800, 30
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from doedesign.fileio import ensure_output_dir
     from metrology.pipeline import DemoConfig, run_demo
 
+    ensure_output_dir(args.out)  # an existing file or an unwritable folder costs nothing
     if args.all:
         seed_elements(args)
     cfg = DemoConfig.quick() if args.quick else DemoConfig()

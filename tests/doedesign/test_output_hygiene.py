@@ -53,11 +53,17 @@ def test_output_run_marks_incomplete_until_done(tmp_path):
     with fileio.output_run(tmp_path / "o", "doe test") as folder:
         assert (folder / fileio.INCOMPLETE_MARKER).exists()
     assert not (tmp_path / "o" / fileio.INCOMPLETE_MARKER).exists()
-    with pytest.raises(RuntimeError):
+    with pytest.raises(KeyboardInterrupt):
         with fileio.output_run(tmp_path / "o", "doe test") as folder:
             fileio.write_json(folder / "first.json", {})
-            raise RuntimeError("killed")
-    assert (tmp_path / "o" / fileio.INCOMPLETE_MARKER).exists()
+            raise KeyboardInterrupt
+    assert (tmp_path / "o" / fileio.INCOMPLETE_MARKER).exists() and (tmp_path / "o" / "first.json").exists()
+    # an error (a full disk, a refused input) takes back what the run wrote: no partial output
+    with pytest.raises(RuntimeError):
+        with fileio.output_run(tmp_path / "e", "doe test") as folder:
+            fileio.write_json(folder / "first.json", {})
+            raise RuntimeError("disk full")
+    assert not (tmp_path / "e").exists()
     with pytest.raises(RuntimeError):  # a failure before any output leaves nothing
         with fileio.output_run(tmp_path / "p", "doe test"):
             raise RuntimeError("refused")

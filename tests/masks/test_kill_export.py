@@ -34,7 +34,8 @@ def test_kill_mid_write_then_rerun(tmp_path):
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         temps = [p for p in out.glob(f".*{TEMP_SUFFIX}")] if out.exists() else []
-        if any(p.name.startswith(".kill.gds.") for p in temps):
+        # the marker is in place and a temporary is open: the GDS (or its skeleton) is being written
+        if temps and (out / INCOMPLETE_MARKER).exists():
             break
         time.sleep(0.005)
     assert proc.poll() is None, "the export finished before it could be killed"
