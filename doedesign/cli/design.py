@@ -208,8 +208,9 @@ def cmd_design(args: argparse.Namespace) -> int:
             options["wavelengths_nm"] = list(parse_wavelengths_nm(args.wavelengths) * 1e9)
         target = targets.from_dict({"target": {"kind": args.target, **options}}, camera=camera, source=source)
     # The optimizer holds the engine's arrays (and their gradients: twice the pupil work).
-    check_memory(2 * psf_bytes(camera, pitch, (size, size), np.size(target.wavelengths_m), np.size(target.depths_m),
-                               n_views=1), f"a {size} x {size} px design of {pitch * 1e6:g} um pixels")
+    n_depths, n_wavelengths = target.intensity.shape[:2]
+    check_memory(2 * psf_bytes(camera, pitch, (size, size), n_wavelengths, n_depths, n_views=1),
+                 f"a {size} x {size} px design of {pitch * 1e6:g} um pixels")
     loss = LossSpec.parse(loss_text or DEFAULT_LOSS.get(kind, "l1"))
     for key, value in (("max_iter", args.iterations), ("seed", args.seed), ("algorithm", args.algorithm),
                        ("init", args.init), ("height_range", args.height_range), ("max_time_s", args.time_limit),
