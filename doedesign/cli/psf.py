@@ -35,7 +35,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
                  f"{args.design}: the PSFs of this {design.shape[0]} x {design.shape[1]} px design "
                  f"({design.pitch_m:.3g} m pitch) on a {args.window} px window")
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths, depths,
-                       doe_oversample=args.doe_oversample, device=args.device)
+                       doe_oversample=args.doe_oversample, aperture=design.aperture, device=args.device)
     steps = 2 * engine.depths_m.size * wavelengths.size
     with Progress(steps, desc="psf") as bar:
         result = engine.psf(design.height_m, progress=bar, threads=args.threads)

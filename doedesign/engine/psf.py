@@ -99,6 +99,10 @@ class PSFEngine:
         Where the autocorrelation lags of the uncoded view in focus are kept. Its pupil has no
         phase, so its lags do not depend on the wavelength: engines of one camera, pitch, shape
         and ``doe_oversample`` that pass the same dict compute them once between them.
+    aperture : bool array, shape ``shape``, optional
+        The element's clear region (a design's ``aperture``: False where its chrome blocks the
+        light). It masks the coded view's pupil samples over the design; PSFs stay fractions of
+        the light through the unobstructed half-aperture, so blocked light is lost light.
     device : {"cpu", "gpu", "auto"} or Backend
         Where the transforms run (:mod:`doedesign.engine.backend`): the same functions on NumPy
         or CuPy. Heights go in and PSFs and gradients come out as NumPy arrays either way.
@@ -107,7 +111,8 @@ class PSFEngine:
     def __init__(self, camera: Camera, pitch_m: float, shape: tuple[int, int],
                  material: str | Material = "fused_silica", wavelengths_m: ArrayLike = (550e-9,),
                  depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double",
-                 lag_cache: dict | None = None, device: str | Backend = "cpu") -> None:
+                 lag_cache: dict | None = None, aperture: ArrayLike | None = None,
+                 device: str | Backend = "cpu") -> None:
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
         self.backend = select_backend(device)
@@ -136,6 +141,11 @@ class PSFEngine:
         weights = camera.view_weights(self.grid_shape, self.pitch_m, self.q)
         # Offsets of the design inside the pupil grid (design centred on the axis).
         self._offset = ((self.grid_shape[0] - self.shape[0]) // 2, (self.grid_shape[1] - self.shape[1]) // 2)
+        # Light is counted against the unobstructed half-aperture, before the element's chrome.
+        unobstructed = {name: float(np.sum(weights[i] ** 2)) for i, name in enumerate(VIEWS)}
+        clear = np.array(weights)
+        if aperture is not None:
+            clear[0] *= self._aperture_mask(aperture)
         self._views = {}
         for i, name in enumerate(VIEWS):
             amp = weights[i]
@@ -144,8 +154,8 @@ class PSFEngine:
             if rows.size == 0:
                 raise DoeError(f"the {name} view has no clear aperture")
             box = (rows[0], rows[-1] + 1, cols[0], cols[-1] + 1)
-            self._views[name] = (box, amp[box[0]:box[1], box[2]:box[3]])
-        self._energy = {name: float(np.sum(amp ** 2)) for name, (_, amp) in self._views.items()}
+            self._views[name] = (box, clear[i, box[0]:box[1], box[2]:box[3]])
+        self._energy = unobstructed
         self._opd = {float(d): self._defocus_opd(d) for d in self.depths_m}
         # The same amplitudes and defocus paths on the backend's device, copied once.
         self._amp_dev = {name: self.backend.asarray(amp) for name, (_, amp) in self._views.items()}
@@ -158,6 +168,17 @@ class PSFEngine:
         self._work = {}
 
     # -- geometry -----------------------------------------------------------------------------
+    def _aperture_mask(self, aperture):
+        """The element's clear region on the pupil samples (open outside the design)."""
+        ap = np.asarray(aperture)
+        if ap.shape != self.shape or ap.dtype != bool:
+            raise DoeError(f"aperture must be a boolean array of the design's shape {self.shape}, "
+                           f"got {ap.dtype} {ap.shape}")
+        q, (oy, ox) = self.q, self._offset
+        mask = np.ones((self.grid_shape[0] * q, self.grid_shape[1] * q))
+        mask[oy * q:(oy + self.shape[0]) * q, ox * q:(ox + self.shape[1]) * q] = np.repeat(np.repeat(ap, q, 0), q, 1)
+        return mask
+
     def _sample_radius2(self):
         rows, cols = self.grid_shape[0] * self.q, self.grid_shape[1] * self.q
         y = (np.arange(rows) - (rows - 1) / 2) * self.step_m
@@ -503,5 +524,5 @@ def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: Arr
     ``threads`` wavelengths side by side (:meth:`PSFEngine.psf`)."""
     camera = camera or Camera()
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths_m, depths_m,
-                       doe_oversample)
+                       doe_oversample, aperture=design.aperture)
     return engine.psf(design.height_m, views=views, progress=progress, threads=threads)

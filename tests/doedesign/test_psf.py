@@ -304,3 +304,44 @@ def test_wavelengths_side_by_side_give_the_serial_psfs():
     np.testing.assert_array_equal(threaded, serial)
     # Each channel is its own wavelength's (the comparison above can fail on a mix-up).
     assert np.abs(serial[0, 0, 0] - serial[0, 0, -1]).max() > 0.1 * serial[0, 0, 0].max()
+
+
+def test_design_aperture_blocks_light():
+    # The design's clear region masks the coded view: an all-closed aperture passes no light, an
+    # all-open one changes nothing, and closing the left half of a full-pupil element leaves half
+    # its light: exactly the right-half view's PSF (normalized to its own half) times 1/2.
+    from doedesign.engine.psf import PSFEngine
+
+    n, p = 16, 5.4e-6
+    h = -np.random.default_rng(5).uniform(0, 1.2e-6, (n, n))
+    kw = dict(window_shape=(24, 24), axis_pixel=(12, 12), aperture_diameter_m=None)
+    full = Camera(doe_side="full", **kw)
+    ref = PSFEngine(full, p, (n, n)).psf(h, views=("coded",)).psf
+    closed = PSFEngine(full, p, (n, n), aperture=np.zeros((n, n), bool)).psf(h, views=("coded",)).psf
+    assert closed.max() == 0.0
+    opened = PSFEngine(full, p, (n, n), aperture=np.ones((n, n), bool)).psf(h, views=("coded",)).psf
+    assert np.array_equal(opened, ref)
+    left_closed = np.ones((n, n), bool)
+    left_closed[:, : n // 2] = False
+    half = PSFEngine(full, p, (n, n), aperture=left_closed).psf(h, views=("coded",)).psf
+    right = PSFEngine(Camera(doe_side="right", **kw), p, (n, n)).psf(h, views=("coded",)).psf
+    assert np.abs(2 * half - right).max() <= 1e-12 * right.max()
+    with pytest.raises(DoeError, match="aperture must be a boolean array"):
+        PSFEngine(full, p, (n, n), aperture=np.ones((n, n - 1), bool))
+
+
+def test_psf_command_honours_the_design_aperture(tmp_path):
+    # doe psf on a design file whose aperture is all chrome: no light (it reported 0.99 before).
+    from doedesign.cli import main
+    from doedesign.design import Design
+    from doedesign.engine import PSFResult
+
+    n = 16
+    h = -np.random.default_rng(6).uniform(0, 1.1e-6, (n, n))
+    for name, ap in (("open", np.ones((n, n), bool)), ("closed", np.zeros((n, n), bool))):
+        Design(height_m=h, pitch_m=5.4e-6, aperture=ap).save(tmp_path / f"{name}.npz")
+        assert main(["psf", str(tmp_path / f"{name}.npz"), "--aperture-mm", "0", "--side", "full",
+                     "--wavelengths-nm", "550", "--device", "cpu", "--out", str(tmp_path / f"{name}_psf.npz")]) == 0
+    opened, closed = (PSFResult.load(tmp_path / f"{k}_psf.npz") for k in ("open", "closed"))
+    assert opened.energy_in_window[0].max() > 1e-3
+    assert closed.psf[0].max() == 0.0 and closed.energy_in_window[0].max() == 0.0
