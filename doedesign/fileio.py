@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import datetime as _dt
-import errno
 import json
 import math
 import os
