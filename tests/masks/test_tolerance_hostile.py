@@ -111,7 +111,7 @@ def test_out_in_read_only_folder(tmp_path, capsys):
 
 
 def test_full_disk_keeps_samples_under_the_marker(tmp_path):
-    design = _design(tmp_path / "d.npz")
+    _design(tmp_path / "d.npz")
 
     def limit():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
