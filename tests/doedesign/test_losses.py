@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from doedesign import losses
+from doedesign.optimizer import losses
 from doedesign.optimizer.losses import LossSpec, make_loss
 from doedesign.targets import Target
 

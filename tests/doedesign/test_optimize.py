@@ -5,12 +5,13 @@ import json
 import numpy as np
 import pytest
 
-from doedesign import cli, optimize, targets
+from doedesign import cli, targets
 from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.engine.psf import PSFEngine
 from doedesign.errors import DoeError
 from doedesign.materials import FUSED_SILICA
+from doedesign.optimizer import optimize
 from doedesign.optimizer.losses import LossSpec
 
 PITCH = 5.4e-6
