@@ -171,15 +171,19 @@ def marks_cell(settings: DieSettings, name: str = "MARKS") -> gdstk.Cell:
 def die_labels(settings: DieSettings, grid: PixelGrid) -> list[gdstk.Polygon]:
     """The die's labels as polygon text that a mask writer prints, above the die square.
 
-    One line per mask, on that mask's layer (the first mask also carries the summary line),
+    One line per mask, on that mask's layer (the first mask also carries the summary line;
+    ``settings.extra["mask_notes"]``, mask index -> text, ends a mask's line, e.g. the
+    correction drawn into it),
     each line on its own row, so no two labels overlap on the wafer and none reaches the
     element or the die square (the element may overhang the die by up to a pixel).
     """
     lines = [(f"{settings.name}: {len(settings.layers)} masks, tone {settings.tone}, mirrored "
               f"{'yes' if settings.mirrored else 'no'}, pixel {grid.pitch_um:g} um", settings.layers[0])]
+    notes = settings.extra.get("mask_notes", {})
     for j, layer in enumerate(settings.layers):
+        note = f", {notes[j]}" if notes.get(j) else ""
         lines.append((f"mask {j + 1}: layer {layer}/{settings.datatype} etch {settings.depths_m[j] * 1e9:.1f} nm, "
-                      f"step {settings.etch_order.index(j) + 1}", layer))
+                      f"step {settings.etch_order.index(j) + 1}{note}", layer))
     h = settings.die_size_m / 2 / UNIT_M
     bottom = max(h, grid.bbox_um()[1][1]) + LABEL_GAP_UM
     polygons = []

@@ -1,7 +1,8 @@
 """``doe diagnose``: name the effects that separate a measurement from the ideal model.
 
 Writes ``OUT/report.json`` (steps, noise floor, residuals, whether a structured residual is
-left unexplained), ``OUT/residual_steps.png`` and ``OUT/breakdown.png``.
+left unexplained; its ``inputs`` identify the design: file and level-map sha256, shape, pitch),
+``OUT/residual_steps.png`` and ``OUT/breakdown.png``.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run
+    from metrology.correction.diagnoses import design_fingerprint
 
     for path in args.effects_file:
         load_effects_file(path)
@@ -74,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
         diag, inputs = _heights(design, Path(args.measured), args, candidates)
     else:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
+    # What the design was, so that a later `doe correct` refuses a diagnosis of another one.
+    inputs.update(design_fingerprint(design, args.design))
     with output_run(out, "doe diagnose"):
         report = diag.save(out, dict(design=str(args.design), **inputs))
     print_json({"report": str(out / "report.json"), "effects_found": diag.named,

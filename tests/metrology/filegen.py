@@ -22,7 +22,9 @@ How a case is made (every number drawn from a seed):
    Then tilt, piston, white noise, spikes and invalid pixels.
 
 Arrays are row-major with row 0 at the top, in the design and in the camera. Overlay and
-gradient directions: x toward increasing column, y up (toward decreasing row).
+gradient directions: x toward increasing column, y up (toward decreasing row). An overlay or a
+rotation may name several masks at once: ``{"mask": [1, 3], "shift_m": [[dx, dy], [dx, dy]]}``,
+``{"mask": [2, 3], "angle_deg": [a, b]}``.
 """
 
 from __future__ import annotations
@@ -75,18 +77,19 @@ class FileCase:
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
-    def write(self, directory):
-        """Write ``design.npz`` and ``measured.datx`` into ``directory``; return both paths."""
+    def write(self, directory, metadata=None, design=True):
+        """Write ``design.npz`` (with ``metadata``; skipped when ``design`` is False) and
+        ``measured.datx`` into ``directory``; return both paths."""
         from doedesign.design import Design
         from metrology.formats.writers import write_datx
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        height = -np.asarray(DEPTHS_M) @ masks_of(self.levels).reshape(4, -1)
-        design = Design(height_m=height.reshape(self.levels.shape), pitch_m=PITCH_M,
-                        levels=self.levels.astype(np.int16))
         d_path, m_path = directory / "design.npz", directory / "measured.datx"
-        design.save(d_path)
+        if design:
+            height = -np.asarray(DEPTHS_M) @ masks_of(self.levels).reshape(4, -1)
+            Design(height_m=height.reshape(self.levels.shape), pitch_m=PITCH_M, levels=self.levels.astype(np.int16),
+                   metadata=dict(metadata or {})).save(d_path)
         write_datx(m_path, self.height_m, self.instrument["header_pixel_m"])
         return d_path, m_path
 
@@ -266,7 +269,8 @@ def draw_instrument(rng, design_shape, out_shape, batwing=None):
             "invalid_fraction": rng.uniform(0.0, 0.01), "matrix": matrix, "offset": offset}
 
 
-def make_case(effects, seed, design_px=48, field_px=160, truth=None, instrument=None, fine=FINE_PER_PX):
+def make_case(effects, seed, design_px=48, field_px=160, truth=None, instrument=None, fine=FINE_PER_PX,
+              levels=None):
     """A file case with ``effects`` hidden (empty = null case).
 
     Parameters
@@ -283,9 +287,12 @@ def make_case(effects, seed, design_px=48, field_px=160, truth=None, instrument=
     fine : int
         Super-fine cells per design pixel (fewer for a large design timed, not judged: the
         surface takes ``(design_px * fine)**2`` cells).
+    levels : ndarray, optional
+        The design to make (another field of the same design); default drawn from ``seed``.
     """
     rng = np.random.default_rng(seed)
-    levels = random_levels((design_px, design_px), rng)
+    drawn = random_levels((design_px, design_px), rng)
+    levels = drawn if levels is None else np.asarray(levels)
     hidden = {name: draw_effect(name, rng) for name in effects}
     hidden.update(truth or {})
     inst = draw_instrument(rng, levels.shape, (field_px, field_px))

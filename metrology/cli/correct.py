@@ -1,0 +1,67 @@
+"""``doe correct``: from diagnosed fields to corrected masks, a job sheet and a process spec."""
+
+from __future__ import annotations
+
+import argparse
+
+from doedesign.cli.common import Number
+
+__all__ = ["register", "run"]
+
+HELP = """\
+Combine the diagnoses of several fields (doe diagnose --out folders) of one design: per effect
+parameter the mean over fields with its standard error and the spread between fields. What is
+systematic (|mean| > 3 standard errors and above the effect's detection limit) and has a knob is
+corrected: each mask's openings are redrawn with their edges offset against the measured
+linewidth bias (OUT/masks/, the layout of doe masks, verified), and OUT/job.json (+ report.md)
+gives per mask the etch target, the aligner offset and rotation to dial in (the negative of the
+measured error; x toward increasing column, y up, counter-clockwise, relative to mask 0) and the
+bias taken out. The rest is reported as spread. The figure of merit of the design, the measured
+wafer and the corrected next wafer are predicted with doe tolerance's process model, and
+OUT/process_spec.toml (a doe tolerance spec) carries the measured spreads as sigmas.
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("correct", help="diagnosed fields -> corrected masks, job sheet, predicted merit",
+                              description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--design", required=True, help="design file (.npz)")
+    p.add_argument("--diagnosis", action="append", required=True, metavar="DIAG",
+                   help="a doe diagnose output folder (repeat for each field)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask (as doe masks)")
+    p.add_argument("--mirror", action="store_true", help="mirror x -> -x (contact printing, as doe masks)")
+    p.add_argument("--samples", type=Number(int, 0, 10_000), default=12,
+                   help="Monte Carlo draws per predicted wafer (default 12)")
+    p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="seed of the draws")
+    p.add_argument("--min-feature-um", type=Number(float, 0, 100, unit="um"), default=None,
+                   help="narrowest opening or gap the corrected masks may draw (default 1 um)")
+    p.add_argument("--redesign", action="store_true", help="re-design for what masks cannot fix (not implemented)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from doedesign.cli.common import print_json
+    from doedesign.design import Design
+    from doedesign.errors import DoeError
+    from doedesign.fileio import ensure_output_dir
+
+    from metrology.correction import correct
+
+    ensure_output_dir(args.out)
+    try:
+        layers = [int(v) for v in args.layers.split(",")]
+    except ValueError:
+        raise DoeError(f"--layers must be comma-separated integers, got {args.layers!r}") from None
+    sheet = correct(Design.load(args.design), args.diagnosis, args.out, design_path=str(args.design), layers=layers,
+                    mirrored=args.mirror, samples=args.samples, seed=args.seed,
+                    min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
+                    redesign=args.redesign)
+    merit = sheet["merit"]
+    primary = merit["primary_metric"]
+    print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",
+                "corrected": sheet["corrected"], "warnings": sheet["warnings"], "primary_metric": primary,
+                "design": merit["design"]["central"][primary],
+                "measured_wafer": merit["measured_wafer"]["central"][primary],
+                "corrected_wafer": merit["corrected_wafer"]["central"][primary]})
+    return 0

@@ -1,0 +1,129 @@
+"""The job sheet: per mask, what the next run changes, from the combined estimates.
+
+Conventions (those of ``doe compare`` and the process model): x toward increasing design
+column, y up (toward row 0), rotations counter-clockwise with row 0 on top, about the centre of
+the design grid, each mask relative to mask 0. The aligner's dial values are the NEGATIVE of
+the measured errors (a mask printed 0.4 um to +x is placed 0.4 um to -x next time). The etch
+target is what to aim at so that the etch lands on nominal: ``nominal / (1 + error)``, and,
+with a significant etch loading ``L``, divided by ``1 - L rho`` with ``rho`` the mean local open
+fraction over that mask's openings (the process model's loading rule,
+:func:`masks.process.mask_etch`): binary masks cannot vary the local etch rate, so only the
+mean loss is taken out. The linewidth bias taken out is the measured one; the drawn edges move
+by its negative.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from doedesign.errors import DoeError
+
+from .systematic import DISAGREEMENT_CHI2, SIGNIFICANCE, Estimate
+
+__all__ = ["check_same_process", "job_entries", "mean_loading_loss", "warnings_for"]
+
+
+def _value(estimates, effect, mask, prefix, corrected_only=True):
+    for e in estimates:
+        if e.effect == effect and e.mask == mask and e.param.startswith(prefix) and (e.corrected or not corrected_only):
+            return e
+    return None
+
+
+def mean_loading_loss(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float], loading: float) -> np.ndarray:
+    """Per mask, the mean fractional depth lost to etch loading over its openings (process model)."""
+    from masks.process import ProcessParams, mask_etch
+
+    params = ProcessParams(etch_depth=np.asarray(depths_m, float), etch_loading=float(loading))
+    levels = sum(np.asarray(m, np.int64) << j for j, m in enumerate(masks))
+    out = []
+    for j, m in enumerate(masks):
+        if not m.any():
+            out.append(0.0)
+            continue
+        etched = mask_etch(levels, pitch_m, params, j, step_m=pitch_m)
+        out.append(float(1.0 - etched[m].mean() / depths_m[j]))
+    return np.array(out)
+
+
+def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float, depths_m: Sequence[float],
+                layers: Sequence[int], datatype: int = 0) -> list[dict]:
+    """One entry per mask: layer, datatype, nominal and target etch depth, aligner dials,
+    linewidth bias taken out, and the corrections that went in (strict-JSON ready)."""
+    n = len(depths_m)
+    loading = _value(estimates, "etch_loading", None, "loading")
+    loss = mean_loading_loss(masks, pitch_m, depths_m, loading.mean) if loading else np.zeros(n)
+    entries = []
+    for j in range(n):
+        done = []
+        nominal = float(depths_m[j])
+        target = nominal
+        depth = _value(estimates, "etch_depth", j, "depth_error")
+        if depth:
+            target /= 1.0 + depth.mean
+            done.append(f"etch depth error {depth.mean * 100:+.2f} % taken out of the target")
+        if loading:
+            target /= 1.0 - loss[j]
+            done.append(f"etch loading {loading.mean:.3f}: mean loss {loss[j] * 100:.2f} % over the openings "
+                        "added to the target")
+        shift = [0.0, 0.0]
+        for c, axis in enumerate(("dx", "dy")):
+            e = _value(estimates, "mask_overlay", j, axis)
+            if e:
+                shift[c] = -e.mean
+        if any(shift):
+            done.append(f"aligner offset {shift[0] * 1e6:+.3f}, {shift[1] * 1e6:+.3f} um")
+        rot = _value(estimates, "mask_rotation", j, "rotation")
+        rotation = -rot.mean if rot else 0.0
+        if rot:
+            done.append(f"aligner rotation {rotation:+.4f} deg")
+        bias = _value(estimates, "linewidth_bias", j, "bias")
+        bias_m = bias.mean if bias else 0.0
+        if bias:
+            done.append(f"edges drawn {-bias_m * 1e6:+.3f} um (linewidth bias {bias_m * 1e6:+.3f} um taken out)")
+        entries.append({
+            "mask": j, "layer": int(layers[j]), "datatype": int(datatype),
+            "etch_depth_nm": nominal * 1e9, "etch_depth_target_nm": target * 1e9,
+            "align_offset_um": [v * 1e6 for v in shift], "align_rotation_deg": rotation,
+            "linewidth_bias_um": bias_m * 1e6, "drawn_edge_offset_um": -bias_m * 1e6,
+            "etch_loading_mean_loss_fraction": float(loss[j]) if loading else 0.0,
+            "corrections": done or ["none: nothing systematic and significant on this mask"]})
+    return entries
+
+
+def warnings_for(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
+    """Warnings for the job sheet: fields that disagree beyond their uncertainties (in sign, or
+    in scatter on a corrected parameter), systematic effects no knob acts on, diagnoses that left
+    a residual unexplained."""
+    out, scatter = [], []
+    for e in estimates:
+        signs = {np.sign(v - e.null) for v, s in zip(e.values, e.uncertainties) if abs(v - e.null) > SIGNIFICANCE * s}
+        if len(signs) > 1:
+            out.append(f"{e.effect} {e.param}: the fields disagree in sign beyond their uncertainties "
+                       f"(values {', '.join(f'{v:.4g}' for v in e.values)} {e.unit}); "
+                       + ("corrected by the mean" if e.corrected else "not corrected"))
+        elif e.chi2_per_dof is not None and e.chi2_per_dof > DISAGREEMENT_CHI2 and e.systematic:
+            scatter.append(f"{e.effect} {e.param} (chi2/dof {e.chi2_per_dof:.3g})")
+        if e.systematic and not e.knob:
+            out.append(f"{e.effect} {e.param} = {e.mean:.4g} {e.unit} is systematic but no mask, aligner or etch "
+                       "setting corrects it")
+    if scatter:
+        out.append("the fields disagree beyond their fitted uncertainties on " + ", ".join(scatter)
+                   + ": a field-to-field spread of the process; the between-field scatter, not the fits, sets "
+                   "those means' standard errors")
+    for f in fields:
+        if f.unexplained:
+            out.append(f"{f.source}: its diagnosis left a structured residual unexplained; its effects may be incomplete")
+    return out
+
+
+def check_same_process(fields: Sequence) -> list[float]:
+    """The nominal etch depths all diagnoses share (DoeError when they differ)."""
+    first = fields[0].nominal_depths_m
+    for f in fields[1:]:
+        if len(f.nominal_depths_m) != len(first) or not np.allclose(f.nominal_depths_m, first, rtol=1e-6):
+            raise DoeError(f"{f.source}: diagnosed against nominal etch depths {f.nominal_depths_m} m, "
+                           f"{fields[0].source} against {first} m; diagnose every field with the same --depths-nm")
+    return list(first)

@@ -1,0 +1,122 @@
+"""The element's figure of merit for the design, the measured wafer and the corrected next wafer.
+
+All three go through ``doe tolerance``'s machinery (:mod:`masks.tolerance`): the process model
+on the whole element, the coded PSF and the design's own metrics (on-target light per colour
+for a Bayer element, the light on the target pixels for others; :mod:`masks.tolerance.metrics`).
+
+- design: the ideal process at the diagnosed nominal depths;
+- measured wafer: every combined parameter at its mean, spread by its between-field spread;
+- next wafer: the corrected parameters at what is left of them after the job sheet (zero for a
+  shift, a rotation or a bias; for an etch, the measured error times the target's change), each
+  spread by its between-field spread and its standard error (the correction is only as good as
+  the mean it takes out); the rest as measured.
+
+Each wafer is evaluated at its central values and at ``samples`` Monte Carlo draws (sample k
+seeded from ``SeedSequence([seed, k])`` as in ``doe tolerance``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from doedesign.design import Design
+from doedesign.progress import Progress
+
+from .systematic import Estimate
+
+__all__ = ["params_for_wafer", "predict_merit"]
+
+# Diagnosis effect -> (tolerance-spec effect, component from the parameter name, factor to SI).
+_COMPONENT = {"mask_overlay": lambda p: p[:2], "etch_gradient": lambda p: p[:1],
+              "microtrenching": lambda p: p.split("_")[0]}
+
+
+def _spec_param(e: Estimate, mean: float, sigma: float, nominal_depths_m: Sequence[float]):
+    from masks.tolerance.spec import Param
+
+    scale = 1.0
+    if e.effect == "etch_depth":
+        scale = nominal_depths_m[e.mask]
+    elif e.effect == "mask_rotation":
+        scale = math.pi / 180.0
+    component = _COMPONENT.get(e.effect, lambda p: "")(e.param)
+    mask = e.mask if e.effect not in ("etch_loading", "proximity_blur", "sidewall_slope", "etch_gradient") else None
+    return Param(e.effect, mask, component, "normal", mean * scale, abs(sigma) * scale)
+
+
+def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nominal_depths_m: Sequence[float],
+                     corrected: bool) -> list:
+    """Tolerance-spec parameters (:class:`masks.tolerance.spec.Param`) of the measured wafer or,
+    with ``corrected``, of the next one made with the job sheet ``jobs``."""
+    out = []
+    for e in estimates:
+        if e.effect not in ("etch_depth", "mask_overlay", "mask_rotation", "linewidth_bias", "etch_loading",
+                            "proximity_blur", "sidewall_slope", "etch_gradient", "microtrenching"):
+            continue
+        mean, sigma = e.mean, e.spread
+        if corrected and e.effect == "etch_depth":
+            job = jobs[e.mask]
+            # The etch aimed at the target removes (1 + error) target: relative to nominal, the error left.
+            mean = (1.0 + e.mean) * job["etch_depth_target_nm"] / job["etch_depth_nm"] - 1.0
+            if e.corrected or job["etch_loading_mean_loss_fraction"]:
+                sigma = math.hypot(e.spread, e.standard_error)
+        elif corrected and e.corrected and e.effect != "etch_loading":
+            mean, sigma = e.null, math.hypot(e.spread, e.standard_error)
+        out.append(_spec_param(e, mean, sigma, nominal_depths_m))
+    return out
+
+
+def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[dict],
+                  nominal_depths_m: Sequence[float], samples: int = 12, seed: int = 0, source: str = "design",
+                  oversample: int = 2) -> dict:
+    """Metrics of the design, the measured wafer and the corrected next wafer (see the module docstring).
+
+    Returns
+    -------
+    dict
+        ``primary_metric``, ``direction``, ``metric_unit``, and per wafer (``design``,
+        ``measured_wafer``, ``corrected_wafer``): ``central`` (metrics at the central values),
+        ``samples`` (number of draws), ``mean``, ``std`` and ``worst`` of each metric over the
+        draws, and ``primary_change_percent`` (central primary metric against the design's,
+        negative = worse).
+    """
+    from masks.process import ProcessParams
+    from masks.tolerance.analysis import build_evaluator
+    from masks.tolerance.metrics import DIRECTIONS, metric_unit
+    from masks.tolerance.spec import ToleranceSpec
+
+    ev, _, _ = build_evaluator(design, ToleranceSpec(params=[]), source=source, oversample=oversample)
+    ev.base = ProcessParams.ideal(depths_m=nominal_depths_m)
+    primary = ev.metrics.primary
+    lower_better = DIRECTIONS.get(primary) == "lower"
+    nominal = ev.metrics(ev.coded_psf(ev.height({})))
+    out = {"primary_metric": primary, "direction": "lower" if lower_better else "higher",
+           "metric_unit": metric_unit(primary), "design": {"central": nominal, "samples": 0}}
+    with Progress(2 * (samples + 1), desc="doe correct: merit") as bar:
+        for key, corrected in (("measured_wafer", False), ("corrected_wafer", True)):
+            spec = ToleranceSpec(params=params_for_wafer(estimates, jobs, nominal_depths_m, corrected),
+                                 source=f"doe correct: {key}")
+            ev.spec = spec
+            central = ev({"id": "centre", "values": spec.nominal_values(), "seed": seed})["metrics"]
+            bar.update(1, status=f"{key} centre")
+            draws = []
+            for k in range(samples):
+                values, s = spec.draw(seed, k)
+                draws.append(ev({"id": k, "values": values, "seed": s})["metrics"])
+                bar.update(1, status=f"{key} {k + 1}/{samples}")
+            stats = {}
+            for name in central:
+                v = np.array([d[name] for d in draws]) if draws else np.array([central[name]])
+                worst = v.max() if DIRECTIONS.get(name) == "lower" else v.min()
+                stats[name] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+                               "worst": float(worst)}
+            out[key] = {"central": central, "samples": samples, "draws": stats, "parameters": spec.describe()["parameters"]}
+    base = nominal[primary]
+    for key in ("design", "measured_wafer", "corrected_wafer"):
+        v = out[key]["central"][primary]
+        change = (v - base) / abs(base) * 100 if base else math.nan
+        out[key]["primary_change_percent"] = -change if lower_better else change
+    return out

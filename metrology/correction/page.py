@@ -1,0 +1,56 @@
+"""The page a person reads beside ``job.json``: what to change per mask, why, and what it buys."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from doedesign import report_md as md
+
+__all__ = ["job_page"]
+
+_SCALE = {"m": (1e6, "um"), "1": (100.0, "%"), "deg": (1.0, "deg"), "1/m": (0.1, "%/mm")}
+
+
+def job_page(sheet: dict, folder: Path) -> Path:
+    """Write ``report.md`` for a job sheet (the dict written to ``job.json``)."""
+    merit = sheet["merit"]
+    primary = merit["primary_metric"]
+    rows = [[m["mask"], f"{m['layer']}/{m['datatype']}", m["etch_depth_nm"], m["etch_depth_target_nm"],
+             f"{m['align_offset_um'][0]:+.3f}, {m['align_offset_um'][1]:+.3f}", f"{m['align_rotation_deg']:+.4f}",
+             f"{m['linewidth_bias_um']:+.3f}", "; ".join(m["corrections"])] for m in sheet["masks"]]
+    job = md.table(rows, ["mask", "layer/datatype", "etch nominal (nm)", "etch target (nm)",
+                          "aligner offset dx, dy (um)", "aligner rotation (deg)", "linewidth bias taken out (um)",
+                          "corrections"])
+    est_rows = []
+    for e in sheet["estimates"]:
+        scale, unit = _SCALE.get(e["unit"], (1.0, e["unit"]))
+        verdict = "corrected" if e["corrected"] else ("systematic, no knob" if e["systematic"] else "spread only")
+        est_rows.append([e["effect"], e["param"], md.fmt_pm(e["mean"] * scale, e["standard_error"] * scale, 3, unit),
+                         md.fmt(e["spread"] * scale, 3, unit), md.fmt(e["detection_limit"] * scale, 2, unit),
+                         f"{e['named_in']}/{len(e['values'])}", verdict])
+    est = md.table(est_rows, ["effect", "parameter", "mean over fields ± standard error", "spread between fields",
+                              "detection limit", "fields naming it", "verdict"])
+    merit_rows = []
+    for key, label in (("design", "design (ideal process)"), ("measured_wafer", "measured wafer"),
+                       ("corrected_wafer", "next wafer, corrected")):
+        w = merit[key]
+        draws = w.get("draws", {}).get(primary)
+        merit_rows.append([label, md.fmt(w["central"][primary], 4), md.fmt(w["primary_change_percent"], 3),
+                           md.fmt_pm(draws["mean"], draws["std"], 4) if draws else "n/a",
+                           md.fmt(draws["worst"], 4) if draws else "n/a"])
+    merit_table = md.table(merit_rows, [f"wafer", f"{primary} ({merit['metric_unit']})", "change against design (%)",
+                                        f"over {merit['corrected_wafer']['samples']} draws: mean ± sd", "worst draw"])
+    warnings = "\n".join(f"- {w}" for w in sheet["warnings"]) + "\n" if sheet["warnings"] else "None.\n"
+    summary = (f"{len(sheet['diagnoses'])} diagnosed field(s); {len(sheet['corrected'])} systematic parameter(s) "
+               f"corrected, {len(sheet['spread_only'])} reported as spread only. Predicted {primary}: design "
+               f"{md.fmt(merit['design']['central'][primary], 4)}, measured wafer "
+               f"{md.fmt(merit['measured_wafer']['central'][primary], 4)} "
+               f"({md.fmt(merit['measured_wafer']['primary_change_percent'], 3)} %), next wafer "
+               f"{md.fmt(merit['corrected_wafer']['central'][primary], 4)} "
+               f"({md.fmt(merit['corrected_wafer']['primary_change_percent'], 3)} %).\n")
+    conventions = "\n".join(f"- {k}: {v}" for k, v in sheet["conventions"].items()) + "\n"
+    parts = [f"# Job sheet for `{sheet['design']}`", summary, "## Per mask", job, conventions,
+             "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,
+             f"Corrected masks: `{sheet['masks_folder']}`; process spec for `doe tolerance`: "
+             f"`{sheet['process_spec']}`; redesign: {sheet['redesign']}.\n", md.json_link("job.json")]
+    return md.write_markdown(folder / "report.md", parts)

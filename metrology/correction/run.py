@@ -1,0 +1,134 @@
+"""``correct``: diagnosed fields -> corrected masks, job sheet, merit prediction, process spec.
+
+What ``doe correct`` does and what the demo or a notebook calls. Everything is computed and
+checked before the first file is written (a refusal leaves nothing); the writes are wrapped
+in :func:`doedesign.fileio.output_run`.
+"""
+
+from __future__ import annotations
+
+import logging
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+
+from doedesign.design import Design
+from doedesign.errors import DoeError
+from doedesign.fileio import atomic_path, ensure_output_dir, output_run, write_json
+from doedesign.levels import design_levels
+
+from .diagnoses import design_fingerprint, read_diagnosis
+from .jobsheet import check_same_process, job_entries, warnings_for
+from .merit import predict_merit
+from .page import job_page
+from .process_spec import spec_table, toml_text
+from .systematic import DETECTION_LIMITS, SIGNIFICANCE, combine_fields
+
+__all__ = ["CONVENTIONS", "correct"]
+
+log = logging.getLogger(__name__)
+
+CONVENTIONS = {
+    "frame": "x toward increasing design column, y up (toward row 0), rotation counter-clockwise with row 0 on top, "
+             "about the centre of the design grid; every mask relative to mask 0",
+    "aligner": "align_offset_um and align_rotation_deg are the values to dial in: the negative of the measured error",
+    "etch": "etch_depth_target_nm is what to aim the etch at so that it lands on etch_depth_nm (nominal)",
+    "edges": "linewidth_bias_um is the measured bias taken out; the drawn edges moved by drawn_edge_offset_um "
+             "(its negative; positive = openings drawn wider)",
+    "systematic": f"corrected only where |mean| > {SIGNIFICANCE:g} standard errors and above the detection limit",
+}
+
+
+def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
+            layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
+            min_feature_m: float | None = None, redesign: bool = False) -> dict:
+    """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
+
+    Parameters
+    ----------
+    design : Design
+    diagnoses : sequence of path
+        ``doe diagnose`` output folders (fields of one wafer, or wafers of one process).
+    out : path
+        Output folder: ``masks/`` (as ``doe masks`` writes it, edges offset), ``job.json``,
+        ``report.md``, ``process_spec.toml``.
+    design_path : str, optional
+        The design's file name, for the sheet.
+    layers, mirrored
+        As for ``doe masks``.
+    samples, seed
+        Monte Carlo draws of each predicted wafer and their seed.
+    min_feature_m : float, optional
+        Narrowest opening or gap the corrected masks may draw (default
+        :data:`masks.corrected.MIN_FEATURE_M`).
+    redesign : bool
+        Re-design for what the masks cannot fix: not implemented; refused.
+
+    Returns
+    -------
+    dict
+        The job sheet written to ``job.json``.
+    """
+    from masks.corrected import MIN_FEATURE_M, offset_feasibility, write_offset_element
+    from masks.decompose import levels_to_masks
+    from masks.tolerance.spec import build_spec
+
+    if redesign:
+        raise DoeError("--redesign is not implemented yet; run doe correct without it")
+    if not diagnoses:
+        raise DoeError("give at least one --diagnosis folder")
+    out = ensure_output_dir(out)
+    name = design_path or design.name
+    fingerprint = design_fingerprint(design, design_path)
+    fields = [read_diagnosis(p, design, fingerprint) for p in diagnoses]
+    depths = check_same_process(fields)
+    masks = levels_to_masks(design_levels(design, source=name), len(depths))
+    estimates = combine_fields(fields)
+    jobs = job_entries(estimates, masks, design.pitch_m, depths, layers)
+    min_feature = MIN_FEATURE_M if min_feature_m is None else float(min_feature_m)
+    for job in jobs:
+        why = offset_feasibility(masks[job["mask"]], design.pitch_m, job["drawn_edge_offset_um"] * 1e-6, min_feature)
+        if why:
+            raise DoeError(f"{name}: mask {job['mask']}: taking out a linewidth bias of {job['linewidth_bias_um']:+.3f} "
+                           f"um cannot be drawn: {why}")
+    warnings = warnings_for(estimates, fields)
+    merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
+    table, spec_notes = spec_table(estimates, jobs)
+    header = [f"doe tolerance spec from doe correct of {name}: the sigmas are the spreads measured between "
+              f"{len(fields)} field(s); means are what the corrected next run still carries",
+              *spec_notes]
+    text = toml_text(table, header)
+    build_spec(tomllib.loads(text), depths, "process_spec.toml")  # refuse to write what doe tolerance would refuse
+    sheet = {
+        "design": name, "design_fingerprint": fingerprint, "diagnoses": [f.source for f in fields],
+        "nominal_depths_nm": [d * 1e9 for d in depths], "conventions": CONVENTIONS,
+        "detection_limits": DETECTION_LIMITS, "significance_standard_errors": SIGNIFICANCE,
+        "masks": jobs,
+        "corrected": [f"{e.effect}.{e.param}" for e in estimates if e.corrected],
+        "spread_only": [f"{e.effect}.{e.param}" for e in estimates if not e.systematic],
+        "estimates": [e.to_dict() for e in estimates], "warnings": warnings, "merit": merit,
+        "masks_folder": "masks", "process_spec": "process_spec.toml",
+        "process_spec_notes": spec_notes, "redesign": "not done (--redesign is not implemented)",
+    }
+    notes = {}
+    for job in jobs:
+        bits = []
+        if job["drawn_edge_offset_um"]:
+            bits.append(f"edges {job['drawn_edge_offset_um']:+.3f} um")
+        if abs(job["etch_depth_target_nm"] - job["etch_depth_nm"]) > 1e-6:
+            bits.append(f"etch target {job['etch_depth_target_nm']:.1f} nm")
+        if any(job["align_offset_um"]) or job["align_rotation_deg"]:
+            bits.append(f"align {job['align_offset_um'][0]:+.3f},{job['align_offset_um'][1]:+.3f} um "
+                        f"{job['align_rotation_deg']:+.4f} deg")
+        notes[job["mask"]] = "corrected: " + ", ".join(bits) if bits else "no correction"
+    with output_run(out, f"doe correct {name}"):
+        masks_dir = ensure_output_dir(out / "masks", create=True)
+        report = write_offset_element(design, masks_dir, [j["drawn_edge_offset_um"] * 1e-6 for j in jobs],
+                                      notes=notes, source=name, mirrored=mirrored, depths_m=depths, layers=layers)
+        sheet["masks_file"] = str(Path("masks") / Path(report["file"]).name)
+        sheet["masks_verification"] = report["verification"]
+        with atomic_path(out / "process_spec.toml") as tmp:
+            tmp.write_text(text)
+        write_json(out / "job.json", sheet)
+        job_page(sheet, out)
+    return sheet

@@ -1,0 +1,159 @@
+"""`doe correct` on diagnosis reports written here by hand (fast): systematic against random,
+the job sheet's signs and units, the corrected masks, the merit, the process spec, bad input.
+
+The end-to-end proof on generated wafers is tests/metrology/test_fab_loop.py."""
+
+import json
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+import filegen
+from doedesign.cli import main
+from doedesign.design import Design
+from metrology.correction.diagnoses import design_fingerprint
+from metrology.correction.systematic import combine_fields, DETECTION_LIMITS
+from metrology.correction.diagnoses import FieldDiagnosis
+
+DEPTHS = [75e-9, 150e-9, 300e-9, 600e-9]
+
+
+def _design(tmp_path, seed=3, px=24):
+    from doedesign.camera import Camera
+
+    levels = filegen.random_levels((px, px), np.random.default_rng(seed))
+    cam = Camera(aperture_diameter_m=None, focus_distance_m=np.inf, window_shape=(64, 64), axis_pixel=(32, 32),
+                 doe_side="full")
+    height = -np.asarray(DEPTHS) @ filegen.masks_of(levels).reshape(4, -1)
+    d = Design(height_m=height.reshape(levels.shape), pitch_m=filegen.PITCH_M, levels=levels,
+               metadata={"camera": cam.to_dict()})
+    path = tmp_path / f"design{seed}.npz"
+    d.save(path)
+    return d, path
+
+
+def _step(effect, params, errs):
+    return {"effect": effect, "kind": "fabrication", "measurement_artefact": False, "params": params,
+            "uncertainties": errs}
+
+
+def _field(tmp_path, name, design, path, dx1, bias, depth3, rot2, depths=DEPTHS):
+    steps = [_step("mask_overlay", {"dx_mask1_m": dx1, "dy_mask1_m": -0.2e-6, "dx_mask2_m": 1e-9, "dy_mask2_m": -2e-9,
+                                    "dx_mask3_m": 0.0, "dy_mask3_m": 0.0},
+                   {k: 2e-9 for k in ("dx_mask1_m", "dy_mask1_m", "dx_mask2_m", "dy_mask2_m", "dx_mask3_m",
+                                      "dy_mask3_m")}),
+             _step("linewidth_bias", {f"bias_mask{j}_m": bias for j in range(4)}, {f"bias_mask{j}_m": 1e-9 for j in range(4)}),
+             _step("etch_depth", {"depth_error_mask0": 0.001, "depth_error_mask1": -0.001, "depth_error_mask2": 0.0,
+                                  "depth_error_mask3": depth3}, {f"depth_error_mask{j}": 5e-4 for j in range(4)}),
+             _step("mask_rotation", {"rotation_mask1_deg": 0.0, "rotation_mask2_deg": rot2, "rotation_mask3_deg": 0.0},
+                   {f"rotation_mask{j}_deg": 0.002 for j in (1, 2, 3)})]
+    folder = tmp_path / name
+    folder.mkdir()
+    report = {"domain": "height", "steps": steps, "unexplained": False, "noise_floor": 1e-9,
+              "measurement_artefacts": [], "inputs": {"nominal_depths_m": depths, **design_fingerprint(design, path)}}
+    (folder / "report.json").write_text(json.dumps(report))
+    return folder
+
+
+def _three_fields(tmp_path, design, path):
+    return [_field(tmp_path, "f0", design, path, 0.41e-6, 0.30e-6, 0.050, 0.031),
+            _field(tmp_path, "f1", design, path, 0.39e-6, 0.31e-6, 0.052, 0.029),
+            _field(tmp_path, "f2", design, path, 0.40e-6, 0.29e-6, 0.048, 0.030)]
+
+
+def test_fields_combine_into_mean_standard_error_and_spread():
+    fields = [FieldDiagnosis("a", {"mask_overlay": {"dx_mask1_m": v, "dy_mask1_m": w}},
+                             {"mask_overlay": {"dx_mask1_m": 1e-9, "dy_mask1_m": 1e-9}}, DEPTHS)
+              for v, w in ((0.41e-6, 0.01e-6), (0.39e-6, -0.02e-6), (0.40e-6, 0.015e-6))]
+    est = {e.param: e for e in combine_fields(fields)}
+    dx = est["dx_mask1_m"]
+    assert dx.mean == pytest.approx(0.40e-6)
+    assert dx.spread == pytest.approx(0.01e-6)  # sample sd of 0.41, 0.39, 0.40
+    assert dx.standard_error == pytest.approx(0.01e-6 / math.sqrt(3))
+    assert dx.systematic and dx.corrected
+    dy = est["dy_mask1_m"]  # mean 1.7 nm: below the 0.05 um limit and within 3 standard errors
+    assert not dy.systematic and not dy.corrected
+    # Masks 2 and 3 were never named: null values, the detection limit as their uncertainty.
+    assert est["dx_mask2_m"].mean == 0 and est["dx_mask2_m"].uncertainties == [DETECTION_LIMITS["mask_overlay"]] * 3
+
+
+def test_job_sheet_masks_merit_and_spec(tmp_path):
+    design, path = _design(tmp_path)
+    out = tmp_path / "out"
+    diags = _three_fields(tmp_path, design, path)
+    code = main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", "3"])
+    assert code == 0
+    sheet = json.loads((out / "job.json").read_text())
+    m = {e["mask"]: e for e in sheet["masks"]}
+    assert [e["layer"] for e in sheet["masks"]] == [1, 2, 3, 4] and all(e["datatype"] == 0 for e in sheet["masks"])
+    # The dials are the negative of the measured errors, relative to mask 0.
+    assert m[1]["align_offset_um"] == pytest.approx([-0.40, 0.20])
+    assert m[0]["align_offset_um"] == [0.0, 0.0] and m[2]["align_offset_um"] == [0.0, 0.0]
+    assert m[2]["align_rotation_deg"] == pytest.approx(-0.030)
+    # The etch aimed at the target lands on nominal: target (1 + error) = nominal.
+    assert m[3]["etch_depth_target_nm"] * 1.05 == pytest.approx(600.0)
+    assert m[0]["etch_depth_target_nm"] == pytest.approx(75.0)  # 0.1 % is below the limit: not corrected
+    assert all(e["linewidth_bias_um"] == pytest.approx(0.30) and e["drawn_edge_offset_um"] == pytest.approx(-0.30)
+               for e in sheet["masks"])
+    assert "etch_depth.depth_error_mask0" in sheet["spread_only"]
+    assert sheet["masks_verification"]["passed"] and (out / sheet["masks_file"]).is_file()
+    assert (out / "masks" / "masks.png").is_file() and (out / "report.md").is_file()
+    assert "mask 4" in (out / "report.md").read_text() or "| 3 |" in (out / "report.md").read_text()
+    # Merit: the corrected wafer is predicted closer to the design than the measured one.
+    merit = sheet["merit"]
+    assert merit["measured_wafer"]["primary_change_percent"] < merit["corrected_wafer"]["primary_change_percent"]
+    assert abs(merit["corrected_wafer"]["primary_change_percent"]) < 0.5 * abs(merit["measured_wafer"]["primary_change_percent"])
+    # The process spec reads as a doe tolerance spec; its sigmas are the spreads between the fields.
+    from masks.tolerance.spec import load_spec
+
+    spec = load_spec(out / "process_spec.toml", DEPTHS)
+    by = {p.name: p for p in spec.params}
+    assert by["linewidth_bias_um[mask 1]"].b == pytest.approx(0.01e-6)
+    assert by["etch_depth_nm[mask 3]"].b == pytest.approx(0.002 * 600e-9)
+    assert by["etch_depth_nm[mask 3]"].a == pytest.approx(0.0, abs=1e-15)  # taken out by the target
+    assert tomllib.loads((out / "process_spec.toml").read_text())
+
+
+def _fails(argv, capsys):
+    code = main(argv)
+    err = capsys.readouterr().err.strip()
+    return code, err
+
+
+def test_bad_input_is_refused_in_one_line_with_no_output(tmp_path, capsys):
+    design, path = _design(tmp_path)
+    other, other_path = _design(tmp_path, seed=4)
+    good = _three_fields(tmp_path, design, path)
+    foreign = _field(tmp_path, "foreign", other, other_path, 0.4e-6, 0.3e-6, 0.05, 0.03)
+    cases = {
+        "another design": [foreign],
+        "nominal etch depths": [_field(tmp_path, "depths", design, path, 0.4e-6, 0.3e-6, 0.05, 0.03,
+                                       depths=[80e-9, 160e-9, 320e-9, 640e-9]), good[0]],
+        "cannot be drawn": [_field(tmp_path, "huge", design, path, 0.4e-6, 2.4e-6, 0.05, 0.03)] * 2,
+    }
+    for what, diags in cases.items():
+        out = tmp_path / f"out_{what.replace(' ', '_')}"
+        code, err = _fails(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                            "--out", str(out), "--samples", "0"], capsys)
+        assert code == 2, what
+        assert what in err and len(err.splitlines()) == 1, err
+        assert not out.exists(), what
+    code, err = _fails(["correct", "--design", str(path), "--diagnosis", str(good[0]), "--out", str(tmp_path / "r"),
+                        "--redesign"], capsys)
+    assert code == 2 and "redesign" in err
+
+
+def test_fields_that_disagree_are_a_warning_in_the_job_sheet(tmp_path):
+    design, path = _design(tmp_path)
+    diags = [_field(tmp_path, "a", design, path, 0.60e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "b", design, path, 0.20e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "c", design, path, -0.05e-6, 0.30e-6, 0.05, 0.03)]
+    out = tmp_path / "out"
+    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", "0"]) == 0
+    sheet = json.loads((out / "job.json").read_text())
+    assert any("dx_mask1_m" in w and "disagree in sign" in w for w in sheet["warnings"])
+    assert "mask_overlay.dx_mask1_m" in sheet["spread_only"]  # 0.25 +- 0.19 um: not significant
