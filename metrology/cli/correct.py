@@ -36,7 +36,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="seed of the draws")
     p.add_argument("--min-feature-um", type=Number(float, 0, 100, unit="um"), default=None,
                    help="narrowest opening or gap the corrected masks may draw (default 1 um)")
-    p.add_argument("--redesign", action="store_true", help="re-design for what masks cannot fix (not implemented)")
     p.set_defaults(func=run)
 
 
@@ -55,8 +54,7 @@ def run(args: argparse.Namespace) -> int:
         raise DoeError(f"--layers must be comma-separated integers, got {args.layers!r}") from None
     sheet = correct(Design.load(args.design), args.diagnosis, args.out, design_path=str(args.design), layers=layers,
                     mirrored=args.mirror, samples=args.samples, seed=args.seed,
-                    min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
-                    redesign=args.redesign)
+                    min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6)
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",

@@ -66,6 +66,15 @@ def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nomina
         elif corrected and e.corrected and e.effect != "etch_loading":
             mean, sigma = e.null, math.hypot(e.spread, e.standard_error)
         out.append(_spec_param(e, mean, sigma, nominal_depths_m))
+    if corrected:
+        from masks.tolerance.spec import Param
+
+        # A target moved only for the loading, on a mask whose depth error no field named.
+        have = {e.mask for e in estimates if e.effect == "etch_depth"}
+        for job in jobs:
+            if job["mask"] not in have and job["etch_depth_target_nm"] != job["etch_depth_nm"]:
+                shift = (job["etch_depth_target_nm"] - job["etch_depth_nm"]) * 1e-9
+                out.append(Param("etch_depth", job["mask"], "", "normal", shift, 0.0))
     return out
 
 

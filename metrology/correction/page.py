@@ -38,7 +38,7 @@ def job_page(sheet: dict, folder: Path) -> Path:
         merit_rows.append([label, md.fmt(w["central"][primary], 4), md.fmt(w["primary_change_percent"], 3),
                            md.fmt_pm(draws["mean"], draws["std"], 4) if draws else "n/a",
                            md.fmt(draws["worst"], 4) if draws else "n/a"])
-    merit_table = md.table(merit_rows, [f"wafer", f"{primary} ({merit['metric_unit']})", "change against design (%)",
+    merit_table = md.table(merit_rows, ["wafer", f"{primary} ({merit['metric_unit']})", "change against design (%)",
                                         f"over {merit['corrected_wafer']['samples']} draws: mean ± sd", "worst draw"])
     warnings = "\n".join(f"- {w}" for w in sheet["warnings"]) + "\n" if sheet["warnings"] else "None.\n"
     summary = (f"{len(sheet['diagnoses'])} diagnosed field(s); {len(sheet['corrected'])} systematic parameter(s) "
@@ -52,5 +52,5 @@ def job_page(sheet: dict, folder: Path) -> Path:
     parts = [f"# Job sheet for `{sheet['design']}`", summary, "## Per mask", job, conventions,
              "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,
              f"Corrected masks: `{sheet['masks_folder']}`; process spec for `doe tolerance`: "
-             f"`{sheet['process_spec']}`; redesign: {sheet['redesign']}.\n", md.json_link("job.json")]
+             f"`{sheet['process_spec']}`.\n", md.json_link("job.json")]
     return md.write_markdown(folder / "report.md", parts)

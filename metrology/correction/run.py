@@ -41,7 +41,7 @@ CONVENTIONS = {
 
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
             layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
-            min_feature_m: float | None = None, redesign: bool = False) -> dict:
+            min_feature_m: float | None = None) -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -61,8 +61,6 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     min_feature_m : float, optional
         Narrowest opening or gap the corrected masks may draw (default
         :data:`masks.corrected.MIN_FEATURE_M`).
-    redesign : bool
-        Re-design for what the masks cannot fix: not implemented; refused.
 
     Returns
     -------
@@ -73,8 +71,6 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     from masks.decompose import levels_to_masks
     from masks.tolerance.spec import build_spec
 
-    if redesign:
-        raise DoeError("--redesign is not implemented yet; run doe correct without it")
     if not diagnoses:
         raise DoeError("give at least one --diagnosis folder")
     out = ensure_output_dir(out)
@@ -108,7 +104,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         "spread_only": [f"{e.effect}.{e.param}" for e in estimates if not e.systematic],
         "estimates": [e.to_dict() for e in estimates], "warnings": warnings, "merit": merit,
         "masks_folder": "masks", "process_spec": "process_spec.toml",
-        "process_spec_notes": spec_notes, "redesign": "not done (--redesign is not implemented)",
+        "process_spec_notes": spec_notes,
     }
     notes = {}
     for job in jobs:

@@ -17,7 +17,12 @@ def _figure_cells(nb):
     return [i for i, c in enumerate(nb.cells) if c.cell_type == "code" and any(d in c.source for d in drawing)]
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+# Notebooks that run a long workflow end to end (the fab loop diagnoses six fields): `make test-all`.
+SLOW = {"08_fab_loop"}
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.slow) if p.stem in SLOW else p for p in NOTEBOOKS],
+                         ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path, tmp_path, monkeypatch):
     # Run in a scratch copy of the folder so outputs never land in the repository.
     work = tmp_path / "nb"

@@ -29,6 +29,12 @@ def test_null_file_names_nothing_and_closes_at_the_floor(tmp_path):
     assert max(placement["shift_uncertainty_camera_px"]) < 0.02
     assert placement["rotation_uncertainty_deg"] < 0.002
     assert abs(placement["blur_sigma_um"] - case.instrument["blur_sigma_m"] * 1e6) < 0.1
+    # The report says which design it diagnosed (doe correct refuses a diagnosis of another one).
+    from doedesign.design import Design
+    from metrology.correction.diagnoses import design_fingerprint
+
+    fingerprint = design_fingerprint(Design.load(tmp_path / "design.npz"), tmp_path / "design.npz")
+    assert {k: report["inputs"][k] for k in fingerprint} == fingerprint
 
 
 @pytest.mark.slow
