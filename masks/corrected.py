@@ -33,6 +33,7 @@ from .element import DIE_SIZE_M, clear_aperture_m, preview
 from .gds_read import read_boundaries
 from .gds_records import gds_name
 from .grid import ELEMENT_CELL, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid, check_layers
+from .lyp import die_layer_styles, write_lyp
 from .offset import offset_polygons, verify_offset_layer
 
 __all__ = ["MIN_FEATURE_M", "narrowest_runs_px", "offset_feasibility", "write_offset_element"]
@@ -87,7 +88,8 @@ def write_offset_element(design: Design, out: str | Path, offsets_m: Sequence[fl
                          notes: dict | None = None, source: str | None = None, mirrored: bool = False,
                          depths_m: Sequence[float] | None = None, layers: Sequence[int] = (1, 2, 3, 4),
                          datatype: int = 0, clear_aperture: float | None = None) -> dict:
-    """Write ``OUT/<name>.gds`` with each mask's openings offset, ``OUT/masks.png`` and ``OUT/report.json``.
+    """Write ``OUT/<name>.gds`` with each mask's openings offset, ``OUT/<name>.lyp`` (KLayout layer
+    names), ``OUT/masks.png`` and ``OUT/report.json``.
 
     Parameters
     ----------
@@ -155,9 +157,11 @@ def write_offset_element(design: Design, out: str | Path, offsets_m: Sequence[fl
             if res["mismatched_samples"] or res["problems"]:
                 raise DoeError(f"{path}: mask {j} (layer {layer}) failed verification, file not written: "
                                f"{res['mismatched_samples']} mismatched samples; " + "; ".join(res["problems"][:5]))
+    lyp = write_lyp(path.with_suffix(".lyp"), die_layer_styles(layers, datatype, depths,
+                                                                 clear_aperture=aperture is not None))
     preview(levels, masks, out / "masks.png", f"{name} (drawn before the edge offsets)")
     report = {
-        "name": name, "file": str(path), "design": source,
+        "name": name, "file": str(path), "layer_properties_file": str(lyp), "design": source,
         "layers": [{"mask": j, "layer": layer, "datatype": int(datatype), "etch_depth_nm": depths[j] * 1e9,
                     "etch_step": j + 1, "edge_offset_um": offsets[j] * 1e6, "note": (notes or {}).get(j)}
                    for j, layer in enumerate(layers)],

@@ -90,7 +90,7 @@ def test_offset_element_writes_the_doe_masks_layout_and_labels(tmp_path):
     levels[5:12, 5:12] = 15
     design = Design(height_m=-levels * 75e-9, pitch_m=PITCH, levels=levels)
     rep = write_offset_element(design, tmp_path, [-0.2e-6, 0.0, 0.1e-6, -0.3e-6], notes={0: "edges -0.200 um"})
-    assert rep["verification"]["passed"]
+    assert rep["verification"]["passed"] and (tmp_path / "design.lyp").is_file()
     lib = gdstk.read_gds(rep["file"])
     names = {c.name for c in lib.cells}
     assert {"ELEMENT", "DIE_design"} <= names
