@@ -97,15 +97,15 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
     """Warnings for the job sheet: fields that disagree beyond their uncertainties (in sign, or
     in scatter on a corrected parameter), systematic effects no knob acts on, diagnoses that left
     a residual unexplained."""
-    out, scatter = [], []
+    out, scatter, spread = [], [], []
     for e in estimates:
         signs = {np.sign(v - e.null) for v, s in zip(e.values, e.uncertainties) if abs(v - e.null) > SIGNIFICANCE * s}
-        if len(signs) > 1:
+        if len(signs) > 1 and e.systematic:
             out.append(f"{e.effect} {e.param}: the fields disagree in sign beyond their uncertainties "
                        f"(values {', '.join(f'{v:.4g}' for v in e.values)} {e.unit}); "
                        + ("corrected by the mean" if e.corrected else "not corrected"))
-        elif e.chi2_per_dof is not None and e.chi2_per_dof > DISAGREEMENT_CHI2 and e.systematic:
-            scatter.append(f"{e.effect} {e.param} (chi2/dof {e.chi2_per_dof:.3g})")
+        elif e.chi2_per_dof is not None and e.chi2_per_dof > DISAGREEMENT_CHI2:
+            (scatter if e.systematic else spread).append(f"{e.effect} {e.param} (chi2/dof {e.chi2_per_dof:.3g})")
         if e.systematic and not e.knob:
             out.append(f"{e.effect} {e.param} = {e.mean:.4g} {e.unit} is systematic but no mask, aligner or etch "
                        "setting corrects it")
@@ -113,6 +113,9 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
         out.append("the fields disagree beyond their fitted uncertainties on " + ", ".join(scatter)
                    + ": a field-to-field spread of the process; the between-field scatter, not the fits, sets "
                    "those means' standard errors")
+    if spread:
+        out.append("the fields scatter beyond their fitted uncertainties about a mean that is not significant on "
+                   + ", ".join(spread) + ": reported as spread, not corrected")
     for f in fields:
         if f.unexplained:
             out.append(f"{f.source}: its diagnosis left a structured residual unexplained; its effects may be incomplete")

@@ -152,8 +152,24 @@ def test_fields_that_disagree_are_a_warning_in_the_job_sheet(tmp_path):
     assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
                  "--out", str(out), "--samples", "0"]) == 0
     sheet = json.loads((out / "job.json").read_text())
-    assert any("dx_mask1_m" in w and "disagree in sign" in w for w in sheet["warnings"])
-    assert "mask_overlay.dx_mask1_m" in sheet["spread_only"]  # 0.25 +- 0.19 um: not significant
+    # 0.25 +- 0.19 um: not significant; the scatter is named and reported as spread.
+    assert any("dx_mask1_m" in w and "scatter beyond their fitted uncertainties" in w and "not corrected" in w
+               for w in sheet["warnings"])
+    assert "mask_overlay.dx_mask1_m" in sheet["spread_only"]
+    assert sheet["masks"][1]["align_offset_um"][0] == 0.0
+    # Fields that disagree in sign about a significant mean: corrected by the mean, with a warning.
+    diags = [_field(tmp_path, "d", design, path, 0.90e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "e", design, path, 0.80e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "f", design, path, -0.05e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "g", design, path, 0.85e-6, 0.30e-6, 0.05, 0.03),
+             _field(tmp_path, "h", design, path, 0.95e-6, 0.30e-6, 0.05, 0.03)]
+    out = tmp_path / "out2"
+    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", "0"]) == 0
+    sheet = json.loads((out / "job.json").read_text())
+    assert any("dx_mask1_m" in w and "disagree in sign" in w and "corrected by the mean" in w
+               for w in sheet["warnings"])
+    assert sheet["masks"][1]["align_offset_um"][0] == pytest.approx(-0.69)
 
 
 def test_loading_compensation_is_the_mean_loss_over_each_masks_openings():
