@@ -15,7 +15,7 @@ def job_page(sheet: dict, folder: Path) -> Path:
     """Write ``report.md`` for a job sheet (the dict written to ``job.json``)."""
     merit = sheet["merit"]
     primary = merit["primary_metric"]
-    rows = [[m["mask"], f"{m['layer']}/{m['datatype']}", m["etch_depth_nm"], m["etch_depth_target_nm"],
+    rows = [[m["mask"], f"{m['layer']}/{m['datatype']}", f"{m['etch_depth_nm']:.1f}", f"{m['etch_depth_target_nm']:.1f}",
              f"{m['align_offset_um'][0]:+.3f}, {m['align_offset_um'][1]:+.3f}", f"{m['align_rotation_deg']:+.4f}",
              f"{m['linewidth_bias_um']:+.3f}", "; ".join(m["corrections"])] for m in sheet["masks"]]
     job = md.table(rows, ["mask", "layer/datatype", "etch nominal (nm)", "etch target (nm)",

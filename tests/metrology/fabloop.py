@@ -14,7 +14,9 @@ removes ``(1 + hidden error) target``.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import json
 from pathlib import Path
 
@@ -115,9 +117,10 @@ def make_wafer(folder, levels, systematic, n_fields, seed, design_px, field_px, 
 
 
 def diagnose(main, design, measured, out, window_px=72, effects=EFFECTS):
-    """``doe diagnose --frame camera`` of one field; its report."""
-    code = main(["diagnose", "--design", str(design), "--measured", str(measured), "--frame", "camera",
-                 "--window-px", str(window_px), "--effects", effects, "--out", str(out)])
+    """``doe diagnose --frame camera`` of one field (its printed summary kept quiet); its report."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        code = main(["diagnose", "--design", str(design), "--measured", str(measured), "--frame", "camera",
+                     "--window-px", str(window_px), "--effects", effects, "--out", str(out)])
     assert code == 0
     return json.loads((Path(out) / "report.json").read_text())
 

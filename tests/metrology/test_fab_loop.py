@@ -62,7 +62,7 @@ def _check(job1, job2, expect_corrected):
 
 @pytest.mark.slow
 def test_two_wafers_overlay_rotation_bias_deep_etch(tmp_path):
-    job1, job2 = _loop(tmp_path, fabloop.SYSTEMATIC, 3, 40, 130, 72, fabloop.EFFECTS, filegen.FINE_PER_PX)
+    job1, job2 = _loop(tmp_path, fabloop.SYSTEMATIC, 3, 32, 100, 48, fabloop.EFFECTS, 40)
     _check(job1, job2, ["mask_overlay.dx_mask1_m", "mask_overlay.dy_mask1_m", "mask_overlay.dx_mask3_m",
                         "mask_overlay.dy_mask3_m", "mask_rotation.rotation_mask2_deg", "linewidth_bias.bias_mask0_m",
                         "linewidth_bias.bias_mask3_m", "etch_depth.depth_error_mask3"])
