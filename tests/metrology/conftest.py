@@ -1,4 +1,5 @@
-"""Make the independent file generator (``filegen.py`` beside the tests) importable."""
+"""Make the independent file generator (``filegen.py`` beside the tests) and the tests' own
+profilometer simulators (the ``instruments`` package beside it) importable."""
 
 import sys
 from pathlib import Path
