@@ -1,0 +1,334 @@
+"""Diagnosis of files measured by three independent instrument simulators, through the CLI.
+
+The wafer comes from ``tests/metrology/filegen.py`` (16-level design of 48 pixels, hidden
+fabrication effects: nulls, single effects and pairs, the mix of ``filegen.random_cases``);
+the camera image from one of the tests' own instruments (``tests/metrology/instruments``):
+
+- ``point``: Gaussian blur, point samples at the pixel centres (no pixel integration);
+- ``boxcar``: Gaussian blur, mean over each pixel's footprint;
+- ``csi``: chinese-hat OTF of an NA-limited objective, camera fill factor, batwing, dropouts.
+
+None of them is the diagnosis's own instrument model, so the table measures how the diagnosis
+copes with cameras it does not describe exactly. Every case goes through what a user runs,
+``doe diagnose --design design.npz --measured measured.datx --out DIR``, as a subprocess with
+a time limit, and is scored from ``DIR/report.json``: hidden effects named, false fabrication
+names (measurement artefacts may be named), relative parameter errors (limits: 0.1 for
+overlay and etch depth, 0.2 for the rest), final residual over the noise floor (limit 1.3),
+wall and CPU seconds, and crashes, refusals and time-outs.
+
+Resumable: each finished case is one JSON line of ``OUT/cases.jsonl``; a rerun skips those.
+``OUT/summary.md`` and ``OUT/summary.json`` hold the table per instrument.
+
+    python -m benchmarks.bench_instruments --n 30 --workers 2 --out benchmarks/results/instruments
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.bench_diagnose_files import parameter_error
+from doedesign.fileio import atomic_path, json_ready, write_json
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "metrology"))
+import filegen  # noqa: E402  (the tests' independent wafer generator)
+from instruments import boxcar, csi, point  # noqa: E402  (the tests' own instruments)
+
+log = logging.getLogger(__name__)
+INSTRUMENTS = {"point": point, "boxcar": boxcar, "csi": csi}
+DESIGN_PX = 48
+N_CASES = 30
+TIME_LIMIT_S = 120.0
+# Largest camera pixel and rotation the simulators draw, and the centre's largest offset (design px).
+MAX_PIXEL_M, MAX_ROTATION_DEG, MAX_CENTRE_PX = 1.3e-6, 1.0, 0.5
+FINAL_LIMIT = 1.3
+
+
+def field_px(design_px=DESIGN_PX):
+    """Camera pixels per side of the largest square field that lies inside the design for any
+    drawn pixel size, rotation and centre offset."""
+    t = math.radians(MAX_ROTATION_DEG)
+    room = (design_px - 2 * MAX_CENTRE_PX) * filegen.PITCH_M
+    return int(room / (MAX_PIXEL_M * (math.cos(t) + math.sin(t))))
+
+
+def planned_cases(n, seed=2024):
+    """``n`` (effects, seed) pairs in ``filegen.random_cases``' mix: null, single, single, pair."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        kind = k % 4
+        if kind == 0:
+            names = []
+        elif kind == 3:
+            names = [str(v) for v in rng.choice(filegen.FAB_EFFECTS, 2, replace=False)]
+        else:
+            names = [str(rng.choice(filegen.FAB_EFFECTS))]
+        out.append((names, int(rng.integers(0, 2 ** 31))))
+    return out
+
+
+def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None):
+    """Draw the wafer and the instrument for one case and write its two files; return the case."""
+    rng = np.random.default_rng(seed)
+    levels = filegen.random_levels((design_px, design_px), rng)
+    truth = {name: filegen.draw_effect(name, rng) for name in names}
+    surface = filegen.wafer_surface(levels, truth)
+    # The camera draws from its own stream, so every instrument sees the same wafer.
+    cam_rng = np.random.default_rng([seed, list(INSTRUMENTS).index(instrument)])
+    field = field or field_px(design_px)
+    height, inst = INSTRUMENTS[instrument].measure(surface, filegen.FINE_PER_PX, levels.shape, (field, field), cam_rng)
+    case = filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
+    case.write(directory)
+    return case
+
+
+def _doe():
+    here = Path(sys.executable).parent / "doe"
+    return [str(here)] if here.exists() else [shutil.which("doe") or "doe"]
+
+
+def _cpu_limit(seconds):
+    def limit():
+        resource.setrlimit(resource.RLIMIT_CPU, (int(seconds), int(seconds) + 5))
+    return limit
+
+
+def diagnose(directory, extra=(), time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
+    """Run ``doe diagnose`` on ``directory``'s files; return (exit status or None on time-out,
+    report or None, wall s, CPU s, last lines of stderr).
+
+    ``time_limit_s`` bounds the wall time; ``cpu_limit_s`` (optional) the CPU time of each of
+    its processes (``RLIMIT_CPU``), the fairer limit on a shared machine. Either ends the run as
+    a time-out."""
+    out = Path(directory) / "diag"
+    cmd = [*_doe(), "diagnose", "--design", str(Path(directory) / "design.npz"),
+           "--measured", str(Path(directory) / "measured.datx"), "--out", str(out), *extra]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    # Its own session, so that a time-out stops the diagnosis's worker processes too.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=None if cpu_limit_s is None else _cpu_limit(cpu_limit_s))
+    try:
+        _, err = proc.communicate(timeout=time_limit_s)
+        code = proc.returncode
+        if code in (-signal.SIGXCPU, -signal.SIGKILL):  # over the CPU limit
+            code = None
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+        code = None
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    report = None
+    if code == 0 and (out / "report.json").exists():
+        report = json.loads((out / "report.json").read_text())
+    return code, report, wall, cpu, "\n".join(err.strip().splitlines()[-3:])
+
+
+def score(names, truth, report):
+    """The accuracy part of a case's row from its report."""
+    fab = {s["effect"]: s["params"] for s in report["steps"] if not s["measurement_artefact"]}
+    errs = {}
+    for n in names:
+        if n in fab:
+            try:
+                errs[n] = parameter_error(n, truth[n], fab[n])
+            except KeyError:  # a renamed parameter: say so rather than guess
+                errs[n] = float("nan")
+    floor = report.get("noise_floor")
+    final = report.get("final_residual_rms")
+    ratio = final / floor if final is not None and floor else float("nan")
+    within = all(e <= (0.1 if n in ("mask_overlay", "etch_depth") else 0.2) for n, e in errs.items())
+    named_right = sorted(set(fab) & set(names))
+    return {"named": sorted(fab), "artefacts": report.get("measurement_artefacts"), "named_right": named_right,
+            "false_names": sorted(set(fab) - set(names)), "parameter_error": errs,
+            "final_residual_rms": final, "noise_floor": floor, "final_over_floor": ratio,
+            "unexplained": report.get("unexplained"),
+            "all_right": (len(named_right) == len(names) and not set(fab) - set(names) and within
+                          and ratio <= FINAL_LIMIT)}
+
+
+def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
+    """Make, diagnose and score one case; return its journal row."""
+    directory = Path(work) / f"{instrument}_{seed}"
+    if directory.exists():
+        shutil.rmtree(directory)
+    t = time.process_time()
+    case = make_files(instrument, names, seed, directory)
+    inst = {k: v for k, v in case.instrument.items() if k != "spikes"}
+    row = {"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth, "camera": inst,
+           "make_cpu_s": time.process_time() - t}
+    code, report, wall, cpu, err = diagnose(directory, extra, time_limit_s, cpu_limit_s)
+    outcome = ("timeout" if code is None else "ok" if report is not None else "refused" if code == 2 else "crash")
+    row.update(outcome=outcome, exit_status=code, wall_s=wall, cpu_s=cpu, stderr_tail=None if code == 0 else err)
+    if report is not None:
+        row.update(score(names, case.truth, report))
+    log.info("%s %s seed %d: %s %s", instrument, "+".join(names) or "null", seed, outcome,
+             {k: row.get(k) for k in ("named", "false_names", "parameter_error", "final_over_floor")})
+    if outcome == "ok" and not keep:
+        shutil.rmtree(directory)
+    return json_ready(row)
+
+
+def _run_one(args):
+    return run_case(*args)
+
+
+def summary(rows, instruments):
+    """Per-instrument totals (a list of dicts, one per instrument)."""
+    table = []
+    for name in instruments:
+        mine = [r for r in rows if r["instrument"] == name]
+        ok = [r for r in mine if r["outcome"] == "ok"]
+        errs = [e for r in ok for e in r["parameter_error"].values() if e is not None]
+        key_errs = [e for r in ok for n, e in r["parameter_error"].items()
+                    if e is not None and n in ("mask_overlay", "etch_depth")]
+        ratios = [r["final_over_floor"] for r in ok if r["final_over_floor"] is not None]
+        table.append({
+            "instrument": name, "cases": len(mine), "ran": len(ok),
+            "crashed": sum(r["outcome"] == "crash" for r in mine),
+            "refused": sum(r["outcome"] == "refused" for r in mine),
+            "timed_out": sum(r["outcome"] == "timeout" for r in mine),
+            "all_right": sum(bool(r.get("all_right")) for r in mine),
+            "hidden": sum(len(r["hidden"]) for r in mine),
+            "hidden_named": sum(len(r["named_right"]) for r in ok),
+            "false_names": sum(len(r["false_names"]) for r in ok),
+            "largest_parameter_error": max(errs, default=None),
+            "largest_overlay_or_depth_error": max(key_errs, default=None),
+            "within_final_limit": sum(x <= FINAL_LIMIT for x in ratios),
+            "median_final_over_floor": float(np.median(ratios)) if ratios else None,
+            "largest_final_over_floor": max(ratios, default=None),
+            "median_wall_s": float(np.median([r["wall_s"] for r in mine])) if mine else None,
+            "median_cpu_s": float(np.median([r["cpu_s"] for r in mine])) if mine else None,
+            "total_cpu_s": float(sum(r["cpu_s"] for r in mine)),
+        })
+    return table
+
+
+def summary_markdown(table, rows, info=None):
+    cols = ["instrument", "cases", "all_right", "ran", "crashed", "refused", "timed_out", "hidden_named", "hidden",
+            "false_names", "largest_overlay_or_depth_error", "largest_parameter_error", "within_final_limit",
+            "median_final_over_floor", "largest_final_over_floor", "median_wall_s", "median_cpu_s"]
+
+    def fmt(v):
+        return "" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v)
+    lines = []
+    if info:
+        lines += [f"Machine: {info['cpus']} CPUs, {info.get('memory_gib', '?')} GiB, Python {info['python']} "
+                  "(shared: wall times are swamped by other work; CPU seconds are the diagnosis subprocess's).", ""]
+    lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(t[c]) for c in cols) + " |" for t in table]
+    lines += ["", "all_right: every hidden effect named, no false fabrication name, parameter errors within "
+              "0.1 (overlay, etch depth) / 0.2 (others), final residual <= 1.3 x the noise floor.", "",
+              "| instrument | hidden | seed | outcome | named | false | parameter error | final/floor | wall s | CPU s |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        errs = ", ".join(f"{k} {fmt(v)}" for k, v in (r.get("parameter_error") or {}).items())
+        note = r.get("named") if r["outcome"] == "ok" else (r.get("stderr_tail") or "").splitlines()[-1:] or ""
+        lines.append(f"| {r['instrument']} | {'+'.join(r['hidden']) or 'null'} | {r['seed']} | {r['outcome']} | "
+                     f"{note} | {r.get('false_names', '')} | {errs} | {fmt(r.get('final_over_floor'))} | "
+                     f"{r['wall_s']:.0f} | {r['cpu_s']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS), extra=(), keep=False,
+        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
+    """Run (or resume) the cases; return ``benchmarks.run`` rows (one per instrument and figure).
+
+    ``quick``: one null case per instrument. ``out`` (a folder) keeps ``cases.jsonl`` and the
+    summaries; without it the cases run in a temporary folder and nothing resumes.
+    """
+    import tempfile
+
+    n = 1 if quick else (n or N_CASES)
+    tmp = None
+    if out is None:
+        tmp = tempfile.TemporaryDirectory()
+        out = tmp.name
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    journal = out / "cases.jsonl"
+    done = [json.loads(line) for line in journal.read_text().splitlines() if line.strip()] if journal.exists() else []
+    seen = {(r["instrument"], r["seed"]) for r in done}
+    planned = planned_cases(n)
+    todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s) for i in instruments
+            for names, seed in planned if (i, seed) not in seen]
+    if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers)
+        results = pool.map(_run_one, todo)
+    else:
+        pool, results = None, map(_run_one, todo)
+    try:
+        for row in results:
+            done.append(row)
+            with open(journal, "a") as f:
+                f.write(json.dumps(row) + "\n")
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    keys = {(i, s): k for k, (i, s) in enumerate((i, s) for i in instruments for _, s in planned)}
+    rows = sorted((r for r in done if (r["instrument"], r["seed"]) in keys), key=lambda r: keys[(r["instrument"], r["seed"])])
+    table = summary(rows, instruments)
+    from benchmarks.run import machine
+
+    info = machine()
+    write_json(out / "summary.json", {"machine": info, "design_px": DESIGN_PX, "field_px": field_px(),
+                                      "time_limit_s": time_limit_s, "cpu_limit_s": cpu_limit_s,
+                                      "extra_options": list(extra),
+                                      "instruments": table, "cases": rows})
+    with atomic_path(out / "summary.md") as path:
+        path.write_text(summary_markdown(table, rows, info))
+    if tmp is not None:
+        tmp.cleanup()
+    return [dict(benchmark="instruments", figure=f"{t['instrument']}: cases all right", value=t["all_right"],
+                 unit="count", peer=None, peer_value=None, ratio=None, limit=t["cases"],
+                 notes=f"{t['hidden_named']}/{t['hidden']} hidden named, {t['false_names']} false names, "
+                       f"{t['crashed']} crashed, {t['refused']} refused, {t['timed_out']} timed out; largest "
+                       f"overlay/depth error {t['largest_overlay_or_depth_error']}; {t['within_final_limit']}/"
+                       f"{t['ran']} within 1.3x the floor; median {t['median_cpu_s']:.0f} CPU s")
+            for t in table]
+
+
+def main(argv=None):
+    import argparse
+
+    parser = argparse.ArgumentParser(description="diagnosis accuracy on files from three independent instruments")
+    parser.add_argument("--n", type=int, default=N_CASES, help="cases per instrument (default 30)")
+    parser.add_argument("--out", default="benchmarks/results/instruments", help="output folder (resumes)")
+    parser.add_argument("--workers", type=int, default=1, help="cases run side by side")
+    parser.add_argument("--instruments", default=",".join(INSTRUMENTS), help="comma-separated subset")
+    parser.add_argument("--time-limit", type=float, default=TIME_LIMIT_S, help="wall seconds per diagnosis")
+    parser.add_argument("--cpu-limit", type=float, default=None,
+                        help="CPU seconds per diagnosis process (RLIMIT_CPU; fairer than wall on a shared machine)")
+    parser.add_argument("--keep", action="store_true", help="keep every case's files (failures are kept)")
+    parser.add_argument("--diagnose-option", action="append", default=[],
+                        help="extra option passed to doe diagnose (repeatable, e.g. --diagnose-option=--window-px=96)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    names = [s.strip() for s in args.instruments.split(",") if s.strip()]
+    unknown = set(names) - set(INSTRUMENTS)
+    if unknown:
+        parser.error(f"unknown instruments {sorted(unknown)}; choose from {list(INSTRUMENTS)}")
+    run(n=args.n, workers=args.workers, out=args.out, instruments=names, extra=args.diagnose_option,
+        keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit)
+    log.info("summary: %s", Path(args.out, "summary.md"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
