@@ -63,7 +63,8 @@ def _draws(rng, shape):
     kind = rng.choice(["none", "rows", "cols"])
     return dict(pixel_m=p, header_pixel_m=p * (1 + rng.uniform(-0.005, 0.005)), rotation_deg=rng.uniform(-1, 1),
                 flip_rows=bool(kind == "rows"), flip_cols=bool(kind == "cols"),
-                centre_px=np.array([shape[0] / 2 - 0.5 + rng.uniform(-0.5, 0.5), shape[1] / 2 - 0.5 + rng.uniform(-0.5, 0.5)]),
+                centre_px=np.array([shape[0] / 2 - 0.5 + rng.uniform(-0.5, 0.5),
+                                    shape[1] / 2 - 0.5 + rng.uniform(-0.5, 0.5)]),
                 na=rng.uniform(0.25, 0.55), wavelength_m=rng.uniform(0.55e-6, 0.6e-6), fill=rng.uniform(0.5, 1.0),
                 batwing=rng.uniform(0.0, 0.15), batwing_width_m=rng.uniform(0.15e-6, 0.4e-6),
                 dropout_probability=rng.uniform(0.02, 0.2), tilt_rad=rng.uniform(-2e-4, 2e-4, 2),

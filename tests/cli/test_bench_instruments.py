@@ -1,0 +1,40 @@
+"""The instrument benchmark's field fits its design, and its scoring reads a report right."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks import bench_instruments as bench  # noqa: E402
+
+
+@pytest.mark.parametrize("name", list(bench.INSTRUMENTS))
+@pytest.mark.parametrize("rotation", [-1.0, 1.0])
+def test_field_fits_the_design_at_the_largest_pixel_rotation_and_offset(name, rotation):
+    fine, n = 2, bench.field_px()
+    surface = np.zeros((bench.DESIGN_PX * fine, bench.DESIGN_PX * fine))
+    centre = (bench.DESIGN_PX - 1) / 2 + np.array([0.5, -0.5])
+    bench.INSTRUMENTS[name].measure(surface, fine, (bench.DESIGN_PX,) * 2, (n, n), np.random.default_rng(0),
+                                    pixel_m=1.3e-6, rotation_deg=rotation, centre_px=centre)
+    with pytest.raises(ValueError):   # and it is the largest such field
+        bench.INSTRUMENTS[name].measure(surface, fine, (bench.DESIGN_PX,) * 2, (n + 2, n + 2),
+                                        np.random.default_rng(0), pixel_m=1.3e-6, rotation_deg=rotation,
+                                        centre_px=centre)
+
+
+def test_score_counts_names_errors_and_the_floor():
+    truth = {"mask_overlay": {"mask": 2, "shift_m": np.array([0.3e-6, 0.4e-6])}}
+    params = {f"d{a}_mask{j}_m": 0.0 for a in "xy" for j in range(1, 4)}
+    params.update(dx_mask2_m=0.33e-6, dy_mask2_m=0.4e-6)
+    report = {"steps": [{"effect": "mask_overlay", "measurement_artefact": False, "params": params},
+                        {"effect": "etch_loading", "measurement_artefact": False, "params": {"loading": 0.01}},
+                        {"effect": "batwing", "measurement_artefact": True, "params": {}}],
+              "final_residual_rms": 1.2e-9, "noise_floor": 1.0e-9, "measurement_artefacts": ["batwing"]}
+    got = bench.score(["mask_overlay"], truth, report)
+    assert got["named_right"] == ["mask_overlay"] and got["false_names"] == ["etch_loading"]
+    assert got["parameter_error"]["mask_overlay"] == pytest.approx(0.06)
+    assert got["final_over_floor"] == pytest.approx(1.2) and not got["all_right"]
+    report["steps"].pop(1)
+    assert bench.score(["mask_overlay"], truth, report)["all_right"]
