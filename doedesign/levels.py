@@ -35,8 +35,8 @@ from numpy.typing import ArrayLike
 from .errors import DoeError
 from .materials import Material, get_material
 
-__all__ = ["N_LEVELS", "QuantizeResult", "design_levels", "level_step_m", "quantize", "quantize_design",
-           "wrap_height_m"]
+__all__ = ["N_LEVELS", "QuantizeResult", "design_levels", "level_step_m", "printed_height_m",
+           "quantize", "quantize_design", "wrap_height_m"]
 
 log = logging.getLogger(__name__)
 
@@ -223,3 +223,18 @@ def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
 def design_levels(design: LevelSource, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
     """Level map (int16, 0 .. n_levels-1) of a design: see :func:`quantize_design`."""
     return quantize_design(design, n_levels, source)[0]
+
+
+def printed_height_m(design: LevelSource, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
+    """The heights the masks print from a design: its levels (:func:`design_levels`) times its step.
+
+    What a measurement of the element is judged against: a heights-only design (continuous,
+    wrapped or not) becomes the same level map here as in ``doe masks``.
+
+    Returns
+    -------
+    ndarray of float64 (rows, cols)
+        ``-levels * step_m``: 0 at the unetched top, negative where etched; row 0 at the top.
+    """
+    levels = design_levels(design, n_levels, source)
+    return -levels.astype(np.float64) * design.level_step_m(n_levels)

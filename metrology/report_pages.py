@@ -15,7 +15,7 @@ from doedesign import report_md as md
 
 __all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
            "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
-           "diagnose_page", "diagnose_sections", "match_sentence"]
+           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -71,18 +71,32 @@ def compare_findings(rep: dict) -> list[tuple[int, str, str]]:
 
 
 def match_sentence(rep: dict) -> str:
-    """How sure the comparison is that it measured the right design, in words."""
+    """How sure the comparison is that the field shows the design, in words (registration quality)."""
     match = rep.get("match") or {}
-    ncc = (rep.get("registration") or {}).get("match_ncc")
-    agreement = match.get("level_agreement")
-    text = (f"{md.fmt(100 * agreement, 3) if agreement is not None else md.MISSING} % of feature interiors sit "
-            f"within {md.fmt(match.get('tolerance_steps'))} level step of their design level "
-            f"(registration correlation {md.fmt(ncc, 3)})")
+    corr, edges = match.get("readout_correlation"), match.get("edges_found")
+    text = (f"the field's heights correlate {md.fmt(corr, 3)} with the printed design and step the design's way at "
+            f"{md.fmt(100 * edges, 3) if edges is not None else md.MISSING} % of its "
+            f"{match.get('design_edges', md.MISSING)} edges in the field")
     confident = match.get("confidence") == "high" if match else None
     if match.get("forced") and not confident:
-        return md.verdict(False, "", f"the match is poor and the comparison was forced: {text}; the numbers "
-                                     "below may belong to another design or field")
-    return md.verdict(confident, f"the measurement matches the design: {text}", f"weak match: {text}")
+        return md.verdict(False, "", f"the comparison was forced although {match.get('problem') or text}; the "
+                                     "numbers below may belong to another design or field")
+    return md.verdict(confident, f"the measurement shows the design: {text}", f"weak match: {text}")
+
+
+def psf_merit(psf: dict) -> tuple[str, list, list, str]:
+    """The PSF section's figure: (name, design values, fabricated values, what it counts).
+
+    The design's own target when the report has it (``design_on_target``), else the design
+    PSF's core (``design_in_psf_core``): a different quantity under a different name.
+    """
+    merit = psf.get("merit") or {}
+    for key, name in (("on_target", "light on the design's target"), ("in_psf_core", "light in the design PSF's core"),
+                      ("on_given_pixels", "light on the given target pixels")):
+        if f"design_{key}" in psf:
+            return (merit.get("name", name), psf.get(f"design_{key}") or [], psf.get(f"measured_{key}") or [],
+                    merit.get("counted_on", ""))
+    return "light on target", [], [], ""
 
 
 def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
@@ -122,15 +136,18 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
                                  "overlay dx (um)", "overlay dy (um)", "linewidth bias (um)", "verdict")))
     psf = rep.get("psf")
     if isinstance(psf, dict) and psf.get("wavelengths_nm"):
-        parts += [f"{h} Light on target, design against the fabricated element",
-                  "Fraction of the coded half-aperture's light on the target pixels, predicted from the fitted "
-                  "process.", ""]
+        name, design, made, counted = psf_merit(psf)
+        own = name == "light on the design's target"
+        parts += [f"{h} {name[0].upper() + name[1:]}, design against the fabricated element",
+                  f"Fraction of the coded half-aperture's light on {counted or 'the target pixels'}, predicted from "
+                  "the fitted process; "
+                  + ("the design's own figure of merit, as in its design report." if own else
+                     "not the design's figure of merit (the design names no target at these wavelengths)."), ""]
         prow = [(md.fmt(wl, 4), md.fmt(d, 4), md.fmt(m, 4),
                  md.fmt(100 * (m - d) / d if d else None, 2))
-                for wl, d, m in zip(psf["wavelengths_nm"], psf.get("design_on_target") or [],
-                                    psf.get("measured_on_target") or [])]
-        parts.append(md.table(prow, ("wavelength (nm)", "design (fraction of light)", "fabricated (fraction of light)",
-                                     "change (%)")))
+                for wl, d, m in zip(psf["wavelengths_nm"], design, made)]
+        parts.append(md.table(prow, ("wavelength (nm)", f"design: {name} (fraction of light)",
+                                     f"fabricated: {name} (fraction of light)", "change (%)")))
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
     return parts

@@ -24,7 +24,7 @@ from doedesign.levels import design_levels, level_step_m
 
 from ..decompose import binary_depths_m
 from .evaluate import Evaluator
-from .metrics import DIRECTIONS, metric_set
+from .metrics import DIRECTIONS, design_wavelengths_depths, metric_set
 from .report import (default_thresholds, metric_summary, plot_distributions, plot_tornado, tolerance_page,
                      yield_summary)
 from .runner import make_client, n_workers, open_store, run_jobs, run_key
@@ -36,14 +36,6 @@ __all__ = ["build_evaluator", "design_wavelengths_depths", "evaluation_bytes", "
            "tolerance_analysis"]
 
 log = logging.getLogger(__name__)
-
-
-def design_wavelengths_depths(design: Design, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Wavelengths and depths of the design's target (metadata), else 550 nm at the focus."""
-    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
-    wls = np.asarray(meta.get("wavelengths_nm") or [550.0], float) * 1e-9
-    depths = [math.inf if str(d).lower() == "inf" else float(d) for d in meta.get("depths_m") or []]
-    return wls, np.asarray(depths or [camera.focus_distance_m], float)
 
 
 def nominal_depths(design: Design) -> np.ndarray:

@@ -37,7 +37,8 @@ from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
 
-__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "metric_set", "metric_unit", "ring_radii_px", "user_metric_functions"]
+__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "design_target_mask", "design_wavelengths_depths", "metric_set",
+           "metric_unit", "ring_radii_px", "user_metric_functions"]
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +192,7 @@ def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, waveleng
     if kind == "bayer" and np.size(wavelengths_m) != len(BAYER_CHANNELS):
         raise DoeError(f"a bayer design is scored at {len(BAYER_CHANNELS)} wavelengths (R, G, B), got "
                        f"{np.size(wavelengths_m)} (the design's target or --wavelengths)")
-    target_mask = _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf)
+    target_mask = _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf, design)
     note = None
     if kind not in targets.KINDS:
         # Warned, not refused: the generic figure still measures how much light stays where the
@@ -212,21 +213,56 @@ def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, waveleng
     return ms
 
 
-def _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf):
-    """The built-in target's pixels, rebuilt from the metadata; else the nominal PSF's brightest."""
-    options = {"wavelengths_m": wavelengths_m}
+def design_wavelengths_depths(design: Design, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Wavelengths and depths of the design's target (metadata), else 550 nm at the focus.
+
+    The depths are metres, ``inf`` for optical infinity (stored as the string ``"inf"``).
+    """
+    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    wls = np.asarray(meta.get("wavelengths_nm") or [550.0], float) * 1e-9
+    depths = [math.inf if str(d).lower() == "inf" else float(d) for d in meta.get("depths_m") or []]
+    return wls, np.asarray(depths or [camera.focus_distance_m], float)
+
+
+def design_target_mask(design: Design, camera: Camera, wavelengths_m: np.ndarray,
+                       depths_m: np.ndarray) -> np.ndarray | None:
+    """The pixels of the target a design was made for, rebuilt from its metadata.
+
+    The design file stores its target as ``metadata["target"]`` (:meth:`doedesign.targets.Target.summary`:
+    kind and options); the same built-in target is rebuilt for ``camera``. This is the one
+    target every figure of merit of the design is taken on (design report, tolerance, comparison).
+
+    Returns
+    -------
+    ndarray of bool (depths, wavelengths, rows, cols) or None
+        None when the design names no built-in target or it cannot be rebuilt on this window.
+    """
+    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    kind = str(meta.get("kind", "image"))
+    if kind not in PRIMARY:
+        return None
+    options = {"wavelengths_m": np.asarray(wavelengths_m, float)}
     if kind != "bayer":
-        options["depths_m"] = depths_m
+        options["depths_m"] = np.asarray(depths_m, float)
     for key in ("rggb", "arms", "arm_width_px", "arm_length_px", "period_m", "orders", "spot_px",
                 "positions_px", "radii_px", "ring_width_px"):
         if key in meta:
             options[key] = meta[key]
-    if kind in PRIMARY:
-        try:
-            t = targets.build(kind, camera=camera, **options)
-            if t.intensity.shape == np.shape(nominal_psf):
-                return t.mask
-        except DoeError as exc:
-            log.info("target %r not rebuilt from the metadata (%s); using the nominal PSF's brightest pixels",
-                     kind, exc)
+    try:
+        t = targets.build(kind, camera=camera, **options)
+    except DoeError as exc:
+        log.info("target %r not rebuilt from the metadata (%s)", kind, exc)
+        return None
+    shape = (np.size(depths_m), np.size(wavelengths_m), *camera.window_shape)
+    if t.intensity.shape[1:] != shape[1:]:
+        return None
+    return np.broadcast_to(t.mask, shape)
+
+
+def _target_mask(kind, meta, camera, wavelengths_m, depths_m, nominal_psf, design):
+    """The design's own target pixels; else the nominal PSF's brightest."""
+    mask = design_target_mask(design, camera, wavelengths_m, depths_m)
+    if mask is not None and mask.shape == np.shape(nominal_psf):
+        return mask
+    log.info("design %r carries no target that fits its PSF; using the nominal PSF's brightest pixels", kind)
     return target_from_psf(nominal_psf)

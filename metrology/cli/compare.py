@@ -31,7 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    default=None,
                    help="measurement pixel size (um) when the file has none or it is wrong (a starting value: "
                         "registration measures it against the DOE pitch)")
-    p.add_argument("--wavelengths-nm", default="486,589,656", help="PSF wavelengths: list or start:stop:step")
+    p.add_argument("--wavelengths-nm", default=None,
+                   help="PSF wavelengths: list or start:stop:step (default: those of the design's target, on "
+                        "which its figure of merit is counted; 486,589,656 when it names none)")
     p.add_argument("--psf-oversample", type=Number(int, 1, 8), default=1,
                    help="PSF samples per DOE pixel per axis: 1 is fast (about 20 s for a 1600-pixel aperture) "
                         "but averages mask slivers over whole DOE pixels; 2 resolves slivers of half a pixel "
@@ -39,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-psf", action="store_true", help="skip the PSF comparison")
     p.add_argument("--no-render", action="store_true", help="skip the 3-D rendering")
     p.add_argument("--force", action="store_true",
-                   help="compare even when the measurement matches the design poorly (wrong design or field)")
+                   help="compare even when the field does not show the design (another design, off the element, "
+                        "turned by a quarter turn)")
     p.set_defaults(func=run_compare)
 
 
@@ -56,7 +59,8 @@ def run_compare(args: argparse.Namespace) -> int:
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel)
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
-                              design_source=str(args.design), wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm),
+                              design_source=str(args.design),
+                              wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,
                               psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render,
                               force=args.force)
     print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",

@@ -55,7 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.add_argument("--force", action="store_true",
-                   help="diagnose even when the measurement matches the design poorly (wrong design or field)")
+                   help="diagnose even when the field does not show the design (another design, off the element, "
+                        "turned by a quarter turn)")
     p.set_defaults(func=run)
 
 

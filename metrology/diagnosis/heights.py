@@ -256,7 +256,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
     source : str
         Name of the measurement in error messages (its file).
     force : bool
-        Diagnose even when the measurement matches the design poorly.
+        Diagnose even when the field does not show the design (see :mod:`metrology.matching.match`).
 
     Returns
     -------

@@ -16,6 +16,7 @@ import scipy.ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
+from doedesign.levels import printed_height_m
 from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
@@ -358,7 +359,8 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
     if len(views) != stack.shape[0] or any(v not in ("coded", "uncoded") for v in views):
         raise DoeError(f"views {tuple(views)} do not match a stack of {stack.shape[0]} view(s)")
     depth = camera.focus_distance_m if depth_m is None else float(depth_m)
-    problem = PsfProblem(design.height_m, design.pitch_m, camera, stack, views, wavelengths_m, depth,
+    # The element the masks print from the design (a heights-only design as doe masks levels it).
+    problem = PsfProblem(printed_height_m(design), design.pitch_m, camera, stack, views, wavelengths_m, depth,
                          effects_for("psf", candidates), material=design.material, doe_oversample=doe_oversample,
                          device=device)
     return run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="psf")

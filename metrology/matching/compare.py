@@ -2,9 +2,11 @@
 
 Stages, each in its own module:
 
-- levelling and registration (:mod:`.level`, :mod:`.register`);
-- level heights on feature interiors, etch depths from the level means and the match
-  (:mod:`.depths`);
+- levelling and registration (:mod:`.level`, :mod:`.register`) against the heights the masks
+  print from the design (:func:`doedesign.levels.printed_height_m`: a heights-only design is
+  judged against the levels ``doe masks`` makes of it);
+- whether the field shows the design at all, from the registration's quality (:mod:`.match`);
+- level heights on feature interiors and etch depths from the level means (:mod:`.depths`);
 - a point-sampled edge model for starting values of overlay, bias and edge blur
   (:mod:`.edges`);
 - the reported etch depths, overlay and linewidth bias: fitted in the camera's own frame
@@ -27,16 +29,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from doedesign.errors import DoeError
-from doedesign.levels import design_levels
+from doedesign.levels import design_levels, printed_height_m
 from metrology.matching.edges import MAX_FIT_POINTS, WIDTH_10_90_PER_SIGMA, EdgeFit, fit_edges
 from metrology.matching.forward import (crop_registration, design_height_on_measurement, error_map,
                                         fitted_process, process_on_measurement, shift_registration)
 from metrology.matching.instrument_fit import InstrumentFit, fit_in_camera_frame
+from metrology.matching.match import assess_match, check_relief
 from metrology.matching.register import design_on_measurement
-from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MATCH_TOLERANCE_STEPS, MAX_EDGE_BAND_PITCH,
-                                       MIN_LEVEL_AGREEMENT, DepthFit, LevelStats, binary_code_matrix,
-                                       fit_etch_depths, interior_mask, level_agreement, level_heights,
-                                       match_quality)
+from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MAX_EDGE_BAND_PITCH, DepthFit, LevelStats,
+                                       binary_code_matrix, fit_etch_depths, interior_mask, level_heights)
 
 if TYPE_CHECKING:
     from doedesign.design import Design
@@ -47,11 +48,10 @@ if TYPE_CHECKING:
     from metrology.matching.register import Registration
 
 # The names below stay importable from here (the comparison's public API before the split).
-__all__ = ["Comparison", "DepthFit", "EdgeFit", "InstrumentFit", "LEVEL_REPEATABILITY_M", "MATCH_TOLERANCE_STEPS",
-           "MAX_EDGE_BAND_PITCH", "MAX_FIT_POINTS", "MIN_LEVEL_AGREEMENT", "WIDTH_10_90_PER_SIGMA",
-           "binary_code_matrix", "compare_measurement", "crop_registration", "design_height_on_measurement",
-           "error_map", "fit_edges", "fit_etch_depths", "fitted_process", "interior_mask", "level_agreement",
-           "level_heights", "match_quality", "process_on_measurement", "shift_registration"]
+__all__ = ["Comparison", "DepthFit", "EdgeFit", "InstrumentFit", "LEVEL_REPEATABILITY_M", "MAX_EDGE_BAND_PITCH",
+           "MAX_FIT_POINTS", "WIDTH_10_90_PER_SIGMA", "binary_code_matrix", "compare_measurement",
+           "crop_registration", "design_height_on_measurement", "error_map", "fit_edges", "fit_etch_depths",
+           "fitted_process", "interior_mask", "level_heights", "process_on_measurement", "shift_registration"]
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
     progress : doedesign.progress.Progress, optional
         Advanced once per stage (6 stages).
     force : bool
-        Go on when the measurement matches the design poorly (see :func:`match_quality`).
+        Go on when the field does not show the design (see :mod:`metrology.matching.match`).
 
     Returns
     -------
@@ -168,8 +168,8 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
     Raises
     ------
     DoeError
-        The measurement matches the design poorly (wrong design, field or orientation) and
-        ``force`` is False.
+        The field is flat or does not register; or it shows another design, lies off the
+        element or is turned by a quarter turn and ``force`` is False.
     """
     from masks.decompose import binary_depths_m
 
@@ -183,33 +183,33 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
             progress.update(1, status=name)
 
     pitch = design.pitch_m
-    levels = design_levels(design, 2 ** n_masks)
-    nominal = np.array(binary_depths_m(design.level_step_m(2 ** n_masks), n_masks))
+    n_levels = 2 ** n_masks
+    levels = design_levels(design, n_levels)
+    printed = printed_height_m(design, n_levels)
+    step_m = design.level_step_m(n_levels)
+    nominal = np.array(binary_depths_m(step_m, n_masks))
     h, n_spikes = remove_spikes(measurement.height_m)
     first = level_on_top(h)
+    check_relief(first.height_m, step_m)
     step("levelled on level 0")
-    reg = register(first.height_m, design.height_m, pitch, pixel_size_m=measurement.pixel_size_m)
+    reg = register(first.height_m, printed, pitch, pixel_size_m=measurement.pixel_size_m)
     step("registered")
+    check = assess_match(first.height_m, printed, step_m, reg)
+    if not check.ok:
+        if not force:
+            raise DoeError(check.problem + "; --force compares anyway")
+        log.warning("%s (forced)", check.problem)
+    match = check.report(force)
     labels = design_on_measurement(levels, reg)
     interior = interior_mask(labels, 1.0 / reg.decompose()["scale"])
     joint = level_joint(h, np.where(interior, labels, -1))
     height = joint.height_m
-    st = level_heights(height, labels, interior, 2 ** n_masks)
-    agreement = level_agreement(height, labels, interior, st, nominal[0])
-    match = match_quality(agreement, reg, force)
-    if match["confidence"] == "low":
-        message = (f"the measurement matches the design poorly: only {agreement:.0%} of feature interiors lie "
-                   f"within {MATCH_TOLERANCE_STEPS} level step of their design level (need "
-                   f"{MIN_LEVEL_AGREEMENT:.0%}; registration correlation {reg.match_ncc:.2f}); check the design "
-                   "file, that the field lies on the element, its orientation and the pixel size")
-        if not force:
-            raise DoeError(message + "; --force compares anyway")
-        log.warning("%s (forced)", message)
+    st = level_heights(height, labels, interior, n_levels)
     depth_fit = fit_etch_depths(st)
     step("level heights")
     edge = fit_edges(height, levels, reg, pitch, depth_fit.depths_m, n_masks)
     step("edge fit")
-    err_design, _ = error_map(height, design_height_on_measurement(design.height_m, reg))
+    err_design, _ = error_map(height, design_height_on_measurement(printed, reg))
     # Depths, overlay and bias in the camera's frame, started from the level and edge fits.
     placement = Placement.from_registration(shift_registration(reg, edge.shift_m[0], pitch))
     pixel_area = reg.pixel_size_m ** 2 / 12.0  # variance of the pixel box

@@ -1,10 +1,9 @@
-"""Level heights on feature interiors, etch depths from them, and how well a measurement
-matches its design (the first stages of ``doe compare``).
+"""Level heights on feature interiors and etch depths from them (the first stages of
+``doe compare``).
 
 - Level heights on feature interiors only (ISO 5436-1: the central third of a feature).
 - Etch depth per mask by weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the 16
   level means, with chi-square telling whether the etches add up.
-- The match: the fraction of feature interiors on their design level.
 
 Arrays are row-major, row 0 at the top (camera order).
 """
@@ -12,19 +11,14 @@ Arrays are row-major, row 0 at the top (camera order).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage, stats
 
 from doedesign.errors import DoeError
 
-if TYPE_CHECKING:
-    from metrology.matching.register import Registration
-
-__all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MATCH_TOLERANCE_STEPS", "MAX_EDGE_BAND_PITCH",
-           "MIN_LEVEL_AGREEMENT", "binary_code_matrix", "fit_etch_depths", "interior_mask", "level_agreement",
-           "level_heights", "match_quality"]
+__all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MAX_EDGE_BAND_PITCH", "binary_code_matrix",
+           "fit_etch_depths", "interior_mask", "level_heights"]
 
 # Repeatability floor (m) added in quadrature to each level mean's standard error in the
 # chi-square: a white-light profiler does not repeat a terrace height better than this.
@@ -169,30 +163,3 @@ def fit_etch_depths(stats_: LevelStats) -> DepthFit:
     return DepthFit(depths_m=coef[1:], depths_err_m=np.sqrt(np.diag(cov))[1:], top_m=float(coef[0]),
                     residual_m=resid, chi2=chi2, dof=dof,
                     p_value=float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan"))
-
-
-# A correct match puts nearly every feature interior on its design level (noise and roughness are
-# a few nm, a quarter step is 19 nm); against the wrong design or field the interiors spread over
-# many levels although the registration still finds a lattice (its correlation alone does not
-# separate the cases: 0.6 for a small correct field, 0.62 for a wrong design).
-MATCH_TOLERANCE_STEPS = 0.25
-MIN_LEVEL_AGREEMENT = 0.8
-
-
-def level_agreement(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, stats: LevelStats,
-                    step_m: float) -> float:
-    """Fraction of valid feature-interior pixels within MATCH_TOLERANCE_STEPS of their level's mean."""
-    use = interior & np.isfinite(height_m) & (labels >= 0)
-    lab = labels[use]
-    means = stats.mean_m[lab]
-    ok = np.isfinite(means) & (np.abs(height_m[use] - means) <= MATCH_TOLERANCE_STEPS * step_m)
-    return float(ok.mean()) if ok.size else 0.0
-
-
-def match_quality(agreement: float, registration: Registration, forced: bool = False) -> dict:
-    """Match quality and confidence of a comparison (the ``match`` entry of its report)."""
-    return {"level_agreement": agreement, "tolerance_steps": MATCH_TOLERANCE_STEPS,
-            "threshold": MIN_LEVEL_AGREEMENT, "registration_ncc": float(registration.match_ncc),
-            "confidence": "high" if agreement >= MIN_LEVEL_AGREEMENT else "low", "forced": bool(forced),
-            "meaning": "fraction of feature-interior pixels within tolerance_steps level steps of their "
-                       "design level's mean height"}

@@ -387,8 +387,9 @@ def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, 
             break
     score, reg, period_px = best
     if reg is None:
-        raise DoeError(f"registration: the measured pattern does not match the design anywhere "
-                       f"(best normalized correlation {score:.2f}, need {MIN_MATCH_NCC}; lattice period "
+        raise DoeError(f"registration: the measured pattern does not match the design anywhere: the field shows "
+                       f"another design or a region outside this one (best normalized correlation {score:.2f}, "
+                       f"need {MIN_MATCH_NCC}; lattice period "
                        f"{period_px:.3f} px: if the file's pixel size is off by more than "
                        f"{scale_tolerance:.0%}, give the right one)")
     return reg

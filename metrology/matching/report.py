@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 def write_comparison(measurement: Measurement, design: Design, out: str | Path, *,
                      measurement_source: str = "measurement", design_source: str = "design",
-                     wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9), psf_oversample: int = 1,
+                     wavelengths_m: ArrayLike | None = None, psf_oversample: int = 1,
                      psf: bool = True, render: bool = True, force: bool = False,
                      comparison: Comparison | None = None) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
@@ -44,15 +44,15 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         Output directory (created).
     measurement_source, design_source : str
         File names for the report and error messages.
-    wavelengths_m : sequence of float
-        PSF wavelengths.
+    wavelengths_m : sequence of float, optional
+        PSF wavelengths; default the design target's (see
+        :func:`metrology.matching.measured_psf.compare_psf`).
     psf_oversample : int
         PSF samples per DOE pixel per axis (see :func:`metrology.matching.measured_psf.compare_psf`).
     psf, render : bool
         Compare the PSFs; render the 3-D surface.
     force : bool
-        Go on when the measurement matches the design poorly
-        (see :func:`metrology.matching.compare.match_quality`).
+        Go on when the field does not show the design (see :mod:`metrology.matching.match`).
     comparison : Comparison, optional
         The :func:`~metrology.matching.compare.compare_measurement` result, if already made.
 
@@ -171,7 +171,8 @@ def _figures(comp, pixel_size_m, psf_cmp, out):
             for r, (img, name) in enumerate(((d, "design"), (m, "fabricated"))):
                 axes[r, i].imshow(np.log10(np.maximum(img, vmax * 1e-5)), cmap="magma")
                 on = psf_cmp.design_on_target[i] if r == 0 else psf_cmp.measured_on_target[i]
-                axes[r, i].set_title(f"{name} {psf_cmp.wavelengths_m[i] * 1e9:.0f} nm, on target {on:.3f}",
+                where = "on target" if psf_cmp.target_source == "design_target" else "in PSF core"
+                axes[r, i].set_title(f"{name} {psf_cmp.wavelengths_m[i] * 1e9:.0f} nm, {where} {on:.3f}",
                                      fontsize=8)
             diff = m - d
             lim = np.abs(diff).max() or 1.0

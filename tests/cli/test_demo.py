@@ -34,8 +34,15 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     # The placement is refined with the fit and reported with its uncertainties.
     placement = diag["inputs"]["placement"]
     assert max(placement["shift_uncertainty_camera_px"]) < 0.02 and placement["rotation_uncertainty_deg"] < 0.002
+    # One figure of merit: the comparison counts the light on the design's own target, the design
+    # section's numbers for the same heights (not the design PSF's core).
+    psf = report["comparison"]["psf"]
+    assert psf["merit"]["name"] == "light on the design's target"
+    quantized = report["design"]["quantized"]["energy_on_target"][0]
+    assert all(abs(a / b - 1) < 1e-6 for a, b in zip(psf["design_on_target"], quantized))
     text = (out / "report.md").read_text()
     assert "psf.png" in text and "Diagnosis" in text
+    assert "Light on the design's target, design against the fabricated element" in text
     # A page a person reads: summary first, tables with units, verdicts in words, no raw JSON.
     lines = [line for line in text.splitlines() if line]
     assert lines[1] == "## Summary" and lines[2].startswith("- **Designed**")

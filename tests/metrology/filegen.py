@@ -112,6 +112,23 @@ def random_levels(shape, rng):
     return levels
 
 
+def density_split_levels(shape, rng):
+    """Random levels in 2 x 2 blocks whose two deepest masks are open on 85 % of the left half and
+    15 % of the right: the same level sits in dense and sparse surroundings, so etch loading
+    spreads each level's height across the field."""
+    coarse = ((shape[0] + 1) // 2, (shape[1] + 1) // 2)
+
+    def blocks(a):
+        return np.repeat(np.repeat(a, 2, 0), 2, 1)[:shape[0], :shape[1]]
+
+    levels = blocks(rng.integers(0, 16, coarse))
+    dense = np.arange(shape[1])[None, :] < shape[1] / 2
+    for bit in (2, 3):
+        open_ = blocks(rng.random(coarse)) < np.where(dense, 0.85, 0.15)
+        levels = np.where(open_, levels | (1 << bit), levels & ~(1 << bit))
+    return levels.astype(np.int16)
+
+
 def _chebyshev_signed(mask, r, c):
     """Signed Chebyshev distance (design px) of points (r, c) to the edge of a pixel mask:
     negative inside the opening. Only the 3 x 3 neighbouring pixels are searched: distances

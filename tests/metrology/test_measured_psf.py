@@ -44,3 +44,48 @@ def test_over_and_under_etch_lose_the_light_scalar_theory_predicts(scale):
     # The first order sits about 59 px right of the axis (x = lambda z / period).
     col = np.argmax(cmp.design_psf[0].sum(axis=0))
     assert col - 32 == pytest.approx(550e-9 * 50e-3 / (N * PITCH) / PITCH, abs=1.5)
+
+
+@pytest.fixture(scope="module")
+def small_demo_design(tmp_path_factory):
+    """The demo's design step at a 64-pixel aperture: a Bayer (RGGB) element, its report and file."""
+    from metrology import pipeline
+
+    out = tmp_path_factory.mktemp("demo_design")
+    cfg = pipeline.DemoConfig(doe_px=64, iterations=4, anneal_iterations=1, window=64, rggb=True)
+    run = pipeline.design_step(cfg, pipeline.demo_camera(cfg), out)
+    return run, Design.load(out / "design.npz")
+
+
+def test_comparison_reports_the_design_reports_figure_of_merit(small_demo_design):
+    """One figure of merit per design: the comparison counts the light on the design's own Bayer
+    target, at its R, G, B wavelengths, and for the same heights gets the design report's numbers
+    (the demo's design section); the design PSF's core (90 % of its light) is another quantity."""
+    run, design = small_demo_design
+    design_section = np.array(run.report["quantized"]["energy_on_target"][0])
+    res = compare_psf(design, ProcessParams.ideal(), oversample=1)
+    assert res.target_source == "design_target" and res.merit_name == "light on the design's target"
+    np.testing.assert_allclose(res.wavelengths_m, [656e-9, 589e-9, 486e-9])
+    np.testing.assert_allclose(res.design_on_target, design_section, rtol=1e-9)
+    # RGGB: green counts on two pixels, red and blue on one.
+    assert res.target.sum(axis=(1, 2)).tolist() == [1, 2, 1]
+    rep = res.report()
+    assert rep["merit"]["name"] == "light on the design's target" and "design_in_psf_core" not in rep
+    np.testing.assert_allclose(rep["design_on_target"], design_section, rtol=1e-9)
+    core = target_from_psf(res.design_psf)
+    assert np.all(np.array([p[t].sum() for p, t in zip(res.design_psf, core)]) > 5 * design_section)
+
+
+def test_a_design_without_target_gets_the_psf_core_under_its_own_name(small_demo_design):
+    _, design = small_demo_design
+    bare = Design(height_m=design.height_m, pitch_m=design.pitch_m, levels=design.levels,
+                  metadata={"name": "bare", "camera": design.metadata["camera"]})
+    res = compare_psf(bare, ProcessParams.ideal(), oversample=1)
+    assert res.target_source == "psf_core"
+    rep = res.report()
+    assert rep["merit"]["name"] == "light in the design PSF's core" and "design_on_target" not in rep
+    # The brightest pixels holding 90 % of the window's light (to within the last pixel added).
+    np.testing.assert_allclose(rep["design_in_psf_core"], 0.9 * res.design_in_window, atol=0.01)
+    # Wavelengths the design's target does not have cannot be counted on it either.
+    other = compare_psf(design, ProcessParams.ideal(), wavelengths_m=(550e-9,), oversample=1)
+    assert other.target_source == "psf_core"
