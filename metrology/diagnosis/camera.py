@@ -33,6 +33,7 @@ from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (ETCH_CACHE_BYTES, MAX_BLUR_M, PLACEMENT_PARAMS, ArrayCache,
                                            InstrumentModel, Leveller, Placement, robust_valid)
+from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 from metrology.matching.window import busiest_camera_window
 
 if TYPE_CHECKING:
@@ -62,15 +63,30 @@ def _no_op(*args):
     return args[0]
 
 
-# The camera placement and the objective blur: always fitted, never named.
+# The camera placement and the instrument's lateral transfer (Gaussian blur, pixel fill
+# factor: :mod:`metrology.matching.transfer`): always fitted, never named.
 CAMERA = Effect(
     "camera", "height", "surface",
     [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
      Parameter("rotation_rad", "rad", -0.01, 0.01, 2e-5), Parameter("scale_row", "1", -0.03, 0.03, 2e-4),
      Parameter("scale_col", "1", -0.03, 0.03, 2e-4),
-     Parameter("blur_sigma_m", "m", 0.05 * _UM, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM)],
-    _no_op, "Placement of the camera field on the design and the objective's blur (nuisance).",
+     Parameter("blur_sigma_m", "m", 0.0, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM),
+     Parameter("fill_factor", "1", 0.0, 1.0, 0.05, 1.0)],
+    _no_op, "Placement of the camera field on the design and the instrument's lateral transfer (nuisance).",
     kind="artefact", order=-1)
+# The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
+# for it (chosen before any fabrication effect, :func:`instrument_stage`), never named.
+OBJECTIVE = Effect(
+    "objective", "height", "surface",
+    [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4)],
+    _no_op, "The objective's NA-limited optical transfer, cut-off 2 NA / lambda (nuisance).",
+    kind="artefact", order=-1)
+# The placement alone: the camera nuisance of an instrument whose transfer a calibration holds.
+PLACED = Effect("camera", "height", "surface", CAMERA.params[:5], _no_op,
+                "Placement of the camera field on the design (nuisance; the lateral transfer calibrated).",
+                kind="artefact", order=-1)
+# The lateral transfer's parameters a model does not hold (full pixels, no optical cut-off).
+DEFAULT_TRANSFER = LateralTransfer(sigma_m=0.4 * _UM, fill_factor=1.0, na=0.0)
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
@@ -110,6 +126,12 @@ class CameraHeightProblem(dg.Problem):
     camera : sequence of float, optional
         Placement refinement and blur (:data:`CAMERA`'s values) of the residual the noise floor
         is estimated on (default: its start values).
+    transfer : LateralTransfer, optional
+        A calibrated lateral transfer, held fixed (only the placement is then fitted); default:
+        the transfer is fitted (blur and fill factor, and the objective's NA with ``objective``),
+        its parameters a model does not hold taken from :data:`DEFAULT_TRANSFER`.
+    objective : bool
+        Fit the objective's NA-limited transfer (:data:`OBJECTIVE`) as a nuisance too.
     """
 
     units = "m"
@@ -121,7 +143,8 @@ class CameraHeightProblem(dg.Problem):
                  curvature: bool = False, keep: np.ndarray | None = None,
                  noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
                  centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES,
-                 camera: Sequence[float] | None = None) -> None:
+                 camera: Sequence[float] | None = None, transfer: LateralTransfer | None = None,
+                 objective: bool = False) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -133,9 +156,14 @@ class CameraHeightProblem(dg.Problem):
         kw = {} if step_m is None else {"step_m": step_m}
         self.instrument = instrument or InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
         self.base = base_params
-        self.effects = {e.name: e for e in effects if e.name not in SUBSUMED}
-        self.effects[CAMERA.name] = CAMERA
-        self.nuisance = {CAMERA.name: CAMERA}
+        self.effects = {e.name: e for e in effects if e.name not in SUBSUMED + (OBJECTIVE.name,)}
+        self.fixed_transfer = transfer
+        self.transfer0 = transfer if transfer is not None else DEFAULT_TRANSFER
+        self.objective = bool(objective) and transfer is None
+        self.effects[CAMERA.name] = CAMERA if transfer is None else PLACED
+        self.nuisance = {CAMERA.name: self.effects[CAMERA.name]}
+        if self.objective:
+            self.effects[OBJECTIVE.name] = self.nuisance[OBJECTIVE.name] = OBJECTIVE
         self.curvature = curvature
         self.keep = np.isfinite(self.measured) if keep is None else np.asarray(keep, bool)
         if self.keep.sum() < 100:
@@ -160,7 +188,7 @@ class CameraHeightProblem(dg.Problem):
         self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
         self._noise = noise
-        self._noise_camera = CAMERA.start_values() if camera is None else camera
+        self._noise_camera = self.effects[CAMERA.name].start_values() if camera is None else camera
         self._maps = ArrayCache(cache_bytes, max_items=4)
 
     @property
@@ -201,8 +229,8 @@ class CameraHeightProblem(dg.Problem):
         """
         if max(self.measured.shape) > BLOCKED_FIELD_PX:
             return self._render_blocked(model)
-        cam = np.asarray(model.get(CAMERA.name, CAMERA.start_values()), float)
-        chosen = sorted((self.effects[n] for n in model if n != CAMERA.name),
+        cam = np.asarray(model.get(CAMERA.name, self.effects[CAMERA.name].start_values()), float)
+        chosen = sorted((self.effects[n] for n in model if n not in (CAMERA.name, OBJECTIVE.name)),
                         key=lambda e: (("process", "surface").index(e.stage), e.order))
         params = self.base
         for e in chosen:
@@ -210,7 +238,7 @@ class CameraHeightProblem(dg.Problem):
                 params = e.apply(params, e.check(model[e.name]))
         surface = [e for e in chosen if e.stage == "surface"]
         surface_values = tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in surface)
-        blur = float(cam[5])
+        blur = self.transfer_of(model)
         placement = self.placement.refined(cam[:5], self.measured.shape, self.centre_px)
         if params.roughness == 0 and all(e.linear for e in surface):
             centre = design_centre(self.levels.shape)
@@ -235,6 +263,15 @@ class CameraHeightProblem(dg.Problem):
             coeffs = self.instrument.camera_map(fine, blur)
             self._coeffs.put((key, blur), coeffs)
         return self.instrument.sample(coeffs, placement)
+
+    def transfer_of(self, model: dict[str, np.ndarray]) -> LateralTransfer:
+        """The lateral transfer of ``model``: its camera nuisance's blur and fill factor and its
+        objective's NA where it holds them, else this problem's (calibrated or default) ones."""
+        cam = np.asarray(model.get(CAMERA.name, ()), float)
+        t = self.transfer0
+        na = float(np.asarray(model[OBJECTIVE.name])[0]) if OBJECTIVE.name in model else t.na
+        return LateralTransfer(cam[5] if cam.size > 5 else t.sigma_m, cam[6] if cam.size > 6 else t.fill_factor,
+                               na, t.wavelength_m)
 
     def _render_masks(self, still, surface, model, surface_values, blur, motions, placements):
         """The masks printed in place (``still``), each group that shares a motion summed in
@@ -325,11 +362,12 @@ class CameraHeightProblem(dg.Problem):
                                          margin_px=margin_px, transfers=transfers,
                                          cache_bytes=ETCH_CACHE_BYTES // max(share, 1))
         return CameraHeightProblem(self.levels, self.pitch_m, self.measured[rows, cols], start, self.base,
-                                   [e for n, e in self.effects.items() if n != CAMERA.name],
+                                   [e for n, e in self.effects.items() if n not in self.nuisance],
                                    step_m=self.instrument.step_m, curvature=self.curvature,
                                    keep=self.keep[rows, cols] if keep is None else keep, noise=noise,
                                    instrument=instrument, centre_px=np.asarray(self.centre_px, float) - [r0, c0],
-                                   cache_bytes=RENDER_CACHE_BYTES // max(share, 1))
+                                   cache_bytes=RENDER_CACHE_BYTES // max(share, 1), transfer=self.fixed_transfer,
+                                   objective=self.objective)
 
     def _render_blocked(self, model):
         """:meth:`render` of a large field, block by block: squares of about
@@ -375,18 +413,38 @@ class CameraHeightProblem(dg.Problem):
 
     def placement_report(self, model: dict[str, np.ndarray],
                          errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
-        """The refined placement with uncertainties (camera pixels and degrees)."""
+        """The refined placement and the instrument's lateral transfer, with uncertainties
+        (camera pixels, degrees; NaN for a parameter held fixed)."""
         cam = np.asarray(model[CAMERA.name], float)
-        err = np.asarray((errors or {}).get(CAMERA.name, np.full(6, np.nan)), float)
+        errors = errors or {}
+        err = np.full(7, np.nan)
+        given = np.asarray(errors.get(CAMERA.name, ()), float)
+        err[:given.size] = given
+        na_err = float(np.asarray(errors.get(OBJECTIVE.name, [np.nan]), float)[0])
+        t = self.transfer_of(model)
         px_per_design = self.pitch_m / self.pixel_m
         final = self.placement.refined(cam[:5], self.measured.shape, self.centre_px)
         return {"refinement": {name: float(v) for name, v in zip(PLACEMENT_PARAMS, cam[:5])},
                 "shift_uncertainty_camera_px": [float(e * px_per_design) for e in err[:2]],
                 "rotation_uncertainty_deg": float(np.degrees(err[2])),
                 "scale_uncertainty": [float(e) for e in err[3:5]],
-                "blur_sigma_um": float(cam[5] * 1e6), "blur_sigma_uncertainty_um": float(err[5] * 1e6),
+                "blur_sigma_um": t.sigma_m * 1e6, "blur_sigma_uncertainty_um": float(err[5] * 1e6),
+                "instrument": instrument_report(t, err[5], err[6], na_err if OBJECTIVE.name in model else np.nan,
+                                                calibrated=self.fixed_transfer is not None),
                 "matrix": final.matrix.tolist(), "offset": final.offset.tolist(),
                 "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}
+
+
+def instrument_report(t: LateralTransfer, sigma_err_m: float = np.nan, fill_err: float = np.nan,
+                      na_err: float = np.nan, calibrated: bool = False) -> dict[str, Any]:
+    """The lateral transfer as a report gives it (and a calibration file holds it): SI units,
+    uncertainties NaN where a parameter was held."""
+    return {"model": "pixel box (fill factor: area fraction, a centred square of side sqrt(fill) pixels) "
+                     "* Gaussian blur * NA-limited incoherent objective (cut-off 2 NA / lambda; na 0 = none)",
+            "blur_sigma_m": t.sigma_m, "blur_sigma_uncertainty_m": float(sigma_err_m),
+            "fill_factor": t.fill_factor, "fill_factor_uncertainty": float(fill_err),
+            "na": t.na, "na_uncertainty": float(na_err), "wavelength_m": t.wavelength_m,
+            "source": "calibration (held fixed)" if calibrated else "fitted with the placement"}
 
 
 def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m: np.ndarray, placement: Placement,

@@ -12,7 +12,9 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    fine grid in the design frame (``pitch / ceil(pitch / 0.125 um)``: at 0.25 um the
    process model's per-cell corner approximations alone leave ~1 nm rms on biased edges) over the design pixels
    the camera field covers, unetched (0) outside the design.
-2. One kernel on that fine grid holds both the objective blur and the pixel footprint:
+2. One kernel on that fine grid holds both the objective blur and the pixel footprint (the
+   lateral transfer's family, fitted: fill factor, Gaussian blur, NA-limited objective,
+   :mod:`metrology.matching.transfer`):
    ``K(a) = mean over the footprint y of integral over fine cell a of G_sigma(x - y)``, where
    the footprint is the camera pixel mapped into the design frame by the placement (a
    parallelogram: rotation, per-axis scale, mirror). Correlating the fine surface with ``K``
@@ -42,17 +44,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.fft as sfft
 import scipy.ndimage as ndi
-from scipy.special import erf
 
 from doedesign.errors import DoeError
+from metrology.matching.transfer import (LateralTransfer, as_transfer, footprint_kernel, kernel_half_width,
+                                         na_mtf)
 
 if TYPE_CHECKING:
     from masks.process_params import ProcessParams
     from metrology.matching.register import Registration
 
-__all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "Leveller", "PLACEMENT_PARAMS", "Placement", "footprint_kernel",
-           "kernel_half_width",
-           "levelling_basis", "robust_valid"]
+__all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "Leveller", "PLACEMENT_PARAMS", "Placement",
+           "footprint_kernel", "kernel_half_width", "levelling_basis", "robust_valid"]
 
 # Fine-grid spacing requested from the process model (m).
 FINE_STEP_M = 0.125e-6
@@ -156,53 +158,6 @@ class ArrayCache:
         self._items.clear()
 
 
-def _cell_gaussian(x_m, step_m, sigma_m):
-    """Integral of a unit Gaussian of width ``sigma_m`` centred at 0 over cells centred at ``x_m``."""
-    s = max(float(sigma_m), 1e-3 * step_m) * math.sqrt(2.0)
-    return 0.5 * (erf((x_m + step_m / 2) / s) - erf((x_m - step_m / 2) / s))
-
-
-def kernel_half_width(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float) -> int:
-    """Half width ``k`` (fine cells) of :func:`footprint_kernel`: the footprint's half extent
-    plus four blur sigmas."""
-    side = max(np.abs(np.asarray(matrix, float) * pitch_m).sum(axis=1))
-    return int(math.ceil((side / 2 + 4.0 * sigma_m) / step_m)) + 1
-
-
-def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float) -> np.ndarray:
-    """Blur-and-pixel kernel on the fine grid (see the module docstring, step 2).
-
-    Parameters
-    ----------
-    matrix : ndarray (2, 2)
-        Linear part of the placement (design pixels per camera pixel).
-    pitch_m, step_m : float
-        Design pitch and fine-grid spacing.
-    sigma_m : float
-        Objective blur (Gaussian standard deviation, m).
-
-    Returns
-    -------
-    ndarray (2 k + 1, 2 k + 1)
-        Weights summing to 1, centre at index ``k``; row 0 at the top.
-    """
-    m = np.asarray(matrix, float) * pitch_m
-    side = max(np.abs(m).sum(axis=1))
-    q = max(8, int(math.ceil(2.0 * side / max(sigma_m, step_m))))
-    sub = (np.arange(q) + 0.5) / q - 0.5
-    u, v = np.meshgrid(sub, sub, indexing="ij")
-    y = m @ np.stack([u.ravel(), v.ravel()])  # footprint points (row, col offsets, m)
-    k = kernel_half_width(matrix, pitch_m, step_m, sigma_m)
-    x = np.arange(-k, k + 1) * step_m
-    # Each point stands for a 1/q sub-pixel: widen its Gaussian by that sub-pixel's variance so
-    # the kernel's second moments are exact (the midpoint rule alone loses 1/q^2 of them).
-    sub_var = np.diag(m @ m.T) / (12.0 * q * q)
-    gr = _cell_gaussian(x[None, :] - y[0][:, None], step_m, math.sqrt(sigma_m ** 2 + sub_var[0]))
-    gc = _cell_gaussian(x[None, :] - y[1][:, None], step_m, math.sqrt(sigma_m ** 2 + sub_var[1]))
-    kernel = gr.T @ gc / y.shape[1]
-    return kernel / kernel.sum()
-
-
 class InstrumentModel:
     """Render model surfaces into a camera's pixel grid.
 
@@ -253,9 +208,9 @@ class InstrumentModel:
         self._transfers = transfers if transfers is not None else self.transfer_cache()
 
     @staticmethod
-    def transfer_cache(max_items: int = 4) -> ArrayCache:
-        """An empty store of Fourier transfers (one per blur value and padded shape; the
-        default holds a Jacobian's blur values)."""
+    def transfer_cache(max_items: int = 8) -> ArrayCache:
+        """An empty store of Fourier transfers (one per lateral transfer and padded shape; the
+        default holds a Jacobian's values of the instrument's parameters)."""
         return ArrayCache(2 * ETCH_CACHE_BYTES // 3, max_items=max_items)
 
     def fine_surface(self, params: ProcessParams) -> np.ndarray:
@@ -312,7 +267,7 @@ class InstrumentModel:
         """Fine cells from the window's first cell to the region's (the design's part of it)."""
         return (self.region[0] - self.window[0]) * self.upsample, (self.region[2] - self.window[2]) * self.upsample
 
-    def camera_map(self, fine_m: np.ndarray, sigma_m: float) -> np.ndarray:
+    def camera_map(self, fine_m: np.ndarray, sigma_m: float | LateralTransfer) -> np.ndarray:
         """Spline coefficients of what a camera pixel centred at each fine cell reports.
 
         One Fourier product holds the footprint kernel and the cubic spline prefilter (the
@@ -348,7 +303,7 @@ class InstrumentModel:
         np.negative(core, out=inner[a:a + core.shape[0], b:b + core.shape[1]], casting="unsafe")
         return self._padded_fft(buf)
 
-    def map_of(self, spectrum: np.ndarray | Sequence[np.ndarray], sigma_m: float,
+    def map_of(self, spectrum: np.ndarray | Sequence[np.ndarray], sigma_m: float | LateralTransfer,
                overwrite: bool = False, factors: Sequence[np.ndarray] = ()) -> np.ndarray:
         """:meth:`camera_map` of the surface whose :meth:`spectrum` is given, or of the sum of
         surfaces whose spectra are (multiplied in place with ``overwrite``, when the caller owns
@@ -376,15 +331,14 @@ class InstrumentModel:
         _, shape = self._padding()
         return 2 * np.pi * sfft.fftfreq(shape[0]), 2 * np.pi * sfft.rfftfreq(shape[1])
 
-    def fourier_reach(self, placements: Iterable[Placement], sigma_m: float) -> int:
+    def fourier_reach(self, placements: Iterable[Placement], sigma_m: float | LateralTransfer) -> int:
         """Fine cells a linear filter of the surface may reach and still act on this FFT grid as
         on the surface with its edges extended, for camera pixels under ``placements`` and the
         blur ``sigma_m``: the pixels' least distance to the FFT grid's edge, less the kernel's
         reach and the prefilter's guard (no wrapped-around cell then touches a pixel)."""
         h, _ = self._padding()
         least = min(self._clearance(pl) for pl in placements)
-        k = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
-        return int(math.floor(least + h - k - _WRAP_GUARD))
+        return int(math.floor(least + h - self._reach(sigma_m) - _WRAP_GUARD))
 
     def _fine_shape(self):
         u = self.upsample
@@ -426,17 +380,26 @@ class InstrumentModel:
         # maps are cheaper without the threads' overhead.
         return FFT_WORKERS if size >= FFT_THREADS_MIN_PX else 1
 
-    def _transfer(self, shape, sigma_m):
-        """Fourier transfer of correlation with the footprint kernel followed by the spline
-        prefilter.
+    def _reach(self, transfer):
+        """Fine cells the lateral transfer reaches from a pixel centre: the footprint kernel's
+        half width, or the objective's point spread where that reaches further."""
+        t = as_transfer(transfer)
+        k = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m, t.fill_factor)
+        return max(k, int(math.ceil(t.optical_reach_m() / self.step_m)))
+
+    def _transfer(self, shape, transfer):
+        """Fourier transfer of correlation with the footprint kernel, the objective's optical
+        transfer (:mod:`metrology.matching.transfer`) and the spline prefilter; kept per FFT
+        shape and every parameter of the lateral transfer.
 
         In single precision throughout, the prefilter applied per axis in place: the transfer
         is kept in complex64 anyway, and on a whole 512 px field the double-precision
         temporaries (some 800 MB of fresh pages) made each new blur cost 1.8 s.
         """
-        key = (shape, float(sigma_m))
+        t = as_transfer(transfer)
+        key = (shape, t)
         if self._transfers.get(key) is None:
-            kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, sigma_m)
+            kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m, t.fill_factor)
             k = kernel.shape[0] // 2
             wrapped = np.zeros(shape, np.float32)
             # Correlation: value[a] = sum_d kernel[k + d] fine[a + d], i.e. convolution with the
@@ -447,13 +410,17 @@ class InstrumentModel:
             wr, wc = self.fourier_grid()
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
+            if t.na > 0:
+                # Isotropic: the design frame's frequencies (cycles per metre) serve.
+                nu = np.hypot((wr / (2 * np.pi * self.step_m))[:, None], (wc / (2 * np.pi * self.step_m))[None, :])
+                spectrum *= na_mtf(nu, t.na, t.wavelength_m).astype(np.float32)
             self._transfers.put(key, spectrum)
         return self._transfers.get(key)
 
-    def covers(self, placement: Placement, sigma_m: float) -> bool:
+    def covers(self, placement: Placement, sigma_m: float | LateralTransfer) -> bool:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its
         centre at least the kernel's reach (and the spline's support) inside the fine grid."""
-        reach = kernel_half_width(self.placement.matrix, self.pitch_m, self.step_m, sigma_m) + 2
+        reach = self._reach(sigma_m) + 2
         return self._clearance(placement) >= reach
 
     def _clearance(self, placement):
@@ -477,7 +444,7 @@ class InstrumentModel:
         u = self.upsample
         return (R - self.window[0] + 0.5) * u - 0.5, (C - self.window[2] + 0.5) * u - 0.5
 
-    def render(self, params: ProcessParams, placement: Placement, sigma_m: float,
+    def render(self, params: ProcessParams, placement: Placement, sigma_m: float | LateralTransfer,
                surface: Callable[[np.ndarray, float], np.ndarray] | None = None) -> np.ndarray:
         """Model heights (m) in the camera frame, before levelling.
 
@@ -485,8 +452,8 @@ class InstrumentModel:
         ----------
         params : ProcessParams
         placement : Placement
-        sigma_m : float
-            Objective blur.
+        sigma_m : float or LateralTransfer
+            The instrument's lateral transfer (a number: a Gaussian blur with full pixels).
         surface : callable, optional
             ``surface(fine_m, step_m) -> fine_m``: instrument artefacts acting on the surface
             before the blur (batwing) or any user surface effect.
