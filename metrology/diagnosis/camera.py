@@ -15,7 +15,7 @@ Arrays are row-major with row 0 at the top of the camera image.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -33,7 +33,7 @@ from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (ETCH_CACHE_BYTES, MAX_BLUR_M, PLACEMENT_PARAMS, ArrayCache,
                                            InstrumentModel, Leveller, Placement, robust_valid)
-from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
+from metrology.matching.transfer import NA_BOUNDS, LateralTransfer, as_transfer
 from metrology.matching.window import busiest_camera_window
 
 if TYPE_CHECKING:
@@ -451,7 +451,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
-                    screen_window_px: int = SCREEN_WINDOW_PX) -> dg.Diagnosis:
+                    screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -475,6 +475,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         whole window. A window larger than
         :data:`~metrology.diagnosis.tiles.TILED_WINDOW_PX` is fitted on tiles spread over it
         (:mod:`metrology.diagnosis.tiles`); its maps and final residual are the whole window's.
+    transfer : LateralTransfer, optional
+        A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
+        as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
 
     Returns
     -------
@@ -495,27 +498,36 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         effects = effects_for("height", candidates)
         finite = np.isfinite(crop)
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
-        camera0 = np.array(CAMERA.start_values(), float)
-        camera0[5] = screen_blur
+        if transfer is not None:
+            screen_blur = transfer
         # One render serves the noise floor and the robust rule (the screening model's).
         first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
-                                    camera=camera0)
-        keep = robust_valid(first.residual_map({CAMERA.name: camera0}), finite)
+                                    transfer=as_transfer(screen_blur))
+        keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
-        for _ in range(3):
+        objective, prior, instrument_stage = False, None, None
+
+        def make(objective, keep):
             # The floor is the measurement's: estimated once, on the screening model's residual
             # (the comparison's fitted process when given), not on the ideal element's, whose
             # process errors would leak into the interiors and raise it.
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
-                                          noise=first.noise, instrument=first.instrument)
+                                          noise=first.noise, instrument=first.instrument, transfer=transfer,
+                                          objective=objective)
             fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
             if size > screen_window_px:
                 fit.screening = problem.crop(screen_window_px)
+            return problem, fit
+
+        if transfer is None:
+            objective, prior, instrument_stage = choose_transfer(lambda o: make(o, keep)[1], threshold)
+        for _ in range(3):
+            problem, fit = make(objective, keep)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
             # parameters after the residual has reached it.
             diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
-                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else None)
+                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior)
             new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
                                     - _plane(problem, crop, diag.model), np.isfinite(crop))
             if np.array_equal(new_keep, keep):
@@ -527,11 +539,44 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             diag.initial_residual_rms, diag.final_residual_rms = (
                 float(np.sqrt(np.nanmean(m ** 2))) for m in (diag.residual_maps[0], diag.residual_maps[-1]))
         # The nuisance's uncertainties at the final model (the others held).
-        errors = dg.standard_errors(fit, diag.model, [CAMERA.name])
+        errors = dg.standard_errors(fit, diag.model, list(problem.nuisance))
         diag.placement = problem.placement_report(diag.model, errors)
+        if instrument_stage is not None:
+            diag.placement["instrument"]["objective_criterion_change"] = instrument_stage
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag
+
+
+def choose_transfer(make: Callable[[bool], dg.Problem], threshold: float,
+                    ) -> tuple[bool, dict[str, np.ndarray], float]:
+    """Whether the objective's NA-limited transfer belongs to the instrument, decided before any
+    fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone, then with
+    the objective's NA; the NA is kept when it lowers the information criterion by more than
+    ``threshold``.
+
+    Parameters
+    ----------
+    make : callable
+        ``make(objective) -> Problem`` (the diagnosis's problem with or without the objective).
+    threshold : float
+
+    Returns
+    -------
+    (bool, dict, float)
+        Whether to fit the objective, the nuisances' fitted values (the diagnosis's start) and
+        the criterion change the objective made.
+    """
+    plain = make(False)
+    m0, rss0, _ = dg.fit_effects(plain, {CAMERA.name: CAMERA.start_values()}, [CAMERA.name])
+    n = plain.residual(m0).size
+    n_eff = max(n / plain.noise.corr_area_px, 2.0)
+    optic = make(True)
+    m1, rss1, _ = dg.fit_effects(optic, {**m0, OBJECTIVE.name: OBJECTIVE.start_values()},
+                                 [CAMERA.name, OBJECTIVE.name])
+    change = dg.bic_eff(rss1, n, n_eff, 8) - dg.bic_eff(rss0, n, n_eff, 7)
+    log.info("instrument: objective NA %.3f changes the criterion by %+.1f", m1[OBJECTIVE.name][0], change)
+    return (True, m1, float(change)) if change < -threshold else (False, m0, float(change))
 
 
 def _plane(problem, crop, model):
