@@ -160,6 +160,10 @@ def _param_text(name, value, err, unit):
     return f"{name} {md.fmt_pm(value, err, 3, unit)}".rstrip()
 
 
+def _um(v):
+    return v * 1e6 if isinstance(v, (int, float)) else None
+
+
 def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
     """Markdown parts of a diagnosis: summary in words, the steps with the shrinking residual, figures."""
     h = "#" * level
@@ -182,10 +186,20 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
     where = rep.get("unexplained_where")
     if where:
         partial = ", ".join(p["effect"] for p in rep.get("partial_matches") or [])
-        extra = [f"- Where the unexplained residual lives: {where['summary']}"]
+        extra = [f"- Where the unexplained residual lives: {where.get('summary', md.MISSING)}"]
+        inadequate = where.get("instrument_model_inadequate")
+        if inadequate:
+            withheld = ", ".join(inadequate.get("withheld") or []) or "none"
+            extra.append(f"- Instrument model inadequate: {inadequate.get('message')} (withheld: {withheld}).")
         if partial:
             extra.append(f"- Not named, they fit only part of the residual on their own footprint: {partial}.")
         parts[4:4] = extra
+    inst = ((rep.get("inputs") or {}).get("placement") or {}).get("instrument")
+    if isinstance(inst, dict):
+        parts.insert(4, "- Instrument's lateral transfer ({}): blur {} um, fill factor {}, NA {}.".format(
+            inst.get("source"), md.fmt_pm(_um(inst.get("blur_sigma_m")), _um(inst.get("blur_sigma_uncertainty_m")), 3, ""),
+            md.fmt_pm(inst.get("fill_factor"), inst.get("fill_factor_uncertainty"), 3, ""),
+            md.fmt_pm(inst.get("na"), inst.get("na_uncertainty"), 3, "") if inst.get("na") else "none fitted"))
     rows = []
     for i, step in enumerate(rep.get("steps") or [], 1):
         params = step.get("params") or {}

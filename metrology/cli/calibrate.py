@@ -1,4 +1,4 @@
-"""``doe calibrate``: dual-pixel crosstalk calibration and measured PSF stacks."""
+"""``doe calibrate``: dual-pixel crosstalk calibration, measured PSF stacks and the profilometer's lateral transfer."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 
 import metrology.calibration.dualpixel as dp
 import metrology.calibration.psfstack as ps
-from doedesign.cli.common import MAX_WINDOW_PX, Number
+from doedesign.cli.common import MAX_WINDOW_PX, Number, NumberList
 from doedesign.engine.psf import parse_wavelengths_nm
 from doedesign.errors import DoeError
 from doedesign.fileio import (
@@ -26,7 +26,7 @@ from doedesign.fileio import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CAPTURE_HELP", "FRAME_SUFFIXES", "find_captures", "register", "run_crosstalk", "run_psf"]
+__all__ = ["CAPTURE_HELP", "FRAME_SUFFIXES", "find_captures", "register", "run_crosstalk", "run_instrument", "run_psf"]
 
 FRAME_SUFFIXES = (".tif", ".tiff", ".npy") + dp.RAW_SUFFIXES
 # Smallest PSF window (pixels per side), as for 'doe psf --window'.
@@ -48,7 +48,7 @@ views coded/uncoded, normalized to the uncoded view's whole-frame total), psf_ne
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk and measured PSF calibration")
+    cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk, measured PSF and profilometer calibration")
     sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT")
 
     p = sub.add_parser("crosstalk", help="crosstalk ratios from white-wall captures with half the aperture blocked",
@@ -92,6 +92,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _frame_options(p)
     p.set_defaults(func=run_psf)
 
+    p = sub.add_parser("instrument", help="the profilometer's lateral transfer from a measured artefact of known geometry",
+                       description="Fit the profilometer's lateral transfer (pixel fill factor, Gaussian blur, the "
+                                   "objective's NA when the data ask for it) with the placement on a measured step "
+                                   "or grating whose geometry a design file gives (cf. ISO 25178-600); the JSON "
+                                   "written is what 'doe compare --instrument' and 'doe diagnose --instrument' "
+                                   "hold fixed.")
+    p.add_argument("measured", help="measured height map of the artefact (any supported profilometer file)")
+    p.add_argument("--design", required=True, help="design file (.npz) of the artefact's geometry")
+    p.add_argument("--out", required=True, help="calibration .json to write")
+    p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
+                   default=None, help="nominal step per mask (default: the design's binary depths)")
+    p.add_argument("--wavelength-nm", type=Number(float, 100, 2000, unit="nm"), default=570.0,
+                   help="the instrument's mean wavelength (570, white light)")
+    p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
+                   help="camera pixels per side of the window fitted (160)")
+    p.add_argument("--force", action="store_true", help="calibrate even when the artefact matches its design poorly")
+    p.set_defaults(func=run_instrument)
+
 
 def _frame_options(p):
     p.add_argument("--cfa", default="RGGB", help="Bayer pattern of the sensor's top-left 2x2 cell (RGGB), "
@@ -122,6 +140,27 @@ def _orders(text):
     if any(abs(m) > MAX_ORDER for m in orders):
         raise DoeError(f"--orders {text!r}: each must lie in -{MAX_ORDER}..{MAX_ORDER}")
     return orders
+
+
+# -- instrument ------------------------------------------------------------------------------------------
+def run_instrument(args: argparse.Namespace) -> int:
+    from doedesign.cli.common import print_json
+    from doedesign.design import Design
+
+    from metrology.calibration.instrument import calibrate_instrument
+    from metrology.formats.readers import read_measurement
+
+    ensure_output_file(args.out)
+    measured = check_input_file(args.measured)
+    design = Design.load(args.design)
+    cal = calibrate_instrument(design, read_measurement(measured), window_px=args.window_px,
+                               depths_m=None if args.depths_nm is None else [v * 1e-9 for v in args.depths_nm],
+                               wavelength_m=args.wavelength_nm * 1e-9, source=str(args.measured), force=args.force)
+    cal["artefact"]["design"] = str(args.design)
+    with output_run(Path(args.out).parent, "doe calibrate instrument"):
+        write_json(args.out, cal)
+    print_json({"calibration": str(args.out), **cal["lateral_transfer"], **cal["fit"]})
+    return 0
 
 
 # -- crosstalk -------------------------------------------------------------------------------------------

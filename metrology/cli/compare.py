@@ -43,6 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="compare even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
+    p.add_argument("--instrument", metavar="FILE.json",
+                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed "
+                        "in the camera-frame fit (default: its blur fitted)")
     p.set_defaults(func=run_compare)
 
 
@@ -54,6 +57,11 @@ def run_compare(args: argparse.Namespace) -> int:
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
+    transfer = None
+    if args.instrument:
+        from metrology.calibration.instrument import read_instrument
+
+        transfer = read_instrument(args.instrument)
     ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
@@ -62,7 +70,7 @@ def run_compare(args: argparse.Namespace) -> int:
                               design_source=str(args.design),
                               wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,
                               psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render,
-                              force=args.force)
+                              force=args.force, transfer=transfer)
     print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
                                        "height_error_rms_nm", "render3d")}
                | {"report": str(Path(args.out) / "report.json")})

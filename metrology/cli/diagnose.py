@@ -54,6 +54,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_device_option(p)
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
+    p.add_argument("--instrument", metavar="FILE.json",
+                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed "
+                        "(default: fitted with the placement)")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -69,6 +72,11 @@ def run(args: argparse.Namespace) -> int:
     for path in args.effects_file:
         load_effects_file(path)
     candidates = parse_effects(args.effects, "psf" if args.measured_psf else "height")
+    args.transfer = None
+    if getattr(args, "instrument", None):
+        from metrology.calibration.instrument import read_instrument
+
+        args.transfer = read_instrument(args.instrument)
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     if args.measured and args.frame == "camera":
@@ -144,7 +152,7 @@ def _camera(design, path, args, candidates):
     depths = [v * 1e-9 for v in args.depths_nm]
     diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
-                                               force=args.force)
+                                               force=args.force, transfer=args.transfer)
     return diag, {"measured": str(path), **inputs}
 
 

@@ -8,7 +8,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["binned", "edge_breakdown", "radial_psd", "structure_groups"]
+__all__ = ["INSTRUMENT_SHARE", "binned", "edge_breakdown", "instrument_signature", "radial_psd", "structure_groups"]
+
+# Share of the edge-bound structure a profile common to every mask must hold for the residual to
+# be the instrument's.
+INSTRUMENT_SHARE = 0.7
 
 
 def binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray | Sequence[float]) -> dict[str, list]:
@@ -73,3 +77,71 @@ def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], level
     out["radius_from_centre_m"] = binned(residual_map, radius, np.linspace(0, radius.max() + 1e-12, 9))
     out["spatial_frequency_per_m"] = radial_psd(residual_map, spacing_m)
     return out
+
+
+def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
+                         keep: np.ndarray, sigma: float, corr_area_px: float,
+                         share: float = INSTRUMENT_SHARE) -> dict | None:
+    """Whether a residual is the instrument's: the same at every mask's edges, on both sides.
+
+    A lateral transfer the model gets wrong leaves, at each edge, the step's height times one
+    profile of the signed distance to the edge, whatever the mask; fabrication effects are
+    mask-, level- or position-specific. Two binned models of the residual are fitted by least
+    squares: one profile ``g`` shared by all masks, ``r = sum_j D_j g(d_j)`` (``D_j`` mask j's
+    depth, ``d_j`` the signed distance to its edges), and one profile per mask. The residual is
+    the instrument's when the per-mask model finds significant structure (its criterion drop
+    above the noise, in effective samples) and the shared profile holds at least ``share`` of
+    what the per-mask one explains.
+
+    Parameters
+    ----------
+    residual_map : ndarray
+        Final residual (NaN where not compared), row 0 at the top.
+    edge_m : sequence of ndarray
+        Signed distance (m, positive inside the opening) of each pixel to each mask's edges.
+    depths_m : sequence of float
+        Nominal step of each mask.
+    keep : ndarray of bool
+    sigma, corr_area_px : float
+        Noise floor and correlation area (pixels).
+
+    Returns
+    -------
+    dict or None
+        ``explained_share`` (shared over per-mask), the shared profile per unit step
+        (``profile_per_m_step`` at ``distance_m``) and the rms it explains, or None.
+    """
+    edges = np.linspace(-3e-6, 3e-6, 25)
+    ok = keep & np.isfinite(residual_map)
+    r = residual_map[ok]
+    nb = len(edges) - 1
+    cols = []
+    for d, depth in zip(edge_m, depths_m):
+        idx = np.digitize(np.asarray(d)[ok], edges) - 1
+        inside = (idx >= 0) & (idx < nb)
+        block = np.zeros((r.size, nb))
+        block[np.nonzero(inside)[0], idx[inside]] = depth
+        cols.append(block)
+    if not cols or r.size < 10 * nb:
+        return None
+    per_mask = np.concatenate(cols, axis=1)
+    shared = np.sum(cols, axis=0)
+
+    def explained(a):
+        used = np.any(a != 0, axis=0)
+        coef, *_ = np.linalg.lstsq(a[:, used], r, rcond=None)
+        full = np.zeros(a.shape[1])
+        full[used] = coef
+        return float(np.sum(r ** 2) - np.sum((r - a[:, used] @ coef) ** 2)), full
+
+    gain_mask, _ = explained(per_mask)
+    gain_shared, profile = explained(shared)
+    # Significance in noise units over effective samples (chi-square of the per-mask model).
+    z2 = gain_mask / (sigma ** 2 * max(corr_area_px, 1.0))
+    if z2 < 25.0 + per_mask.shape[1] or gain_mask <= 0:
+        return None
+    ratio = gain_shared / gain_mask
+    if ratio < share:
+        return None
+    return {"explained_share": ratio, "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
+            "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}

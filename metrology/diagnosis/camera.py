@@ -25,7 +25,7 @@ from threadpoolctl import threadpool_limits
 from doedesign.errors import DoeError
 from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import engine as dg
-from metrology.diagnosis.breakdown import edge_breakdown, structure_groups
+from metrology.diagnosis.breakdown import edge_breakdown, instrument_signature, structure_groups
 from metrology.diagnosis.effects import Effect, Parameter, effects_for
 from metrology.diagnosis.forked import forked_map
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
@@ -411,6 +411,11 @@ class CameraHeightProblem(dg.Problem):
         """Residual by signed distance to each mask's edges, level, field position, frequency."""
         return edge_breakdown(residual_map, self.edge_m, self.cam_levels, self.pixel_m)
 
+    def instrument_signature(self, residual_map: np.ndarray) -> dict | None:
+        """Whether the residual is the instrument's (:func:`~metrology.diagnosis.breakdown.instrument_signature`)."""
+        return instrument_signature(residual_map, self.edge_m, self.base.etch_depth, self.keep, self.noise.sigma,
+                                    self.noise.corr_area_px)
+
     def placement_report(self, model: dict[str, np.ndarray],
                          errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
         """The refined placement and the instrument's lateral transfer, with uncertainties
@@ -572,7 +577,13 @@ def choose_transfer(make: Callable[[bool], dg.Problem], threshold: float,
     n = plain.residual(m0).size
     n_eff = max(n / plain.noise.corr_area_px, 2.0)
     optic = make(True)
-    m1, rss1, _ = dg.fit_effects(optic, {**m0, OBJECTIVE.name: OBJECTIVE.start_values()},
+    # Started where the objective's transfer halves at the frequency the fitted blur's does
+    # (chinese hat at s = 0.404, Gaussian at 0.187 / sigma), the blur then mostly the optics'.
+    cam = np.array(m0[CAMERA.name], float)
+    t = plain.transfer_of(m0) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(m0)
+    na0 = 0.187 * t.wavelength_m / (2 * 0.404 * max(t.sigma_m, 0.05 * _UM))
+    cam[5] *= 0.3
+    m1, rss1, _ = dg.fit_effects(optic, {CAMERA.name: cam, OBJECTIVE.name: np.clip([na0], *NA_BOUNDS)},
                                  [CAMERA.name, OBJECTIVE.name])
     change = dg.bic_eff(rss1, n, n_eff, 8) - dg.bic_eff(rss0, n, n_eff, 7)
     log.info("instrument: objective NA %.3f changes the criterion by %+.1f", m1[OBJECTIVE.name][0], change)
@@ -593,7 +604,8 @@ def _plane(problem, crop, model):
 def diagnose_camera_measurement(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
                                 candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
                                 window_px: int = 160, source: str = "measurement", force: bool = False,
-                                comparison: Comparison | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
+                                comparison: Comparison | None = None,
+                                transfer: LateralTransfer | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -615,6 +627,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     comparison : Comparison, optional
         :func:`~metrology.matching.compare.compare_measurement` of the same measurement and
         design, if already made (its camera-frame placement starts the fit).
+    transfer : LateralTransfer, optional
+        The instrument's calibrated lateral transfer, held fixed (default: fitted).
 
     Returns
     -------
@@ -631,7 +645,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     comp = comparison
     if comp is None:
         try:
-            comp = compare_measurement(measurement, design, force=force)
+            comp = compare_measurement(measurement, design, force=force, transfer=transfer)
         except DoeError as exc:
             raise DoeError(f"{source}: {exc}") from None
     depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
@@ -639,7 +653,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     fit = comp.instrument_fit
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
-                           screen=(comp.fitted_params(), fit.blur_sigma_m))
+                           screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

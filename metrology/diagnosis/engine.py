@@ -447,9 +447,36 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             final_map = problem.residual_map(model)
             maps = maps[:1] + [final_map]
             struct = _structure_test(problem, final_map, n_eff, n)
+    inadequate = problem.instrument_signature(final_map) if unexplained else None
+    if inadequate is not None:
+        # The residual is the instrument's (the same at every mask's edges): its model's family
+        # cannot close it, and no fabrication effect may be named on what it leaves.
+        fab = {st.effect for st in steps if st.kind != "artefact"}
+        inadequate["withheld"] = sorted(fab)
+        log.info("instrument model inadequate (shared edge profile holds %.0f %% of the edge residual); "
+                 "withheld: %s", 100 * inadequate["explained_share"], sorted(fab))
+        if fab:
+            kept = {k: v for k, v in model.items() if k not in fab}
+            model, _, errors = fit_effects(problem, kept, list(kept)) if kept else ({}, None, {})
+            steps = [st for st in steps if st.effect not in fab]
+            for s in steps:
+                eff = problem.effects[s.effect]
+                s.uncertainties = {p.name: float(v) for p, v in zip(eff.params, errors.get(s.effect, []))}
+                s.params = {p.name: float(v) for p, v in zip(eff.params, model[s.effect])}
+            r = problem.residual(model)
+            final_map = problem.residual_map(model)
+            maps = maps[:1] + [final_map]
+            struct = _structure_test(problem, final_map, n_eff, n)
     breakdown_final = problem.breakdown(final_map)
     where = (locate_residual(breakdown_final, final_map, problem.noise.sigma, problem.noise.corr_area_px)
              if unexplained else None)
+    if inadequate is not None:
+        where = dict(where or {})
+        where["instrument_model_inadequate"] = dict(
+            inadequate, message="the residual is the same at every mask's edges (per unit step), on both sides: "
+                                "the instrument's lateral transfer, which its model's family (pixel fill factor, "
+                                "Gaussian blur, NA-limited objective, batwing) cannot close; no fabrication "
+                                "effect is named")
     return Diagnosis(domain=domain, steps=steps, model=model, noise_floor=problem.noise.sigma,
                      corr_area_px=problem.noise.corr_area_px, n_samples=n, n_eff=n_eff,
                      initial_residual_rms=initial_rms, final_residual_rms=_rms(r),

@@ -59,3 +59,8 @@ class Problem:
         """Label maps of bins for the structured-residual test (0 = excluded), one per way of
         grouping pixels that an unmodelled effect would show up in."""
         return []
+
+    def instrument_signature(self, residual_map: np.ndarray) -> dict | None:
+        """Where the forward model holds an instrument: a dict when an unexplained residual is
+        the instrument's (the same at every mask's edges), else None."""
+        return None

@@ -35,6 +35,7 @@ from metrology.matching.forward import (crop_registration, design_height_on_meas
                                         fitted_process, process_on_measurement, shift_registration)
 from metrology.matching.instrument_fit import InstrumentFit, fit_in_camera_frame
 from metrology.matching.match import assess_match, check_relief
+from metrology.matching.transfer import LateralTransfer
 from metrology.matching.register import design_on_measurement
 from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MAX_EDGE_BAND_PITCH, DepthFit, LevelStats,
                                        binary_code_matrix, fit_etch_depths, interior_mask, level_heights)
@@ -145,7 +146,7 @@ class Comparison:
 
 def compare_measurement(measurement: Measurement, design: Design, n_masks: int = 4,
                         window_px: int = INSTRUMENT_WINDOW_PX, progress: Progress | None = None,
-                        force: bool = False) -> Comparison:
+                        force: bool = False, transfer: LateralTransfer | None = None) -> Comparison:
     """Level, register and compare a measurement with its design.
 
     Parameters
@@ -160,6 +161,9 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
         Advanced once per stage (6 stages).
     force : bool
         Go on when the field does not show the design (see :mod:`metrology.matching.match`).
+    transfer : LateralTransfer, optional
+        The instrument's calibrated lateral transfer (``doe calibrate instrument``), held fixed
+        in the camera-frame fit (default: its Gaussian blur fitted, full pixels).
 
     Returns
     -------
@@ -215,7 +219,7 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
     pixel_area = reg.pixel_size_m ** 2 / 12.0  # variance of the pixel box
     blur0 = float(np.sqrt(max(edge.sigma_m ** 2 - pixel_area, (0.2e-6) ** 2)))
     inst = fit_in_camera_frame(height, levels, placement, pitch, depth_fit.depths_m, edge.overlay_m, edge.bias_m,
-                               blur0_m=blur0, window_px=window_px)
+                               blur0_m=blur0, window_px=window_px, transfer=transfer)
     r0, r1, c0, c1 = inst.window_camera_px
     err_model = np.full(height.shape, np.nan)
     err_model[r0:r1, c0:c1] = inst.residual_m

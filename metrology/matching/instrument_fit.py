@@ -31,6 +31,7 @@ from scipy import optimize
 from doedesign.errors import DoeError
 from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
                                            robust_valid)
+from metrology.matching.transfer import LateralTransfer
 from metrology.matching.window import busiest_camera_window
 
 __all__ = ["InstrumentFit", "fit_in_camera_frame"]
@@ -86,16 +87,21 @@ class InstrumentFit:
 class _MaskMaps:
     """Each mask's camera map and its derivatives in bias and blur, about ``(bias, sigma)``."""
 
-    def __init__(self, model, levels, pitch_m, bias_m, sigma_m):
+    def __init__(self, model, levels, pitch_m, bias_m, sigma_m, transfer=None):
         self.bias_m = np.asarray(bias_m, float).copy()
-        self.sigma_m = float(sigma_m)
+        self.sigma_m = float(sigma_m) if transfer is None else transfer.sigma_m
         cov = self._coverage(model, levels, pitch_m, self.bias_m)
         d_bias = (self._coverage(model, levels, pitch_m, self.bias_m + BIAS_STEP_M)
                   - self._coverage(model, levels, pitch_m, self.bias_m - BIAS_STEP_M)) / (2 * BIAS_STEP_M / _UM)
-        hs = min(SIGMA_STEP_M, 0.5 * self.sigma_m)
-        self.maps = [(model.camera_map(c, self.sigma_m), model.camera_map(db, self.sigma_m),
-                      (model.camera_map(c, self.sigma_m + hs) - model.camera_map(c, self.sigma_m - hs))
-                      / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
+        if transfer is not None:
+            # A calibrated transfer, held: no blur derivative (the blur's column is zero).
+            self.maps = [(model.camera_map(c, transfer), model.camera_map(db, transfer), np.zeros(c.shape))
+                         for c, db in zip(cov, d_bias)]
+        else:
+            hs = min(SIGMA_STEP_M, 0.5 * self.sigma_m)
+            self.maps = [(model.camera_map(c, self.sigma_m), model.camera_map(db, self.sigma_m),
+                          (model.camera_map(c, self.sigma_m + hs) - model.camera_map(c, self.sigma_m - hs))
+                          / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
         self._samples = {}
 
     def sampled(self, model, j, placement):
@@ -128,7 +134,7 @@ class _MaskMaps:
 def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Placement, pitch_m: float,
                         depths0_m: Sequence[float], overlay0_m: np.ndarray | None = None,
                         bias0_m: Sequence[float] | None = None, blur0_m: float = 0.4e-6, window_px: int = 128,
-                        passes: int = 2) -> InstrumentFit:
+                        passes: int = 2, transfer: LateralTransfer | None = None) -> InstrumentFit:
     """Fit depths, overlay, bias, blur and placement to a camera height map in its own frame.
 
     Parameters
@@ -153,6 +159,9 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
         Camera pixels per side of the window fitted (the one richest in every mask's edges).
     passes : int
         Outer passes (derivative maps rebuilt about the current bias and blur).
+    transfer : LateralTransfer, optional
+        A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: a
+        Gaussian blur with full pixels, the blur fitted.
 
     Returns
     -------
@@ -170,6 +179,8 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     if finite.sum() < 200:
         raise DoeError("instrument-frame fit: fewer than 200 valid camera pixels in the window")
     overlay0 = np.zeros((n, 2)) if overlay0_m is None else np.asarray(overlay0_m, float)
+    if transfer is not None:
+        blur0_m = transfer.sigma_m
     # Parameters: depths (100 nm), shifts of masks 1.. (design px, row/col), bias (um), blur (um), placement.
     x = np.concatenate([np.asarray(depths0_m, float) / _H,
                         np.column_stack([-overlay0[1:, 1], overlay0[1:, 0]]).ravel() / pitch_m,
@@ -179,7 +190,7 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     keep = finite
     res = maps = leveller = None
     for k in range(passes):
-        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM)
+        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, transfer)
         leveller = Leveller(crop.shape, keep)
 
         def render(p, maps=maps):
@@ -207,7 +218,7 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     resid_map[keep] = res.fun * _H
     dof = max(res.fun.size - x.size, 1)
     try:
-        cov = np.linalg.inv(res.jac.T @ res.jac) * np.sum(res.fun ** 2) / dof
+        cov = np.linalg.pinv(res.jac.T @ res.jac) * np.sum(res.fun ** 2) / dof
         err = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         err = np.full(x.size, np.nan)

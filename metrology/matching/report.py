@@ -22,6 +22,7 @@ from doedesign.fileio import ensure_output_dir, json_ready, output_run, write_js
 from doedesign.progress import Progress
 from metrology.formats.measurement import Measurement
 from metrology.matching.compare import Comparison, compare_measurement
+from metrology.matching.transfer import LateralTransfer
 from metrology.report_pages import compare_page
 
 __all__ = ["write_comparison"]
@@ -33,7 +34,7 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
                      measurement_source: str = "measurement", design_source: str = "design",
                      wavelengths_m: ArrayLike | None = None, psf_oversample: int = 1,
                      psf: bool = True, render: bool = True, force: bool = False,
-                     comparison: Comparison | None = None) -> dict:
+                     comparison: Comparison | None = None, transfer: LateralTransfer | None = None) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
@@ -55,6 +56,8 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         Go on when the field does not show the design (see :mod:`metrology.matching.match`).
     comparison : Comparison, optional
         The :func:`~metrology.matching.compare.compare_measurement` result, if already made.
+    transfer : LateralTransfer, optional
+        The instrument's calibrated lateral transfer, held fixed in the camera-frame fit.
 
     Returns
     -------
@@ -66,7 +69,7 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         comp = comparison
         if comp is None:
             try:
-                comp = compare_measurement(measurement, design, progress=prog, force=force)
+                comp = compare_measurement(measurement, design, progress=prog, force=force, transfer=transfer)
             except DoeError as exc:
                 raise DoeError(f"{measurement_source}: {exc}") from None
         report = {"measurement": measurement_source, "design": design_source, **comp.report()}

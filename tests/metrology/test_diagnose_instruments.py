@@ -1,0 +1,139 @@
+"""Diagnosis on instruments other than the generator's own (issue 25): the lateral transfer is
+fitted, not assumed, and a calibration from a known artefact is held."""
+
+import json
+
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+import filegen
+from doedesign.cli import main
+
+
+def point_sampled(effects, seed, blur_m=0.35e-6, design_px=40, field_px=130):
+    """A filegen case re-measured by a point-sampling camera: the wafer blurred by a Gaussian, then
+    read at each pixel centre only (no pixel-area integration); noise and tilt as drawn."""
+    rng = np.random.default_rng(seed + 1000)
+    case = filegen.make_case(effects, seed, design_px=design_px, field_px=field_px)
+    inst, fine = case.instrument, filegen.FINE_PER_PX
+    blurred = ndi.gaussian_filter(filegen.wafer_surface(case.levels, case.truth, fine),
+                                  blur_m / (filegen.PITCH_M / fine), mode="nearest")
+    m, t = np.asarray(inst["matrix"]), np.asarray(inst["offset"])
+    r, c = np.mgrid[:field_px, :field_px].astype(float)
+    rr, cc = m[0, 0] * r + m[0, 1] * c + t[0], m[1, 0] * r + m[1, 1] * c + t[1]
+    h = ndi.map_coordinates(blurred, [(rr + 0.5) * fine - 0.5, (cc + 0.5) * fine - 0.5], order=1, mode="nearest")
+    case.height_m = h + inst["noise_m"] * rng.standard_normal(h.shape) + inst["tilt_rad"][0] * c * inst["pixel_m"]
+    return case
+
+
+def _diagnose(case, tmp_path, *extra):
+    design, measured = case.write(tmp_path)
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--design", str(design), "--measured", str(measured), "--frame", "camera",
+                 "--window-px", "72", "--out", str(out), *extra]) == 0
+    return json.loads((out / "report.json").read_text())
+
+
+def _fabrication(report):
+    return [s["effect"] for s in report["steps"] if not s["measurement_artefact"]]
+
+
+@pytest.mark.slow
+def test_point_sampled_overlay_is_named_and_closes_at_the_floor(tmp_path):
+    # Failed before issue 25: nothing named, the residual at 22x the floor "at the edges of
+    # every mask, on both sides".
+    case = point_sampled(["mask_overlay"], 5)
+    report = _diagnose(case, tmp_path, "--effects", "etch_depth,mask_overlay,linewidth_bias,batwing")
+    assert _fabrication(report) == ["mask_overlay"]
+    truth = case.truth["mask_overlay"]
+    j = truth["mask"]
+    step = next(s for s in report["steps"] if s["effect"] == "mask_overlay")
+    fit = np.array([step["params"][f"dx_mask{j}_m"], step["params"][f"dy_mask{j}_m"]])
+    assert np.hypot(*(fit - truth["shift_m"])) < 0.1 * np.hypot(*truth["shift_m"])
+    assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
+    inst = report["inputs"]["placement"]["instrument"]
+    # The fitted instrument: the blur the camera had, within its uncertainty's reach.
+    assert abs(inst["blur_sigma_m"] - 0.35e-6) < max(3 * inst["blur_sigma_uncertainty_m"], 0.05e-6)
+
+
+@pytest.mark.slow
+def test_a_filegen_instrument_with_other_blur_and_batwing_is_fitted_not_assumed(tmp_path):
+    case = filegen.make_case([], 21, design_px=40, field_px=130,
+                             instrument={"blur_sigma_m": 0.6e-6, "batwing": (0.08, 0.5e-6)})
+    report = _diagnose(case, tmp_path, "--effects", "etch_depth,mask_overlay,linewidth_bias,batwing")
+    assert _fabrication(report) == []
+    assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
+
+
+def csi(effects, seed, na=0.4, wavelength_m=0.6e-6, fill=0.6, batwing=(0.1, 0.4e-6), design_px=40, field_px=130):
+    """A filegen case re-measured by a coherence-scanning interferometer as described in issue 25:
+    batwing at the steps, the objective's incoherent circular-pupil transfer (cut-off 2 NA /
+    lambda, applied by FFT on the wafer grid), then each pixel the mean over a centred square of
+    side sqrt(fill) pixels (8 x 8 sub-samples)."""
+    rng = np.random.default_rng(seed + 2000)
+    case = filegen.make_case(effects, seed, design_px=design_px, field_px=field_px)
+    inst, fine = case.instrument, filegen.FINE_PER_PX
+    cell = filegen.PITCH_M / fine
+    surface = filegen.wafer_surface(case.levels, case.truth, fine)
+    amp, sig = batwing
+    surface = surface - amp * sig ** 2 * np.sqrt(2 * np.pi * np.e) * ndi.gaussian_laplace(
+        surface, sig / cell, mode="nearest") / cell ** 2
+    padded = np.pad(surface, 200, mode="edge")
+    nu = np.hypot(np.fft.fftfreq(padded.shape[0], cell)[:, None], np.fft.rfftfreq(padded.shape[1], cell)[None, :])
+    s = np.minimum(nu * wavelength_m / (2 * na), 1.0)
+    mtf = (2 / np.pi) * (np.arccos(s) - s * np.sqrt(1 - s * s))
+    seen = np.fft.irfft2(np.fft.rfft2(padded) * mtf, s=padded.shape)[200:-200, 200:-200]
+    m, t = np.asarray(inst["matrix"]), np.asarray(inst["offset"])
+    r, c = np.mgrid[:field_px, :field_px].astype(float)
+    sub = ((np.arange(8) + 0.5) / 8 - 0.5) * np.sqrt(fill)
+    h = np.zeros((field_px, field_px))
+    for a in sub:
+        for b in sub:
+            rr = m[0, 0] * (r + a) + m[0, 1] * (c + b) + t[0]
+            cc = m[1, 0] * (r + a) + m[1, 1] * (c + b) + t[1]
+            h += ndi.map_coordinates(seen, [(rr + 0.5) * fine - 0.5, (cc + 0.5) * fine - 0.5], order=1, mode="nearest")
+    case.height_m = h / 64 + inst["noise_m"] * rng.standard_normal(h.shape) + inst["tilt_rad"][1] * r * inst["pixel_m"]
+    return case
+
+
+@pytest.mark.slow
+def test_csi_null_does_not_crash_and_names_no_fabrication(tmp_path):
+    # Crashed before issue 25 (the fitted blur collapsed to an empty kernel).
+    report = _diagnose(csi([], 7), tmp_path, "--effects", "etch_depth,mask_overlay,linewidth_bias,batwing")
+    assert _fabrication(report) == []
+    inst = report["inputs"]["placement"]["instrument"]
+    assert inst["blur_sigma_m"] >= 0 and 0 <= inst["fill_factor"] <= 1
+
+
+@pytest.mark.slow
+def test_calibration_on_a_known_artefact_is_held_by_compare_and_diagnose(tmp_path):
+    artefact = point_sampled([], 31)
+    design, measured = artefact.write(tmp_path / "artefact")
+    cal = tmp_path / "instrument.json"
+    assert main(["calibrate", "instrument", str(measured), "--design", str(design), "--out", str(cal),
+                 "--window-px", "72"]) == 0
+    lateral = json.loads(cal.read_text())["lateral_transfer"]
+    # The point-sampling camera behind the file: a 0.35 um blur, no pixel-area integration.
+    assert abs(lateral["blur_sigma_m"] - 0.35e-6) < 0.05e-6
+    assert lateral["fill_factor"] < 0.3
+    case = point_sampled(["mask_overlay"], 5)
+    report = _diagnose(case, tmp_path / "case", "--effects", "etch_depth,mask_overlay,linewidth_bias",
+                       "--instrument", str(cal))
+    inst = report["inputs"]["placement"]["instrument"]
+    assert inst["source"] == "calibration (held fixed)" and inst["blur_sigma_m"] == lateral["blur_sigma_m"]
+    assert _fabrication(report) == ["mask_overlay"]
+    assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
+
+
+def test_a_bad_calibration_file_is_one_line_and_status_2(tmp_path, capsys):
+    case = filegen.make_case([], 3, design_px=24, field_px=48)
+    design, measured = case.write(tmp_path)
+    bad = tmp_path / "instrument.json"
+    bad.write_text(json.dumps({"format": "doe-toolkit instrument calibration",
+                               "lateral_transfer": {"blur_sigma_m": 0.3e-6, "fill_factor": 2.0, "na": 0.0,
+                                                    "wavelength_m": 0.57e-6}}))
+    code = main(["diagnose", "--design", str(design), "--measured", str(measured), "--out", str(tmp_path / "o"),
+                 "--instrument", str(bad)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "instrument.json" in err and "fill factor 2.0" in err and "Traceback" not in err
