@@ -78,11 +78,11 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from masks.decompose import binary_depths_m
     from masks.process import ProcessParams
     from metrology.diagnosis import engine as dg
-    from metrology.diagnosis.camera import CAMERA, OBJECTIVE, CameraHeightProblem, instrument_report
+    from metrology.diagnosis.camera import (CAMERA, OBJECTIVE, CameraHeightProblem, instrument_report,
+                                            objective_starts)
     from metrology.diagnosis.effects import get_effect
     from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement, robust_valid
-    from metrology.matching.transfer import NA_BOUNDS
     from metrology.matching.window import busiest_camera_window
 
     try:
@@ -113,12 +113,12 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
             return problem, fitted, rss, errors
 
         plain, m0, rss0, e0 = fit(False, {CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
-        t0 = plain.transfer_of(m0)
-        cam = np.array(m0[CAMERA.name], float)
-        na0 = 0.187 * wavelength_m / (2 * 0.404 * max(t0.sigma_m, 0.05e-6))
-        cam[5] *= 0.3
-        optic, m1, rss1, e1 = fit(True, {CAMERA.name: cam, OBJECTIVE.name: np.clip([na0], *NA_BOUNDS),
-                                         depth.name: m0[depth.name]})
+        optic = None
+        rss1 = np.inf
+        for start in objective_starts(m0, plain.transfer_of(m0)):
+            trial = fit(True, start)
+            if trial[2] < rss1:
+                optic, m1, rss1, e1 = trial
         n = plain.residual(m0).size
         n_eff = max(n / plain.noise.corr_area_px, 2.0)
         change = dg.bic_eff(rss1, n, n_eff, 12) - dg.bic_eff(rss0, n, n_eff, 11)

@@ -26,7 +26,7 @@ from doedesign.errors import DoeError
 from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import edge_breakdown, instrument_signature, structure_groups
-from metrology.diagnosis.effects import Effect, Parameter, effects_for
+from metrology.diagnosis.effects import Effect, Parameter, effects_for, get_effect
 from metrology.diagnosis.forked import forked_map
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
@@ -57,6 +57,11 @@ RENDER_CACHE_BYTES = 640 * 2 ** 20
 # RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
+# The instrument stage (:func:`choose_transfer`) fits on the busiest square of at most this many
+# camera pixels per side.
+STAGE_WINDOW_PX = 96
+# The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
+BATWING = "batwing"
 
 
 def _no_op(*args):
@@ -132,6 +137,9 @@ class CameraHeightProblem(dg.Problem):
         its parameters a model does not hold taken from :data:`DEFAULT_TRANSFER`.
     objective : bool
         Fit the objective's NA-limited transfer (:data:`OBJECTIVE`) as a nuisance too.
+    batwing : bool
+        Fit the batwing (the registered ``batwing`` effect) as a nuisance of the instrument,
+        not as a candidate.
     """
 
     units = "m"
@@ -144,7 +152,7 @@ class CameraHeightProblem(dg.Problem):
                  noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
                  centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES,
                  camera: Sequence[float] | None = None, transfer: LateralTransfer | None = None,
-                 objective: bool = False) -> None:
+                 objective: bool = False, batwing: bool = False) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -164,6 +172,9 @@ class CameraHeightProblem(dg.Problem):
         self.nuisance = {CAMERA.name: self.effects[CAMERA.name]}
         if self.objective:
             self.effects[OBJECTIVE.name] = self.nuisance[OBJECTIVE.name] = OBJECTIVE
+        self.batwing = bool(batwing)
+        if self.batwing:
+            self.effects[BATWING] = self.nuisance[BATWING] = get_effect(BATWING)
         self.curvature = curvature
         self.keep = np.isfinite(self.measured) if keep is None else np.asarray(keep, bool)
         if self.keep.sum() < 100:
@@ -367,7 +378,7 @@ class CameraHeightProblem(dg.Problem):
                                    keep=self.keep[rows, cols] if keep is None else keep, noise=noise,
                                    instrument=instrument, centre_px=np.asarray(self.centre_px, float) - [r0, c0],
                                    cache_bytes=RENDER_CACHE_BYTES // max(share, 1), transfer=self.fixed_transfer,
-                                   objective=self.objective)
+                                   objective=self.objective, batwing=self.batwing)
 
     def _render_blocked(self, model):
         """:meth:`render` of a large field, block by block: squares of about
@@ -510,24 +521,27 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                     transfer=as_transfer(screen_blur))
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
-        objective, prior, instrument_stage = False, None, None
+        extras, prior, instrument_stage = {}, None, None
 
-        def make(objective, keep):
+        def make(keep, **extras):
             # The floor is the measurement's: estimated once, on the screening model's residual
             # (the comparison's fitted process when given), not on the ideal element's, whose
             # process errors would leak into the interiors and raise it.
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
                                           noise=first.noise, instrument=first.instrument, transfer=transfer,
-                                          objective=objective)
+                                          **extras)
             fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
             if size > screen_window_px:
                 fit.screening = problem.crop(screen_window_px)
             return problem, fit
 
         if transfer is None:
-            objective, prior, instrument_stage = choose_transfer(lambda o: make(o, keep)[1], threshold)
+            stage_px = min(size, STAGE_WINDOW_PX)
+            extras, prior, instrument_stage = choose_transfer(
+                lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
+                threshold)
         for _ in range(3):
-            problem, fit = make(objective, keep)
+            problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
             # parameters after the residual has reached it.
@@ -547,47 +561,84 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         errors = dg.standard_errors(fit, diag.model, list(problem.nuisance))
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
-            diag.placement["instrument"]["objective_criterion_change"] = instrument_stage
+            diag.placement["instrument"]["criterion_change"] = instrument_stage
+            diag.placement["instrument"]["batwing"] = (np.asarray(diag.model[BATWING]).tolist() if BATWING in diag.model
+                                                       else None)
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag
 
 
-def choose_transfer(make: Callable[[bool], dg.Problem], threshold: float,
-                    ) -> tuple[bool, dict[str, np.ndarray], float]:
-    """Whether the objective's NA-limited transfer belongs to the instrument, decided before any
-    fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone, then with
-    the objective's NA; the NA is kept when it lowers the information criterion by more than
-    ``threshold``.
+def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) -> list[dict[str, np.ndarray]]:
+    """Starts of a fit with the objective's NA from a fit without it (``model``, whose lateral
+    transfer is ``transfer``): the same blur and fill factor under the widest aperture (the
+    model barely changed, so the fit can only improve on it), and an aperture whose transfer
+    halves where the fitted blur's does (chinese hat at s = 0.404, Gaussian at 0.187 / sigma)
+    with most of the blur handed to it."""
+    cam = np.array(model[CAMERA.name], float)
+    wide = {**model, OBJECTIVE.name: np.array([NA_BOUNDS[1]])}
+    na0 = 0.187 * transfer.wavelength_m / (2 * 0.404 * max(transfer.sigma_m, 0.05 * _UM))
+    narrow_cam = cam.copy()
+    narrow_cam[5] *= 0.3
+    narrow = {**model, CAMERA.name: narrow_cam, OBJECTIVE.name: np.clip([na0], *NA_BOUNDS)}
+    return [wide, narrow]
+
+
+def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
+                    ) -> tuple[dict[str, bool], dict[str, np.ndarray], dict[str, float]]:
+    """The instrument's family members beyond blur and fill factor that the data ask for, chosen
+    before any fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone,
+    then the objective's NA and the batwing are added greedily, each kept when it lowers the
+    information criterion by more than ``threshold``. Short fits with forward differences: the
+    diagnosis refits the nuisances to convergence from what this returns.
 
     Parameters
     ----------
     make : callable
-        ``make(objective) -> Problem`` (the diagnosis's problem with or without the objective).
+        ``make(objective=bool, batwing=bool) -> Problem``.
     threshold : float
 
     Returns
     -------
-    (bool, dict, float)
-        Whether to fit the objective, the nuisances' fitted values (the diagnosis's start) and
-        the criterion change the objective made.
+    (dict, dict, dict)
+        The chosen ``objective`` and ``batwing`` flags, the nuisances' fitted values (the
+        diagnosis's start) and each tried member's criterion change.
     """
-    plain = make(False)
-    m0, rss0, _ = dg.fit_effects(plain, {CAMERA.name: CAMERA.start_values()}, [CAMERA.name])
-    n = plain.residual(m0).size
+    state = {"objective": False, "batwing": False}
+    plain = make(**state)
+    model, rss, _ = dg.fit_effects(plain, {CAMERA.name: CAMERA.start_values()}, [CAMERA.name], max_iter=12,
+                                   central=False)
+    n = plain.residual(model).size
     n_eff = max(n / plain.noise.corr_area_px, 2.0)
-    optic = make(True)
-    # Started where the objective's transfer halves at the frequency the fitted blur's does
-    # (chinese hat at s = 0.404, Gaussian at 0.187 / sigma), the blur then mostly the optics'.
-    cam = np.array(m0[CAMERA.name], float)
-    t = plain.transfer_of(m0) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(m0)
-    na0 = 0.187 * t.wavelength_m / (2 * 0.404 * max(t.sigma_m, 0.05 * _UM))
-    cam[5] *= 0.3
-    m1, rss1, _ = dg.fit_effects(optic, {CAMERA.name: cam, OBJECTIVE.name: np.clip([na0], *NA_BOUNDS)},
-                                 [CAMERA.name, OBJECTIVE.name])
-    change = dg.bic_eff(rss1, n, n_eff, 8) - dg.bic_eff(rss0, n, n_eff, 7)
-    log.info("instrument: objective NA %.3f changes the criterion by %+.1f", m1[OBJECTIVE.name][0], change)
-    return (True, m1, float(change)) if change < -threshold else (False, m0, float(change))
+
+    def crit(problem, rss):
+        return dg.bic_eff(rss, n, n_eff, sum(e.n_params for e in problem.nuisance.values()))
+
+    current = crit(plain, rss)
+    transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
+    changes = {}
+    while not all(state.values()):
+        best = None
+        for extra in [k for k, v in state.items() if not v]:
+            problem = make(**{**state, extra: True})
+            if extra == "objective":
+                starts = objective_starts(model, transfer)
+            else:
+                starts = [{**model, BATWING: problem.effects[BATWING].start_values()}]
+            for start in starts:
+                fitted, rss, _ = dg.fit_effects(problem, start, list(problem.nuisance), max_iter=12, central=False)
+                c = crit(problem, rss)
+                changes[extra] = min(changes.get(extra, np.inf), c - current)
+                if c < current - threshold and (best is None or c < best[0]):
+                    best = (c, extra, fitted)
+        if best is None:
+            break
+        current, extra, model = best
+        state[extra] = True
+        transfer = make(**state)
+        transfer = transfer.transfer_of(model) if hasattr(transfer, "transfer_of") else transfer.whole.transfer_of(model)
+    log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
+    return state, model, {k: float(v) for k, v in changes.items()}
 
 
 def _plane(problem, crop, model):
