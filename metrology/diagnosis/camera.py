@@ -207,13 +207,17 @@ class CameraHeightProblem(dg.Problem):
         """The measurement's noise floor: the one given, or estimated (on first use) on the
         flat interiors of the residual against the base process at ``camera``."""
         if self._noise is None:
-            flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
-            groups, _ = ndi.label(flat & (self.cam_levels >= 0))
-            first = self.measured - self.render({CAMERA.name: self._noise_camera})
-            levelled = np.full(first.shape, np.nan)
-            levelled[self.keep] = self.leveller(first[self.keep])
-            self._noise = estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+            self._noise = self.noise_at({CAMERA.name: self._noise_camera})
         return self._noise
+
+    def noise_at(self, model: dict[str, np.ndarray]) -> NoiseEstimate:
+        """The noise floor estimated on the flat interiors of the residual against ``model``."""
+        flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
+        groups, _ = ndi.label(flat & (self.cam_levels >= 0))
+        first = self.measured - self.render(model)
+        levelled = np.full(first.shape, np.nan)
+        levelled[self.keep] = self.leveller(first[self.keep])
+        return estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
 
     def _edge_distance(self, mask, ri, ci, fr, fc):
         here = mask[ri, ci]
@@ -522,13 +526,14 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
         extras, prior, instrument_stage = {}, None, None
+        noise = first.noise
 
         def make(keep, **extras):
             # The floor is the measurement's: estimated once, on the screening model's residual
             # (the comparison's fitted process when given), not on the ideal element's, whose
             # process errors would leak into the interiors and raise it.
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
-                                          noise=first.noise, instrument=first.instrument, transfer=transfer,
+                                          noise=noise, instrument=first.instrument, transfer=transfer,
                                           **extras)
             fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
             if size > screen_window_px:
@@ -540,6 +545,13 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             extras, prior, instrument_stage = choose_transfer(
                 lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
                 threshold)
+            # The floor again, on the residual of the screening process through the instrument
+            # just fitted: an objective's long point spread or a batwing the screening model
+            # lacked rings into the interiors and raised the first estimate.
+            seen = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
+                                       keep=keep, instrument=first.instrument, **extras)
+            noise = seen.noise_at(prior)
+            log.info("noise floor %.3g m after the instrument stage (%.3g m before)", noise.sigma, first.noise.sigma)
         for _ in range(3):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
