@@ -86,12 +86,14 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
 
     A lateral transfer the model gets wrong leaves, at each edge, the step's height times one
     profile of the signed distance to the edge, whatever the mask; fabrication effects are
-    mask-, level- or position-specific. Two binned models of the residual are fitted by least
-    squares: one profile ``g`` shared by all masks, ``r = sum_j D_j g(d_j)`` (``D_j`` mask j's
-    depth, ``d_j`` the signed distance to its edges), and one profile per mask. The residual is
-    the instrument's when the per-mask model finds significant structure (its criterion drop
-    above the noise, in effective samples) and the shared profile holds at least ``share`` of
-    what the per-mask one explains.
+    mask-, level- or position-specific. One binned profile ``g`` shared by all masks,
+    ``r = sum_j D_j g(d_j)`` (``D_j`` mask j's depth, ``d_j`` the signed distance to its edges),
+    is fitted by least squares against one profile per mask. The residual is the instrument's
+    when the per-mask profiles find significant structure, the shared one holds at least
+    ``share`` of it, and each mask whose part of the shared prediction ``p_j = D_j g(d_j)`` is
+    measured well (its amplitude ``a_j = <r, p_j> / <p_j, p_j>`` to 0.2) carries it at full
+    amplitude (``0.5 <= a_j <= 1.5``), on at least two masks: a residual on one mask's edges
+    (the deepest dominates any shared fit) is that mask's.
 
     Parameters
     ----------
@@ -108,8 +110,9 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     Returns
     -------
     dict or None
-        ``explained_share`` (shared over per-mask), the shared profile per unit step
-        (``profile_per_m_step`` at ``distance_m``) and the rms it explains, or None.
+        ``explained_share`` (shared over per-mask), ``mask_amplitudes`` (``a_j``, NaN where not
+        measured), the shared profile per unit step (``profile_per_m_step`` at ``distance_m``)
+        and the rms it explains; or None.
     """
     edges = np.linspace(-3e-6, 3e-6, 25)
     ok = keep & np.isfinite(residual_map)
@@ -122,7 +125,7 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
         block = np.zeros((r.size, nb))
         block[np.nonzero(inside)[0], idx[inside]] = depth
         cols.append(block)
-    if not cols or r.size < 10 * nb:
+    if len(cols) < 2 or r.size < 10 * nb:
         return None
     per_mask = np.concatenate(cols, axis=1)
     shared = np.sum(cols, axis=0)
@@ -136,12 +139,17 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
 
     gain_mask, _ = explained(per_mask)
     gain_shared, profile = explained(shared)
-    # Significance in noise units over effective samples (chi-square of the per-mask model).
-    z2 = gain_mask / (sigma ** 2 * max(corr_area_px, 1.0))
-    if z2 < 25.0 + per_mask.shape[1] or gain_mask <= 0:
+    scale = sigma * np.sqrt(max(corr_area_px, 1.0))
+    if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + per_mask.shape[1] or gain_shared < share * gain_mask:
         return None
-    ratio = gain_shared / gain_mask
-    if ratio < share:
+    amplitudes = []
+    for block in cols:
+        p = block @ profile
+        norm = float(np.sqrt(np.sum(p ** 2)))
+        amplitudes.append(float(r @ p) / norm ** 2 if norm > 5.0 * scale else np.nan)
+    measured = [a for a in amplitudes if np.isfinite(a)]
+    if len(measured) < 2 or not all(0.5 <= a <= 1.5 for a in measured):
         return None
-    return {"explained_share": ratio, "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
+    return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,
+            "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
             "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}

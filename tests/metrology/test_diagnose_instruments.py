@@ -137,3 +137,38 @@ def test_a_bad_calibration_file_is_one_line_and_status_2(tmp_path, capsys):
                  "--instrument", str(bad)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and "instrument.json" in err and "fill factor 2.0" in err and "Traceback" not in err
+
+
+def _stripes(shape, periods_px, pixel_m=1e-6):
+    """Signed distance (m, + inside) to the edges of vertical stripes of each period (half open)."""
+    c = np.arange(shape[1]) + 0.5
+    out = []
+    for p in periods_px:
+        phase = np.mod(c, p)
+        inside = phase < p / 2
+        d = np.where(inside, np.minimum(phase, p / 2 - phase), -np.minimum(phase - p / 2, p - phase)) * pixel_m
+        out.append(np.broadcast_to(d, shape).copy())
+    return out
+
+
+def test_a_residual_shared_by_every_mask_edge_is_the_instrument_one_masks_is_not():
+    from metrology.diagnosis.breakdown import instrument_signature
+
+    rng = np.random.default_rng(4)
+    shape, depths = (120, 120), [75e-9, 150e-9, 300e-9, 600e-9]
+    edge_m = _stripes(shape, [7, 11, 17, 23])
+    keep = np.ones(shape, bool)
+
+    def g(d):  # an odd step-response error: too sharp a modelled transfer
+        return 0.04 * (d / 0.6e-6) * np.exp(-0.5 * (d / 0.6e-6) ** 2)
+
+    noise = 0.5e-9 * rng.standard_normal(shape)
+    instrument = sum(D * g(d) for D, d in zip(depths, edge_m)) + noise
+    found = instrument_signature(instrument, edge_m, depths, keep, 0.5e-9, 1.0)
+    assert found is not None and found["explained_share"] > 0.9
+    assert all(abs(a - 1) < 0.2 for a in found["mask_amplitudes"] if np.isfinite(a))
+    # The same profile on the deepest mask's edges only: a fabrication effect of that mask.
+    one_mask = depths[3] * g(edge_m[3]) + noise
+    assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0) is None
+    # Noise alone carries no structure.
+    assert instrument_signature(noise, edge_m, depths, keep, 0.5e-9, 1.0) is None
