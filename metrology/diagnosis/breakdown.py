@@ -111,7 +111,7 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     -------
     dict or None
         ``explained_share`` (shared over per-mask), ``mask_amplitudes`` (``a_j``, NaN where not
-        measured), the shared profile per unit step (``profile_per_m_step`` at ``distance_m``)
+        measured), ``odd_share`` (the profile's power in its part odd about the edge), the shared profile per unit step (``profile_per_m_step`` at ``distance_m``)
         and the rms it explains; or None.
     """
     edges = np.linspace(-3e-6, 3e-6, 25)
@@ -150,6 +150,8 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     measured = [a for a in amplitudes if np.isfinite(a)]
     if len(measured) < 2 or not all(0.5 <= a <= 1.5 for a in measured):
         return None
+    odd = 0.5 * (profile - profile[::-1])  # the bins are symmetric about the edge
     return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,
+            "odd_share": float(np.sum(odd ** 2) / max(np.sum(profile ** 2), 1e-300)),
             "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
             "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}

@@ -56,6 +56,14 @@ SCREEN_ITER_CROP = 2
 # Fraction of the noise floor above which a final residual is reported unexplained even when
 # no binned pattern earns its parameters (the noise-floor estimate itself is good to ~5 %).
 UNEXPLAINED_RATIO = 1.25
+# Share of the shared edge profile's power in its odd part (about the edge) above which an
+# instrument residual left by the instrument's own fit stops the diagnosis before any candidate:
+# a wrong lateral transfer leaves an odd profile, a linewidth bias (the one fabrication effect
+# the same at every mask's edges) an even one.
+EARLY_ODD_SHARE = 0.8
+# ... and above which a final unexplained residual shared by every mask's edges is the
+# instrument's (fabrication names then withheld).
+FINAL_ODD_SHARE = 0.5
 
 
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
@@ -346,7 +354,17 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     alternatives = {}
     log.info("diagnosis: %d samples, n_eff %.0f, noise floor %.3g, initial rms %.3g",
              n, n_eff, problem.noise.sigma, initial_rms)
-    while len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
+    # A fit that cannot close stops here and says so: what the instrument's own fit leaves is
+    # the instrument's (the same odd profile at every mask's edges), and no candidate may be
+    # named on it.
+    early = (problem.instrument_signature(maps[0]) if _rms(r) > UNEXPLAINED_RATIO * problem.noise.sigma
+             else None)
+    if early is not None and early["odd_share"] < EARLY_ODD_SHARE:
+        early = None
+    if early is not None:
+        log.info("the instrument's fit leaves an instrument residual (odd share %.2f): no candidate screened",
+                 early["odd_share"])
+    while early is None and len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
         pending = [nm for nm in names if nm not in model]
         if not pending:
             break
@@ -447,7 +465,9 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             final_map = problem.residual_map(model)
             maps = maps[:1] + [final_map]
             struct = _structure_test(problem, final_map, n_eff, n)
-    inadequate = problem.instrument_signature(final_map) if unexplained else None
+    inadequate = early if early is not None else problem.instrument_signature(final_map) if unexplained else None
+    if inadequate is not None and inadequate["odd_share"] < FINAL_ODD_SHARE:
+        inadequate = None
     if inadequate is not None:
         # The residual is the instrument's (the same at every mask's edges): its model's family
         # cannot close it, and no fabrication effect may be named on what it leaves.

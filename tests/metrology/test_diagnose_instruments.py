@@ -167,6 +167,7 @@ def test_a_residual_shared_by_every_mask_edge_is_the_instrument_one_masks_is_not
     found = instrument_signature(instrument, edge_m, depths, keep, 0.5e-9, 1.0)
     assert found is not None and found["explained_share"] > 0.9
     assert all(abs(a - 1) < 0.2 for a in found["mask_amplitudes"] if np.isfinite(a))
+    assert found["odd_share"] > 0.9
     # The same profile on the deepest mask's edges only: a fabrication effect of that mask.
     one_mask = depths[3] * g(edge_m[3]) + noise
     assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0) is None
