@@ -120,7 +120,9 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     nb = len(edges) - 1
     cols = []
     for d, depth in zip(edge_m, depths_m):
-        idx = np.digitize(np.asarray(d)[ok], edges) - 1
+        d = np.asarray(d)[ok]
+        # Mirror bins: d and -d fall in bins nb - 1 - k and k (the profile's odd part is then exact).
+        idx = np.where(d < 0, nb - np.digitize(-d, edges), np.digitize(d, edges) - 1)
         inside = (idx >= 0) & (idx < nb)
         block = np.zeros((r.size, nb))
         block[np.nonzero(inside)[0], idx[inside]] = depth
