@@ -425,8 +425,9 @@ _BUILTIN_HEIGHT = [
            "The etch rate depends on the local open fraction of the mask: depth follows pattern density."),
     Effect("mask_rotation", "height", "process",
            [Parameter(f"rotation_mask{j}_deg", "deg", -0.5, 0.5, 0.005) for j in (1, 2, 3)], _mask_rotation,
-           "A mask was printed rotated about the field centre against the first one: its overlay grows "
-           "linearly with the distance from the centre, opposite in sign on opposite sides."),
+           "A mask was printed rotated about the design's centre (design pixel ((rows - 1) / 2, (cols - 1) / 2), "
+           "not the camera field's) against the first one: its overlay grows linearly with the distance from "
+           "that centre, opposite in sign on opposite sides."),
     Effect("microtrenching", "height", "process",
            [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null) for j in range(4)
             for q, lo, hi, sc, null in (("depth", 0.0, 150e-9, 5e-9, 0.0), ("width", 0.05 * _UM, 3 * _UM, 0.1 * _UM,
@@ -437,7 +438,8 @@ _BUILTIN_HEIGHT = [
     Effect("etch_gradient", "height", "process",
            [Parameter(f"{ax}_per_m", "1/m", -100.0, 100.0, 5.0) for ax in ("x", "y")], _etch_gradient,
            "Plasma non-uniformity made every etch deeper on one side of the field by the same relative "
-           "amount per metre (x toward +column, y up; 10 /m = 1 % per mm)."),
+           "amount per metre (x toward +column, y up; 10 /m = 1 % per mm), referred to the design's centre "
+           "(depths nominal there, not at the camera field's centre)."),
     Effect("instrument_blur", "height", "surface",
            [Parameter("sigma_m", "m", 0.0, 3 * _UM, 0.2 * _UM)], _instrument_blur,
            "Measurement artefact: the profilometer's finite lateral resolution (about 0.8 um at NA 0.4) "
