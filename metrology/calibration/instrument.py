@@ -78,8 +78,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from masks.decompose import binary_depths_m
     from masks.process import ProcessParams
     from metrology.diagnosis import engine as dg
-    from metrology.diagnosis.camera import (CAMERA, OBJECTIVE, CameraHeightProblem, instrument_report,
-                                            objective_starts)
+    from metrology.diagnosis.camera import CameraHeightProblem
+    from metrology.diagnosis.camera_nuisance import CAMERA, OBJECTIVE, instrument_report, objective_starts
     from metrology.diagnosis.effects import get_effect
     from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement, robust_valid

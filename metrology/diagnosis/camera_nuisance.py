@@ -1,0 +1,171 @@
+"""The instrument's nuisances in the camera frame: the placement, the lateral transfer's family
+and the stage that chooses its members before any fabrication effect.
+
+:data:`CAMERA` (placement, Gaussian blur, pixel fill factor) is always fitted; the objective's
+NA-limited transfer (:data:`OBJECTIVE`) and the batwing join it when the data ask for them
+(:func:`choose_transfer`); with a calibrated transfer only the placement is fitted
+(:data:`PLACED`). The family and its conventions: :mod:`metrology.matching.transfer`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from metrology.diagnosis import engine as dg
+from metrology.diagnosis.effects import Effect, Parameter
+from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
+from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
+
+__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "OBJECTIVE", "PLACED", "STAGE_WINDOW_PX", "choose_transfer",
+           "instrument_report", "objective_starts", "placement_report"]
+
+log = logging.getLogger(__name__)
+
+_UM = 1e-6
+# The instrument stage (:func:`choose_transfer`) fits on the busiest square of at most this many
+# camera pixels per side.
+STAGE_WINDOW_PX = 96
+# The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
+BATWING = "batwing"
+
+
+
+def _no_op(*args):
+    return args[0]
+
+
+# The camera placement and the instrument's lateral transfer (Gaussian blur, pixel fill
+# factor: :mod:`metrology.matching.transfer`): always fitted, never named.
+CAMERA = Effect(
+    "camera", "height", "surface",
+    [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
+     Parameter("rotation_rad", "rad", -0.01, 0.01, 2e-5), Parameter("scale_row", "1", -0.03, 0.03, 2e-4),
+     Parameter("scale_col", "1", -0.03, 0.03, 2e-4),
+     Parameter("blur_sigma_m", "m", 0.0, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM),
+     Parameter("fill_factor", "1", 0.0, 1.0, 0.05, 1.0)],
+    _no_op, "Placement of the camera field on the design and the instrument's lateral transfer (nuisance).",
+    kind="artefact", order=-1)
+# The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
+# for it (chosen before any fabrication effect, :func:`instrument_stage`), never named.
+OBJECTIVE = Effect(
+    "objective", "height", "surface",
+    [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4)],
+    _no_op, "The objective's NA-limited optical transfer, cut-off 2 NA / lambda (nuisance).",
+    kind="artefact", order=-1)
+# The placement alone: the camera nuisance of an instrument whose transfer a calibration holds.
+PLACED = Effect("camera", "height", "surface", CAMERA.params[:5], _no_op,
+                "Placement of the camera field on the design (nuisance; the lateral transfer calibrated).",
+                kind="artefact", order=-1)
+# The lateral transfer's parameters a model does not hold (full pixels, no optical cut-off).
+DEFAULT_TRANSFER = LateralTransfer(sigma_m=0.4 * _UM, fill_factor=1.0, na=0.0)
+
+def instrument_report(t: LateralTransfer, sigma_err_m: float = np.nan, fill_err: float = np.nan,
+                      na_err: float = np.nan, calibrated: bool = False) -> dict[str, Any]:
+    """The lateral transfer as a report gives it (and a calibration file holds it): SI units,
+    uncertainties NaN where a parameter was held."""
+    return {"model": "pixel box (fill factor: area fraction, a centred square of side sqrt(fill) pixels) "
+                     "* Gaussian blur * NA-limited incoherent objective (cut-off 2 NA / lambda; na 0 = none)",
+            "blur_sigma_m": t.sigma_m, "blur_sigma_uncertainty_m": float(sigma_err_m),
+            "fill_factor": t.fill_factor, "fill_factor_uncertainty": float(fill_err),
+            "na": t.na, "na_uncertainty": float(na_err), "wavelength_m": t.wavelength_m,
+            "source": "calibration (held fixed)" if calibrated else "fitted with the placement"}
+
+
+def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) -> list[dict[str, np.ndarray]]:
+    """Starts of a fit with the objective's NA from a fit without it (``model``, whose lateral
+    transfer is ``transfer``): the same blur and fill factor under the widest aperture (the
+    model barely changed, so the fit can only improve on it), and an aperture whose transfer
+    halves where the fitted blur's does (chinese hat at s = 0.404, Gaussian at 0.187 / sigma)
+    with most of the blur handed to it."""
+    cam = np.array(model[CAMERA.name], float)
+    wide = {**model, OBJECTIVE.name: np.array([NA_BOUNDS[1]])}
+    na0 = 0.187 * transfer.wavelength_m / (2 * 0.404 * max(transfer.sigma_m, 0.05 * _UM))
+    narrow_cam = cam.copy()
+    narrow_cam[5] *= 0.3
+    narrow = {**model, CAMERA.name: narrow_cam, OBJECTIVE.name: np.clip([na0], *NA_BOUNDS)}
+    return [wide, narrow]
+
+
+def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
+                    ) -> tuple[dict[str, bool], dict[str, np.ndarray], dict[str, float]]:
+    """The instrument's family members beyond blur and fill factor that the data ask for, chosen
+    before any fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone,
+    then the objective's NA and the batwing are added greedily, each kept when it lowers the
+    information criterion by more than ``threshold``. Short fits with forward differences: the
+    diagnosis refits the nuisances to convergence from what this returns.
+
+    Parameters
+    ----------
+    make : callable
+        ``make(objective=bool, batwing=bool) -> Problem``.
+    threshold : float
+
+    Returns
+    -------
+    (dict, dict, dict)
+        The chosen ``objective`` and ``batwing`` flags, the nuisances' fitted values (the
+        diagnosis's start) and each tried member's criterion change.
+    """
+    state = {"objective": False, "batwing": False}
+    plain = make(**state)
+    model, rss, _ = dg.fit_effects(plain, {CAMERA.name: CAMERA.start_values()}, [CAMERA.name], max_iter=12,
+                                   central=False)
+    n = plain.residual(model).size
+    n_eff = max(n / plain.noise.corr_area_px, 2.0)
+
+    def crit(problem, rss):
+        return dg.bic_eff(rss, n, n_eff, sum(e.n_params for e in problem.nuisance.values()))
+
+    current = crit(plain, rss)
+    transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
+    changes = {}
+    while not all(state.values()):
+        best = None
+        for extra in [k for k, v in state.items() if not v]:
+            problem = make(**{**state, extra: True})
+            if extra == "objective":
+                starts = objective_starts(model, transfer)
+            else:
+                starts = [{**model, BATWING: problem.effects[BATWING].start_values()}]
+            for start in starts:
+                fitted, rss, _ = dg.fit_effects(problem, start, list(problem.nuisance), max_iter=12, central=False)
+                c = crit(problem, rss)
+                changes[extra] = min(changes.get(extra, np.inf), c - current)
+                if c < current - threshold and (best is None or c < best[0]):
+                    best = (c, extra, fitted)
+        if best is None:
+            break
+        current, extra, model = best
+        state[extra] = True
+        transfer = make(**state)
+        transfer = transfer.transfer_of(model) if hasattr(transfer, "transfer_of") else transfer.whole.transfer_of(model)
+    log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
+    return state, model, {k: float(v) for k, v in changes.items()}
+
+
+def placement_report(problem: Any, model: dict[str, np.ndarray],
+                     errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+    """The refined placement and the lateral transfer of a camera problem's ``model``, with
+    uncertainties (camera pixels, degrees; NaN for a parameter held fixed)."""
+    cam = np.asarray(model[CAMERA.name], float)
+    errors = errors or {}
+    err = np.full(7, np.nan)
+    given = np.asarray(errors.get(CAMERA.name, ()), float)
+    err[:given.size] = given
+    na_err = float(np.asarray(errors.get(OBJECTIVE.name, [np.nan]), float)[0])
+    t = problem.transfer_of(model)
+    px_per_design = problem.pitch_m / problem.pixel_m
+    final = problem.placement.refined(cam[:5], problem.measured.shape, problem.centre_px)
+    return {"refinement": {name: float(v) for name, v in zip(PLACEMENT_PARAMS, cam[:5])},
+            "shift_uncertainty_camera_px": [float(e * px_per_design) for e in err[:2]],
+            "rotation_uncertainty_deg": float(np.degrees(err[2])),
+            "scale_uncertainty": [float(e) for e in err[3:5]],
+            "blur_sigma_um": t.sigma_m * 1e6, "blur_sigma_uncertainty_um": float(err[5] * 1e6),
+            "instrument": instrument_report(t, err[5], err[6], na_err if OBJECTIVE.name in model else np.nan,
+                                            calibrated=problem.fixed_transfer is not None),
+            "matrix": final.matrix.tolist(), "offset": final.offset.tolist(),
+            "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}
