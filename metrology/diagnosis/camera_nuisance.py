@@ -29,6 +29,9 @@ _UM = 1e-6
 # The instrument stage (:func:`choose_transfer`) fits on the busiest square of at most this many
 # camera pixels per side.
 STAGE_WINDOW_PX = 96
+# Odd share of the shared edge profile (:func:`~metrology.diagnosis.breakdown.instrument_signature`)
+# the blur and fill factor must leave for the stage to try the objective and the batwing.
+STAGE_ODD_SHARE = 0.5
 # The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
 BATWING = "batwing"
 
@@ -93,8 +96,9 @@ def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) ->
 def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
                     ) -> tuple[dict[str, bool], dict[str, np.ndarray], dict[str, float]]:
     """The instrument's family members beyond blur and fill factor that the data ask for, chosen
-    before any fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone,
-    then the objective's NA and the batwing are added greedily, each kept when it lowers the
+    before any fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone;
+    when they leave an instrument's residual (an odd edge profile shared by every mask), the
+    objective's NA and the batwing are added greedily, each kept when it lowers the
     information criterion by more than ``threshold``. Short fits with forward differences: the
     diagnosis refits the nuisances to convergence from what this returns.
 
@@ -121,6 +125,12 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         return dg.bic_eff(rss, n, n_eff, sum(e.n_params for e in problem.nuisance.values()))
 
     current = crit(plain, rss)
+    # Only an instrument's residual (an odd profile shared by every mask's edges) asks for more of
+    # the family: elsewhere the stage costs one short fit.
+    left = plain.instrument_signature(plain.residual_map(model))
+    if left is None or left["odd_share"] < STAGE_ODD_SHARE:
+        log.info("instrument stage: blur and fill factor leave no instrument residual")
+        return dict(state), model, {}
     transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
     changes = {}
     while not all(state.values()):
