@@ -117,38 +117,49 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     edges = np.linspace(-3e-6, 3e-6, 25)
     ok = keep & np.isfinite(residual_map)
     r = residual_map[ok]
-    nb = len(edges) - 1
-    cols = []
-    for d, depth in zip(edge_m, depths_m):
+    nb, nm = len(edges) - 1, len(edge_m)
+    if nm < 2 or r.size < 10 * nb:
+        return None
+    # Column index (mask j, bin k) -> j nb + k of each pixel, -1 outside the bins; the models'
+    # normal equations by counting (a field's 250 000 pixels x 96 columns held densely, and
+    # their least squares, cost seconds).
+    cols = np.full((nm, r.size), -1)
+    for j, d in enumerate(edge_m):
         d = np.asarray(d)[ok]
         # Mirror bins: d and -d fall in bins nb - 1 - k and k (the profile's odd part is then exact).
         idx = np.where(d < 0, nb - np.digitize(-d, edges), np.digitize(d, edges) - 1)
-        inside = (idx >= 0) & (idx < nb)
-        block = np.zeros((r.size, nb))
-        block[np.nonzero(inside)[0], idx[inside]] = depth
-        cols.append(block)
-    if len(cols) < 2 or r.size < 10 * nb:
-        return None
-    per_mask = np.concatenate(cols, axis=1)
-    shared = np.sum(cols, axis=0)
+        cols[j] = np.where((idx >= 0) & (idx < nb), j * nb + idx, -1)
+    depth_of = np.repeat(np.asarray(depths_m, float), nb)
+    n_col = nm * nb
+    rhs = np.zeros(n_col)
+    gram = np.zeros(n_col * n_col)
+    for j in range(nm):
+        inj = cols[j] >= 0
+        rhs += np.bincount(cols[j][inj], weights=r[inj], minlength=n_col)
+        for k in range(nm):
+            both = inj & (cols[k] >= 0)
+            gram += np.bincount(cols[j][both] * n_col + cols[k][both], minlength=n_col * n_col)
+    gram = gram.reshape(n_col, n_col) * np.outer(depth_of, depth_of)
+    rhs *= depth_of
+    # The shared model's columns are the sums of the masks' columns of the same bin.
+    fold = np.tile(np.eye(nb), (nm, 1))
 
-    def explained(a):
-        used = np.any(a != 0, axis=0)
-        coef, *_ = np.linalg.lstsq(a[:, used], r, rcond=None)
-        full = np.zeros(a.shape[1])
-        full[used] = coef
-        return float(np.sum(r ** 2) - np.sum((r - a[:, used] @ coef) ** 2)), full
+    def explained(g, b):
+        used = np.diag(g) > 0
+        coef = np.zeros(b.size)
+        coef[used] = np.linalg.lstsq(g[np.ix_(used, used)], b[used], rcond=None)[0]
+        return float(b @ coef), coef
 
-    gain_mask, _ = explained(per_mask)
-    gain_shared, profile = explained(shared)
+    gain_mask, _ = explained(gram, rhs)
+    gain_shared, profile = explained(fold.T @ gram @ fold, fold.T @ rhs)
     scale = sigma * np.sqrt(max(corr_area_px, 1.0))
-    if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + per_mask.shape[1] or gain_shared < share * gain_mask:
+    if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + n_col or gain_shared < share * gain_mask:
         return None
     amplitudes = []
-    for block in cols:
-        p = block @ profile
-        norm = float(np.sqrt(np.sum(p ** 2)))
-        amplitudes.append(float(r @ p) / norm ** 2 if norm > 5.0 * scale else np.nan)
+    for j in range(nm):
+        blk = slice(j * nb, (j + 1) * nb)
+        norm2 = float(profile @ gram[blk, blk] @ profile)
+        amplitudes.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
     measured = [a for a in amplitudes if np.isfinite(a)]
     if len(measured) < 2 or not all(0.5 <= a <= 1.5 for a in measured):
         return None
