@@ -115,8 +115,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         plain, m0, rss0, e0 = fit(False, {CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
         optic = None
         rss1 = np.inf
-        for start in objective_starts(m0, plain.transfer_of(m0)):
-            trial = fit(True, start)
+        for init in objective_starts(m0, plain.transfer_of(m0)):
+            trial = fit(True, init)
             if trial[2] < rss1:
                 optic, m1, rss1, e1 = trial
         n = plain.residual(m0).size
