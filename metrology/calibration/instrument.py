@@ -132,8 +132,10 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     log.info("instrument calibrated: blur %.3f um, fill %.2f, NA %.3f; residual %.3g m against a floor of %.3g m",
              t.sigma_m * 1e6, t.fill_factor, t.na, residual, problem.noise.sigma)
     return {"format": FORMAT, "version": VERSION, "lateral_transfer": lateral,
-            "artefact": {"measurement": source, "step_heights_m": np.asarray(model[depth.name], float).tolist(),
-                         "step_heights_uncertainty_m": np.asarray(errors.get(depth.name), float).tolist(),
+            "artefact": {"measurement": source,
+                         "step_heights_m": (np.asarray(depths) * (1 + np.asarray(model[depth.name], float))).tolist(),
+                         "step_heights_uncertainty_m": (np.asarray(depths)
+                                                        * np.asarray(errors.get(depth.name), float)).tolist(),
                          "nominal_step_heights_m": depths},
             "fit": {"residual_rms_m": residual, "noise_floor_m": problem.noise.sigma,
                     "objective_criterion_change": float(change), "pixels": int(n),
