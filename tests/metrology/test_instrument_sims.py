@@ -19,9 +19,8 @@ def _point_case(truth, seed, design_px=40, field_px=130):
     return filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
 
 
+# Failed before the instrument's transfer was fitted (a false etch_loading beside the overlay).
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the diagnosis models pixel-area integration; on this point-sampling "
-                                       "camera it names a false etch_loading beside the overlay")
 def test_point_sampling_camera_overlay_is_named_with_its_mask_and_shift(tmp_path):
     shift = 0.45e-6 * np.array([np.cos(2.2), np.sin(2.2)])
     case = _point_case({"mask_overlay": {"mask": 2, "shift_m": shift}}, 31)
