@@ -65,18 +65,7 @@ def field_px(design_px=DESIGN_PX):
 
 def planned_cases(n, seed=2024):
     """``n`` (effects, seed) pairs in ``filegen.random_cases``' mix: null, single, single, pair."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for k in range(n):
-        kind = k % 4
-        if kind == 0:
-            names = []
-        elif kind == 3:
-            names = [str(v) for v in rng.choice(filegen.FAB_EFFECTS, 2, replace=False)]
-        else:
-            names = [str(rng.choice(filegen.FAB_EFFECTS))]
-        out.append((names, int(rng.integers(0, 2 ** 31))))
-    return out
+    return filegen.planned_cases(n, seed)
 
 
 def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None):

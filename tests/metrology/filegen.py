@@ -319,8 +319,9 @@ def make_case(effects, seed, design_px=48, field_px=160, truth=None, instrument=
     return FileCase(levels=levels, truth=hidden, instrument=inst, height_m=height, seed=seed)
 
 
-def random_cases(n, seed):
-    """``n`` cases: nulls, each effect alone, and pairs, drawn from ``seed``."""
+def planned_cases(n, seed):
+    """``n`` (effect names, case seed) pairs drawn from ``seed``: nulls, each effect alone, and pairs
+    (the mix of :func:`random_cases`, for harnesses that make each case their own way)."""
     rng = np.random.default_rng(seed)
     out = []
     for k in range(n):
@@ -328,8 +329,13 @@ def random_cases(n, seed):
         if kind == 0:
             names = []
         elif kind == 3:
-            names = list(rng.choice(FAB_EFFECTS, 2, replace=False))
+            names = [str(v) for v in rng.choice(FAB_EFFECTS, 2, replace=False)]
         else:
             names = [str(rng.choice(FAB_EFFECTS))]
-        out.append(make_case(names, int(rng.integers(0, 2 ** 31))))
+        out.append((names, int(rng.integers(0, 2 ** 31))))
     return out
+
+
+def random_cases(n, seed):
+    """``n`` cases: nulls, each effect alone, and pairs, drawn from ``seed``."""
+    return [make_case(names, case_seed) for names, case_seed in planned_cases(n, seed)]
