@@ -53,8 +53,9 @@ if TYPE_CHECKING:
     from ..materials import Material
     from ..progress import Progress
 
-__all__ = ["DEFAULT_THREADS", "DEVICE_KERNEL_CACHE_SIZE", "KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS", "PSFEngine", "PSFResult", "VIEWS",
-           "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm", "read_psf_arrays"]
+__all__ = ["DEFAULT_THREADS", "DEVICE_KERNEL_CACHE_SIZE", "KERNEL_CACHE_SIZE", "MAX_DEFOCUS_STEP_RAD", "MAX_WAVELENGTHS",
+           "PSFEngine", "PSFResult", "VIEWS", "WARN_DEFOCUS_STEP_RAD", "compute_psf", "parse_wavelengths_nm",
+           "read_psf_arrays"]
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +144,9 @@ class PSFEngine:
         self._offset = ((self.grid_shape[0] - self.shape[0]) // 2, (self.grid_shape[1] - self.shape[1]) // 2)
         # Light is counted against the unobstructed half-aperture, before the element's chrome.
         unobstructed = {name: float(np.sum(weights[i] ** 2)) for i, name in enumerate(VIEWS)}
-        clear = np.array(weights)
+        clear = weights
         if aperture is not None:
+            clear = np.array(weights)
             clear[0] *= self._aperture_mask(aperture)
         self._views = {}
         for i, name in enumerate(VIEWS):
