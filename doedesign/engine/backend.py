@@ -74,31 +74,23 @@ class Backend:
         return np.asarray(a)
 
     # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads.
+    def _threads(self, workers: int) -> dict:
+        return {"workers": workers} if self.is_numpy else {}
+
     def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
-        if self.is_numpy:
-            return self._fft.fft(x, n=n, axis=axis, workers=workers)
-        return self._fft.fft(x, n=n, axis=axis)
+        return self._fft.fft(x, n=n, axis=axis, **self._threads(workers))
 
     def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
-        if self.is_numpy:
-            return self._fft.ifft(x, n=n, axis=axis, workers=workers)
-        return self._fft.ifft(x, n=n, axis=axis)
+        return self._fft.ifft(x, n=n, axis=axis, **self._threads(workers))
 
     def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
-        if self.is_numpy:
-            return self._fft.fftn(x, s=s, axes=axes, workers=workers)
-        return self._fft.fftn(x, s=s, axes=axes)
+        return self._fft.fftn(x, s=s, axes=axes, **self._threads(workers))
 
     def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
-        if self.is_numpy:
-            return self._fft.ifftn(x, s=s, axes=axes, workers=workers)
-        return self._fft.ifftn(x, s=s, axes=axes)
+        return self._fft.ifftn(x, s=s, axes=axes, **self._threads(workers))
 
     def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
-        if self.is_numpy:
-            return self._fft.rfftn(x, s=s, axes=axes, workers=workers)
-        return self._fft.rfftn(x, s=s, axes=axes)
-
+        return self._fft.rfftn(x, s=s, axes=axes, **self._threads(workers))
 
 def numpy_backend() -> Backend:
     """The CPU backend: NumPy arrays (through ``array_api_compat``'s NumPy namespace, which
