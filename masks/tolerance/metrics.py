@@ -37,8 +37,8 @@ from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
 
-__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "design_target_mask", "design_wavelengths_depths", "metric_set",
-           "metric_unit", "ring_radii_px", "user_metric_functions"]
+__all__ = ["DIRECTIONS", "MetricSet", "PRIMARY", "design_target", "design_target_mask", "design_wavelengths_depths",
+           "metric_set", "metric_unit", "ring_radii_px", "user_metric_functions"]
 
 log = logging.getLogger(__name__)
 
@@ -224,17 +224,17 @@ def design_wavelengths_depths(design: Design, camera: Camera) -> tuple[np.ndarra
     return wls, np.asarray(depths or [camera.focus_distance_m], float)
 
 
-def design_target_mask(design: Design, camera: Camera, wavelengths_m: np.ndarray,
-                       depths_m: np.ndarray) -> np.ndarray | None:
-    """The pixels of the target a design was made for, rebuilt from its metadata.
+def design_target(design: Design, camera: Camera, wavelengths_m: np.ndarray,
+                  depths_m: np.ndarray) -> targets.Target | None:
+    """The built-in target a design was made for, rebuilt from its metadata for ``camera``.
 
     The design file stores its target as ``metadata["target"]`` (:meth:`doedesign.targets.Target.summary`:
-    kind and options); the same built-in target is rebuilt for ``camera``. This is the one
-    target every figure of merit of the design is taken on (design report, tolerance, comparison).
+    kind and options); the same built-in target is rebuilt at ``wavelengths_m`` (and, but for
+    Bayer, ``depths_m``).
 
     Returns
     -------
-    ndarray of bool (depths, wavelengths, rows, cols) or None
+    doedesign.targets.Target or None
         None when the design names no built-in target or it cannot be rebuilt on this window.
     """
     meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
@@ -249,9 +249,26 @@ def design_target_mask(design: Design, camera: Camera, wavelengths_m: np.ndarray
         if key in meta:
             options[key] = meta[key]
     try:
-        t = targets.build(kind, camera=camera, **options)
+        return targets.build(kind, camera=camera, **options)
     except DoeError as exc:
         log.info("target %r not rebuilt from the metadata (%s)", kind, exc)
+        return None
+
+
+def design_target_mask(design: Design, camera: Camera, wavelengths_m: np.ndarray,
+                       depths_m: np.ndarray) -> np.ndarray | None:
+    """The pixels of the target a design was made for (:func:`design_target`).
+
+    This is the one target every figure of merit of the design is taken on (design report,
+    tolerance, comparison).
+
+    Returns
+    -------
+    ndarray of bool (depths, wavelengths, rows, cols) or None
+        None when the design names no built-in target or it cannot be rebuilt on this window.
+    """
+    t = design_target(design, camera, wavelengths_m, depths_m)
+    if t is None:
         return None
     shape = (np.size(depths_m), np.size(wavelengths_m), *camera.window_shape)
     if t.intensity.shape[1:] != shape[1:]:

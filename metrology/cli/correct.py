@@ -19,6 +19,12 @@ measured error; x toward increasing column, y up, counter-clockwise, relative to
 bias taken out. The rest is reported as spread. The figure of merit of the design, the measured
 wafer and the corrected next wafer are predicted with doe tolerance's process model, and
 OUT/process_spec.toml (a doe tolerance spec) carries the measured spreads as sigmas.
+
+With --redesign, the element is also re-designed for the process as measured (the design loop
+with the fitted process as its nominal process, starting from the design's levels remapped to
+the fitted etch depths): for what no knob fixes, or a fab whose settings cannot change.
+OUT/redesign/ holds its design.npz, its masks (as doe masks writes them) and redesign.json; its
+predicted merit, under the same process model and draws, stands beside the others.
 """
 
 
@@ -36,6 +42,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="seed of the draws")
     p.add_argument("--min-feature-um", type=Number(float, 0, 100, unit="um"), default=None,
                    help="narrowest opening or gap the corrected masks may draw (default 1 um)")
+    p.add_argument("--redesign", action="store_true",
+                   help="also re-design the element for the process as measured (OUT/redesign/: design.npz, "
+                        "masks/, redesign.json) and predict its merit beside the plain correction")
+    p.add_argument("--redesign-iterations", type=Number(int, 1, 100_000), default=None, metavar="N",
+                   help="evaluations of the re-design's continuous stage (default 20; the annealing adds "
+                        "5 stages of N/4)")
+    p.add_argument("--redesign-samples", type=Number(int, 0, 1000), default=0, metavar="K",
+                   help="draws of the measured spreads the re-design averages over, beside the fitted "
+                        "process (default 0)")
     p.set_defaults(func=run)
 
 
@@ -46,20 +61,27 @@ def run(args: argparse.Namespace) -> int:
     from doedesign.fileio import ensure_output_dir
 
     from metrology.correction import correct
+    from metrology.correction.redesign import DEFAULT_ITERATIONS
 
     ensure_output_dir(args.out)
+    if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples):
+        raise DoeError("--redesign-iterations and --redesign-samples need --redesign")
     try:
         layers = [int(v) for v in args.layers.split(",")]
     except ValueError:
         raise DoeError(f"--layers must be comma-separated integers, got {args.layers!r}") from None
     sheet = correct(Design.load(args.design), args.diagnosis, args.out, design_path=str(args.design), layers=layers,
                     mirrored=args.mirror, samples=args.samples, seed=args.seed,
-                    min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6)
+                    min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
+                    redesign_iterations=(args.redesign_iterations or DEFAULT_ITERATIONS) if args.redesign else None,
+                    redesign_samples=args.redesign_samples)
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",
                 "corrected": sheet["corrected"], "warnings": sheet["warnings"], "primary_metric": primary,
                 "design": merit["design"]["central"][primary],
                 "measured_wafer": merit["measured_wafer"]["central"][primary],
-                "corrected_wafer": merit["corrected_wafer"]["central"][primary]})
+                "corrected_wafer": merit["corrected_wafer"]["central"][primary],
+                **({"redesigned_wafer": merit["redesigned_wafer"]["central"][primary],
+                    "redesign": f"{args.out}/redesign"} if "redesigned_wafer" in merit else {})})
     return 0

@@ -27,7 +27,7 @@ from doedesign.progress import Progress
 
 from .systematic import Estimate
 
-__all__ = ["params_for_wafer", "predict_merit"]
+__all__ = ["change_percent", "merit_evaluator", "params_for_wafer", "predict_merit", "wafer_merit"]
 
 # Diagnosis effect -> (tolerance-spec effect, component from the parameter name, factor to SI).
 _COMPONENT = {"mask_overlay": lambda p: p[:2], "etch_gradient": lambda p: p[:1],
@@ -78,6 +78,54 @@ def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nomina
     return out
 
 
+def merit_evaluator(design: Design, nominal_depths_m: Sequence[float], source: str = "design", oversample: int = 2):
+    """``doe tolerance``'s evaluator of ``design`` (its metrics set up on its ideal element) with
+    the ideal process at the diagnosed nominal depths as the base every wafer's errors add to."""
+    from masks.process import ProcessParams
+    from masks.tolerance.analysis import build_evaluator
+    from masks.tolerance.spec import ToleranceSpec
+
+    ev, _, _ = build_evaluator(design, ToleranceSpec(params=[]), source=source, oversample=oversample)
+    ev.base = ProcessParams.ideal(depths_m=nominal_depths_m)
+    return ev
+
+
+def wafer_merit(ev, spec, samples: int, seed: int, key: str, bar: Progress | None = None) -> dict:
+    """Metrics of one wafer: ``ev``'s element made with process ``spec`` at its central values and
+    at ``samples`` draws (sample k from ``SeedSequence([seed, k])``).
+
+    Returns
+    -------
+    dict
+        ``central``, ``samples``, ``draws`` (``mean``, ``std``, ``worst`` per metric) and ``parameters``.
+    """
+    from masks.tolerance.metrics import DIRECTIONS
+
+    ev.spec = spec
+    central = ev({"id": "centre", "values": spec.nominal_values(), "seed": seed})["metrics"]
+    if bar is not None:
+        bar.update(1, status=f"{key} centre")
+    draws = []
+    for k in range(samples):
+        values, s = spec.draw(seed, k)
+        draws.append(ev({"id": k, "values": values, "seed": s})["metrics"])
+        if bar is not None:
+            bar.update(1, status=f"{key} {k + 1}/{samples}")
+    stats = {}
+    for name in central:
+        v = np.array([d[name] for d in draws]) if draws else np.array([central[name]])
+        worst = v.max() if DIRECTIONS.get(name) == "lower" else v.min()
+        stats[name] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+                       "worst": float(worst)}
+    return {"central": central, "samples": samples, "draws": stats, "parameters": spec.describe()["parameters"]}
+
+
+def change_percent(value: float, base: float, lower_better: bool) -> float:
+    """``value`` against the design's ``base`` in percent, positive = better."""
+    change = (value - base) / abs(base) * 100 if base else math.nan
+    return -change if lower_better else change
+
+
 def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[dict],
                   nominal_depths_m: Sequence[float], samples: int = 12, seed: int = 0, source: str = "design",
                   oversample: int = 2) -> dict:
@@ -92,13 +140,10 @@ def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[
         draws, and ``primary_change_percent`` (central primary metric against the design's,
         negative = worse).
     """
-    from masks.process import ProcessParams
-    from masks.tolerance.analysis import build_evaluator
     from masks.tolerance.metrics import DIRECTIONS, metric_unit
     from masks.tolerance.spec import ToleranceSpec
 
-    ev, _, _ = build_evaluator(design, ToleranceSpec(params=[]), source=source, oversample=oversample)
-    ev.base = ProcessParams.ideal(depths_m=nominal_depths_m)
+    ev = merit_evaluator(design, nominal_depths_m, source, oversample)
     primary = ev.metrics.primary
     lower_better = DIRECTIONS.get(primary) == "lower"
     nominal = ev.metrics(ev.coded_psf(ev.height({})))
@@ -108,24 +153,8 @@ def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[
         for key, corrected in (("measured_wafer", False), ("corrected_wafer", True)):
             spec = ToleranceSpec(params=params_for_wafer(estimates, jobs, nominal_depths_m, corrected),
                                  source=f"doe correct: {key}")
-            ev.spec = spec
-            central = ev({"id": "centre", "values": spec.nominal_values(), "seed": seed})["metrics"]
-            bar.update(1, status=f"{key} centre")
-            draws = []
-            for k in range(samples):
-                values, s = spec.draw(seed, k)
-                draws.append(ev({"id": k, "values": values, "seed": s})["metrics"])
-                bar.update(1, status=f"{key} {k + 1}/{samples}")
-            stats = {}
-            for name in central:
-                v = np.array([d[name] for d in draws]) if draws else np.array([central[name]])
-                worst = v.max() if DIRECTIONS.get(name) == "lower" else v.min()
-                stats[name] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
-                               "worst": float(worst)}
-            out[key] = {"central": central, "samples": samples, "draws": stats, "parameters": spec.describe()["parameters"]}
+            out[key] = wafer_merit(ev, spec, samples, seed, key, bar)
     base = nominal[primary]
     for key in ("design", "measured_wafer", "corrected_wafer"):
-        v = out[key]["central"][primary]
-        change = (v - base) / abs(base) * 100 if base else math.nan
-        out[key]["primary_change_percent"] = -change if lower_better else change
+        out[key]["primary_change_percent"] = change_percent(out[key]["central"][primary], base, lower_better)
     return out

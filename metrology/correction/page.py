@@ -32,7 +32,10 @@ def job_page(sheet: dict, folder: Path) -> Path:
                               "detection limit", "fields naming it", "verdict"])
     merit_rows = []
     for key, label in (("design", "design (ideal process)"), ("measured_wafer", "measured wafer"),
-                       ("corrected_wafer", "next wafer, corrected")):
+                       ("corrected_wafer", "next wafer, corrected"),
+                       ("redesigned_wafer", "next wafer, re-designed, process as measured")):
+        if key not in merit:
+            continue
         w = merit[key]
         draws = w.get("draws", {}).get(primary)
         merit_rows.append([label, md.fmt(w["central"][primary], 4), md.fmt(w["primary_change_percent"], 3),
@@ -48,6 +51,15 @@ def job_page(sheet: dict, folder: Path) -> Path:
                f"({md.fmt(merit['measured_wafer']['primary_change_percent'], 3)} %), next wafer "
                f"{md.fmt(merit['corrected_wafer']['central'][primary], 4)} "
                f"({md.fmt(merit['corrected_wafer']['primary_change_percent'], 3)} %).\n")
+    if "redesigned_wafer" in merit:
+        rd = sheet["redesign"]
+        summary += (f"\nRe-designed for the process as measured (no knob turned; `{sheet['redesign_folder']}/`): "
+                    f"{primary} {md.fmt(merit['redesigned_wafer']['central'][primary], 4)} "
+                    f"({md.fmt(merit['redesigned_wafer']['primary_change_percent'], 3)} %), "
+                    f"{rd['levels_changed_fraction'] * 100:.1f} % of the pixels the coded view sees on another level, "
+                    f"{rd['evaluations']} evaluations; level remap "
+                    f"{', '.join(f'{k}->{v}' for k, v in enumerate(rd['level_remap']) if k != v) or 'none'}."
+                    + "".join(f" Note: {n}." for n in rd["notes"]) + "\n")
     conventions = "\n".join(f"- {k}: {v}" for k, v in sheet["conventions"].items()) + "\n"
     parts = [f"# Job sheet for `{sheet['design']}`", summary, "## Per mask", job, conventions,
              "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,

@@ -22,6 +22,7 @@ from .jobsheet import check_same_process, job_entries, warnings_for
 from .merit import predict_merit
 from .page import job_page
 from .process_spec import spec_table, toml_text
+from .redesign import redesign, write_redesign
 from .systematic import DETECTION_LIMITS, SIGNIFICANCE, combine_fields
 
 __all__ = ["CONVENTIONS", "correct"]
@@ -41,7 +42,8 @@ CONVENTIONS = {
 
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
             layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
-            min_feature_m: float | None = None) -> dict:
+            min_feature_m: float | None = None, redesign_iterations: int | None = None,
+            redesign_samples: int = 0) -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -61,6 +63,9 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     min_feature_m : float, optional
         Narrowest opening or gap the corrected masks may draw (default
         :data:`masks.corrected.MIN_FEATURE_M`).
+    redesign_iterations, redesign_samples : int, optional
+        Also re-design the element for the fitted process (:mod:`.redesign`) with this many
+        iterations and process draws, into ``out/redesign/``; its merit is ``redesigned_wafer``.
 
     Returns
     -------
@@ -89,6 +94,11 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
                            f"um cannot be drawn: {why}")
     warnings = warnings_for(estimates, fields)
     merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
+    if redesign_iterations:
+        new_design, new_report = redesign(design, estimates, depths, iterations=redesign_iterations,
+                                          robust_samples=redesign_samples, samples=samples, seed=seed, source=name,
+                                          merit=merit)
+        merit["redesigned_wafer"] = new_report["merit"]
     table, spec_notes = spec_table(estimates, jobs)
     header = [f"doe tolerance spec from doe correct of {name}: the sigmas are the spreads measured between "
               f"{len(fields)} field(s); means are what the corrected next run still carries",
@@ -125,6 +135,10 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         sheet["masks_verification"] = report["verification"]
         with atomic_path(out / "process_spec.toml") as tmp:
             tmp.write_text(text)
+        if redesign_iterations:
+            sheet["redesign"] = write_redesign(out / "redesign", new_design, new_report, depths_m=depths,
+                                               layers=layers, mirrored=mirrored)
+            sheet["redesign_folder"] = "redesign"
         write_json(out / "job.json", sheet)
         job_page(sheet, out)
     return sheet
