@@ -22,7 +22,8 @@ OUT/process_spec.toml (a doe tolerance spec) carries the measured spreads as sig
 
 With --redesign, the element is also re-designed for the process as measured (the design loop
 with the fitted process as its nominal process, starting from the design's levels remapped to
-the fitted etch depths): for what no knob fixes, or a fab whose settings cannot change.
+the fitted etch depths): for a fab whose settings cannot change, or, with --redesign-for
+corrected, for what the job sheet leaves (the knobs turned, the new masks drawn offset as well).
 OUT/redesign/ holds its design.npz, its masks (as doe masks writes them) and redesign.json; its
 predicted merit, under the same process model and draws, stands beside the others.
 """
@@ -48,6 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--redesign-iterations", type=Number(int, 1, 100_000), default=None, metavar="N",
                    help="evaluations of the re-design's continuous stage (default 20; the annealing adds "
                         "5 stages of N/4)")
+    p.add_argument("--redesign-for", choices=("measured", "corrected"), default=None,
+                   help="the process the re-design is for: as measured, no knob turned (default), or as the "
+                        "job sheet leaves it (the new masks drawn with its edge offsets)")
     p.add_argument("--redesign-samples", type=Number(int, 0, 1000), default=0, metavar="K",
                    help="draws of the measured spreads the re-design averages over, beside the fitted "
                         "process (default 0)")
@@ -64,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     from metrology.correction.redesign import DEFAULT_ITERATIONS
 
     ensure_output_dir(args.out)
-    if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples):
-        raise DoeError("--redesign-iterations and --redesign-samples need --redesign")
+    if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples or args.redesign_for):
+        raise DoeError("--redesign-iterations, --redesign-samples and --redesign-for need --redesign")
     try:
         layers = [int(v) for v in args.layers.split(",")]
     except ValueError:
@@ -74,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
                     mirrored=args.mirror, samples=args.samples, seed=args.seed,
                     min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
                     redesign_iterations=(args.redesign_iterations or DEFAULT_ITERATIONS) if args.redesign else None,
-                    redesign_samples=args.redesign_samples)
+                    redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured")
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",

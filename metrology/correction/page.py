@@ -33,7 +33,9 @@ def job_page(sheet: dict, folder: Path) -> Path:
     merit_rows = []
     for key, label in (("design", "design (ideal process)"), ("measured_wafer", "measured wafer"),
                        ("corrected_wafer", "next wafer, corrected"),
-                       ("redesigned_wafer", "next wafer, re-designed, process as measured")):
+                       ("redesigned_wafer", "next wafer, re-designed for the "
+                        + ("corrected process" if sheet.get("redesign", {}).get("process_of") == "corrected_wafer"
+                           else "process as measured"))):
         if key not in merit:
             continue
         w = merit[key]
@@ -53,7 +55,9 @@ def job_page(sheet: dict, folder: Path) -> Path:
                f"({md.fmt(merit['corrected_wafer']['primary_change_percent'], 3)} %).\n")
     if "redesigned_wafer" in merit:
         rd = sheet["redesign"]
-        summary += (f"\nRe-designed for the process as measured (no knob turned; `{sheet['redesign_folder']}/`): "
+        process = ("the corrected process (the job sheet applied to its masks too" if rd["process_of"] == "corrected_wafer"
+                   else "the process as measured (no knob turned")
+        summary += (f"\nRe-designed for {process}; `{sheet['redesign_folder']}/`): "
                     f"{primary} {md.fmt(merit['redesigned_wafer']['central'][primary], 4)} "
                     f"({md.fmt(merit['redesigned_wafer']['primary_change_percent'], 3)} %), "
                     f"{rd['levels_changed_fraction'] * 100:.1f} % of the pixels the coded view sees on another level, "

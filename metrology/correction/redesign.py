@@ -126,7 +126,8 @@ def _settings(design: Design, iterations: int, seed: int):
 
 def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Sequence[float], *,
              iterations: int = DEFAULT_ITERATIONS, robust_samples: int = 0, samples: int = 12, seed: int = 0,
-             source: str = "design", merit: dict | None = None) -> tuple[Design, dict]:
+             source: str = "design", merit: dict | None = None, jobs: Sequence[dict] | None = None,
+             min_feature_m: float | None = None) -> tuple[Design, dict]:
     """Re-design ``design`` for the fitted process and predict its merit (see the module docstring).
 
     Parameters
@@ -145,6 +146,10 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
         The merit's Monte Carlo draws and their seed (as for the other wafers).
     merit : dict, optional
         :func:`metrology.correction.merit.predict_merit`'s result, for the change against the design.
+    jobs : sequence of dict, optional
+        The job sheet (:func:`metrology.correction.jobsheet.job_entries`): re-design for the
+        corrected process instead (the knobs turned, what they leave), the new masks drawn with
+        the sheet's edge offsets (checked against ``min_feature_m``).
 
     Returns
     -------
@@ -166,8 +171,10 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     n_masks = int(round(math.log2(n_levels)))
     if len(nominal_depths_m) != n_masks:
         raise DoeError(f"{source}: {len(nominal_depths_m)} diagnosed mask depths for a {n_levels}-level design")
-    spec = ToleranceSpec(params=params_for_wafer(estimates, [], nominal_depths_m, corrected=False),
-                         source="doe correct: measured process (re-design)")
+    for_corrected = jobs is not None
+    against = "corrected_wafer" if for_corrected else "measured_wafer"
+    spec = ToleranceSpec(params=params_for_wafer(estimates, jobs or [], nominal_depths_m, corrected=for_corrected),
+                         source=f"doe correct: {'corrected' if for_corrected else 'measured'} process (re-design)")
     base = ProcessParams.ideal(depths_m=nominal_depths_m)
     central = spec.params_for(spec.nominal_values(), base, seed=seed)
     step = design.level_step_m(n_levels)
@@ -203,6 +210,8 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     seen = coded_support(ev.camera, design.pitch_m, design.shape)
     new.levels = np.where(seen, new.levels if final_loss <= start_loss else start_levels, levels).astype(np.int16)
     new.height_m = -new.levels * step
+    if for_corrected:
+        _check_offsets(new, jobs, min_feature_m, source)
     name = f"{design.name}_redesign"
     new.metadata = {**design.metadata, "name": name, "optimizer": dataclasses.asdict(settings),
                     "redesign": {"of": source, "process": spec.describe()["parameters"],
@@ -216,15 +225,16 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
         lower = DIRECTIONS.get(primary) == "lower"
         wafer["primary_change_percent"] = change_percent(wafer["central"][primary],
                                                          merit["design"]["central"][primary], lower)
-        if wafer["primary_change_percent"] <= merit["measured_wafer"]["primary_change_percent"]:
+        if wafer["primary_change_percent"] <= merit[against]["primary_change_percent"]:
             notes.append(f"the re-design is predicted no better than the design made with the same process "
                          f"({primary} {wafer['central'][primary]:.4g} against "
-                         f"{merit['measured_wafer']['central'][primary]:.4g}): keep the design, or re-design "
+                         f"{merit[against]['central'][primary]:.4g}): keep the design, or re-design "
                          "with more iterations")
     if not_modelled:
         notes.append(f"{', '.join(not_modelled)}: in the merit, not in the design loop (no smooth model)")
     report = {
-        "of": source, "name": name, "target": kind, "loss": dataclasses.asdict(loss),
+        "of": source, "name": name, "process_of": "corrected_wafer" if for_corrected else "measured_wafer",
+        "compare_with": against, "target": kind, "loss": dataclasses.asdict(loss),
         "iterations": int(iterations), "anneal_iterations_per_stage": settings.anneal_iter,
         "evaluations": run.report["evaluations"], "robust_samples": int(robust_samples),
         "process_samples": len(perturbations), "process": spec.describe()["parameters"],
@@ -239,13 +249,29 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     return new, report
 
 
+def _check_offsets(new: Design, jobs: Sequence[dict], min_feature_m: float | None, source: str) -> None:
+    """Refuse a re-design whose masks cannot be drawn with the job sheet's edge offsets."""
+    from masks.corrected import MIN_FEATURE_M, offset_feasibility
+    from masks.decompose import levels_to_masks
+
+    masks = levels_to_masks(new.levels, len(jobs))
+    limit = MIN_FEATURE_M if min_feature_m is None else float(min_feature_m)
+    for job in jobs:
+        why = offset_feasibility(masks[job["mask"]], new.pitch_m, job["drawn_edge_offset_um"] * 1e-6, limit)
+        if why:
+            raise DoeError(f"{source}: the re-design's mask {job['mask']} cannot take the job sheet's edge offset of "
+                           f"{job['drawn_edge_offset_um']:+.3f} um: {why}")
+
+
 def write_redesign(folder: str | Path, new: Design, report: dict, *, depths_m: Sequence[float],
-                   layers: Sequence[int], mirrored: bool) -> dict:
+                   layers: Sequence[int], mirrored: bool, jobs: Sequence[dict] | None = None) -> dict:
     """Write ``folder/design.npz``, ``folder/masks/`` (as ``doe masks``) and ``folder/redesign.json``;
     return the report without its merit (the job sheet has it beside the other wafers').
 
-    The masks carry the diagnosed nominal etch depths: the re-design is made with the process
-    as it was measured, no knob turned.
+    The masks carry the diagnosed nominal etch depths. Re-designed for the process as measured
+    (no knob turned) they are drawn as ``doe masks`` draws them; for the corrected process
+    (``jobs``) with the job sheet's edge offsets, and the job sheet's etch targets and aligner
+    settings apply to them as to the plain correction's.
     """
     from doedesign.fileio import write_json
     from masks.element import write_element
@@ -253,8 +279,17 @@ def write_redesign(folder: str | Path, new: Design, report: dict, *, depths_m: S
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     new.save(folder / "design.npz")
-    masks = write_element(new, folder / "masks", source=str(folder / "design.npz"), mirrored=mirrored,
-                          depths_m=depths_m, layers=layers)
+    if jobs is None:
+        masks = write_element(new, folder / "masks", source=str(folder / "design.npz"), mirrored=mirrored,
+                              depths_m=depths_m, layers=layers)
+    else:
+        from doedesign.fileio import output_run
+        from masks.corrected import write_offset_element
+
+        with output_run(folder / "masks", f"doe correct --redesign {new.name}"):
+            masks = write_offset_element(new, folder / "masks", [j["drawn_edge_offset_um"] * 1e-6 for j in jobs],
+                                         source=str(folder / "design.npz"), mirrored=mirrored, depths_m=depths_m,
+                                         layers=layers)
     report = {**report, "design_file": "design.npz", "masks_file": str(Path("masks") / Path(masks["file"]).name),
               "masks_verification": masks["verification"]}
     write_json(folder / "redesign.json", report)

@@ -43,7 +43,7 @@ CONVENTIONS = {
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
             layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
             min_feature_m: float | None = None, redesign_iterations: int | None = None,
-            redesign_samples: int = 0) -> dict:
+            redesign_samples: int = 0, redesign_for: str = "measured") -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -66,6 +66,8 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     redesign_iterations, redesign_samples : int, optional
         Also re-design the element for the fitted process (:mod:`.redesign`) with this many
         iterations and process draws, into ``out/redesign/``; its merit is ``redesigned_wafer``.
+    redesign_for : {"measured", "corrected"}
+        The process the re-design is for: as measured (no knob turned) or as the job sheet leaves it.
 
     Returns
     -------
@@ -95,9 +97,10 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     warnings = warnings_for(estimates, fields)
     merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
     if redesign_iterations:
+        redesign_jobs = jobs if redesign_for == "corrected" else None
         new_design, new_report = redesign(design, estimates, depths, iterations=redesign_iterations,
                                           robust_samples=redesign_samples, samples=samples, seed=seed, source=name,
-                                          merit=merit)
+                                          merit=merit, jobs=redesign_jobs, min_feature_m=min_feature)
         merit["redesigned_wafer"] = new_report["merit"]
     table, spec_notes = spec_table(estimates, jobs)
     header = [f"doe tolerance spec from doe correct of {name}: the sigmas are the spreads measured between "
@@ -137,7 +140,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
             tmp.write_text(text)
         if redesign_iterations:
             sheet["redesign"] = write_redesign(out / "redesign", new_design, new_report, depths_m=depths,
-                                               layers=layers, mirrored=mirrored)
+                                               layers=layers, mirrored=mirrored, jobs=redesign_jobs)
             sheet["redesign_folder"] = "redesign"
         write_json(out / "job.json", sheet)
         job_page(sheet, out)

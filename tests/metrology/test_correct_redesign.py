@@ -46,26 +46,31 @@ def _blaze(tmp_path, with_target=True):
     return design, path
 
 
-def _fields(tmp_path, design, path, depth_error_mask3):
-    """Three diagnosed fields: mask 3 etched ``depth_error_mask3`` too deep, +-0.2 % between fields."""
+def _fields(tmp_path, design, path, depth_error_mask3, bias_m=0.0):
+    """Three diagnosed fields: mask 3 etched ``depth_error_mask3`` too deep, +-0.2 % between fields;
+    with ``bias_m``, that linewidth bias on every mask (+-10 nm between fields)."""
     args = []
     for i, e in enumerate((depth_error_mask3 - 0.002, depth_error_mask3, depth_error_mask3 + 0.002)):
         folder = tmp_path / f"field{i}"
         folder.mkdir()
-        step = {"effect": "etch_depth", "kind": "fabrication",
-                "params": {f"depth_error_mask{j}": e if j == 3 else 0.0 for j in range(4)},
-                "uncertainties": {f"depth_error_mask{j}": 5e-4 for j in range(4)}}
-        report = {"domain": "height", "steps": [step], "unexplained": False, "noise_floor": 1e-9,
+        steps = [{"effect": "etch_depth", "kind": "fabrication",
+                  "params": {f"depth_error_mask{j}": e if j == 3 else 0.0 for j in range(4)},
+                  "uncertainties": {f"depth_error_mask{j}": 5e-4 for j in range(4)}}]
+        if bias_m:
+            steps.append({"effect": "linewidth_bias", "kind": "fabrication",
+                          "params": {f"bias_mask{j}_m": bias_m + (i - 1) * 10e-9 for j in range(4)},
+                          "uncertainties": {f"bias_mask{j}_m": 5e-9 for j in range(4)}})
+        report = {"domain": "height", "steps": steps, "unexplained": False, "noise_floor": 1e-9,
                   "measurement_artefacts": [], "inputs": {"nominal_depths_m": DEPTHS, **design_fingerprint(design, path)}}
         (folder / "report.json").write_text(json.dumps(report))
         args += ["--diagnosis", str(folder)]
     return args
 
 
-def _correct(tmp_path, depth_error, with_target=True, extra=()):
+def _correct(tmp_path, depth_error, with_target=True, extra=(), bias_m=0.0):
     design, path = _blaze(tmp_path, with_target)
     out = tmp_path / "out"
-    code = main(["correct", "--design", str(path), *_fields(tmp_path, design, path, depth_error), "--out", str(out),
+    code = main(["correct", "--design", str(path), *_fields(tmp_path, design, path, depth_error, bias_m), "--out", str(out),
                  "--samples", "4", "--redesign", "--redesign-iterations", "12", *extra])
     assert code == 0
     return json.loads((out / "job.json").read_text()), out
@@ -121,7 +126,7 @@ def test_redesign_takes_back_a_deep_etch_the_fab_keeps(tmp_path):
     full = json.loads((out / "redesign" / "redesign.json").read_text())
     assert full["merit"]["central"][p] == redesigned
     page = (out / "report.md").read_text()
-    assert "re-designed, process as measured" in page and "8->7" in page
+    assert "re-designed for the process as measured" in page and "8->7" in page
 
 
 def test_redesign_without_a_built_in_target_scores_the_merits_pixels(tmp_path):
@@ -147,6 +152,25 @@ def test_null_process_gives_a_redesign_no_better_than_the_design(tmp_path, with_
     error = math.hypot(measured["draws"][p]["std"], redesigned["draws"][p]["std"]) / math.sqrt(measured["samples"])
     assert redesigned["draws"][p]["mean"] <= measured["draws"][p]["mean"] + 3 * error + 1e-12
     assert redesigned["central"][p] <= merit["design"]["central"][p] + 3 * error + 1e-12
+
+
+def test_redesign_for_the_corrected_process_has_nothing_left_to_take(tmp_path):
+    """Deep etch and linewidth bias, both corrected by the job sheet: the corrected process is
+    nominal, so the re-design for it keeps the levels (no remap) and is no better than the
+    corrected wafer; its masks are drawn with the sheet's edge offsets."""
+    sheet, out = _correct(tmp_path, 0.15, bias_m=0.3e-6, extra=("--redesign-for", "corrected"))
+    merit = sheet["merit"]
+    p = merit["primary_metric"]
+    rd = sheet["redesign"]
+    assert rd["process_of"] == "corrected_wafer" and rd["level_remap"] == list(range(16))
+    corrected, redesigned = merit["corrected_wafer"], merit["redesigned_wafer"]
+    error = math.hypot(corrected["draws"][p]["std"], redesigned["draws"][p]["std"]) / math.sqrt(corrected["samples"])
+    assert redesigned["central"][p] <= corrected["central"][p] + 3 * error + 1e-12
+    assert merit["measured_wafer"]["central"][p] < redesigned["central"][p]
+    masks = json.loads((out / "redesign" / "masks" / "report.json").read_text())
+    assert [m["edge_offset_um"] for m in masks["layers"]] == pytest.approx([-0.3] * 4)
+    assert masks["verification"]["passed"]
+    assert "re-designed for the corrected process" in (out / "report.md").read_text()
 
 
 def test_redesign_options_without_redesign_are_refused(tmp_path, capsys):
