@@ -41,6 +41,7 @@ import numpy as np
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels
+from doedesign.progress import Progress
 
 from .merit import change_percent, merit_evaluator, params_for_wafer, wafer_merit
 from .systematic import Estimate
@@ -218,7 +219,8 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
                                  "robust_samples": int(robust_samples), "level_remap": table}}
     new.aperture = design.aperture if design.aperture is not None else new.aperture
     ev = dataclasses.replace(ev, levels=np.asarray(new.levels, np.int16))
-    wafer = wafer_merit(ev, spec, samples, seed, "redesigned_wafer")
+    with Progress(samples + 1, desc="doe correct: re-design merit") as bar:
+        wafer = wafer_merit(ev, spec, samples, seed, "redesigned_wafer", bar)
     primary = ev.metrics.primary
     notes = []
     if merit is not None:
@@ -226,10 +228,14 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
         wafer["primary_change_percent"] = change_percent(wafer["central"][primary],
                                                          merit["design"]["central"][primary], lower)
         if wafer["primary_change_percent"] <= merit[against]["primary_change_percent"]:
-            notes.append(f"the re-design is predicted no better than the design made with the same process "
-                         f"({primary} {wafer['central'][primary]:.4g} against "
-                         f"{merit[against]['central'][primary]:.4g}): keep the design, or re-design "
-                         "with more iterations")
+            theirs = merit[against]["central"]
+            better = [f"{k} {v:.4g} against {theirs[k]:.4g}" for k, v in wafer["central"].items()
+                      if k in theirs and (v < theirs[k] if DIRECTIONS.get(k) == "lower" else v > theirs[k])]
+            notes.append(f"the re-design is predicted no better than the design made with the same process in "
+                         f"{primary} ({wafer['central'][primary]:.4g} against {theirs[primary]:.4g})"
+                         + (f", better in {'; '.join(better)} (the loop's objective is {settings.objective}"
+                            f"{', ' + kind if settings.objective == 'loss' else ''})" if better else "")
+                         + f": keep the design where {primary} is what counts, or re-design with more iterations")
     if not_modelled:
         notes.append(f"{', '.join(not_modelled)}: in the merit, not in the design loop (no smooth model)")
     report = {
