@@ -1,31 +1,37 @@
 """Re-design for the fitted process (``doe correct --redesign``): what the masks cannot fix.
 
 The plain correction turns the fab's knobs (etch targets, aligner, drawn edges) against the
-systematic errors. The re-design instead keeps the process as it was measured and changes the
-element: the design loop (:func:`doedesign.optimizer.optimize.design_doe`) runs with the fitted
-process as its nominal process, so that the new levels, made with that process, give the best
-merit. A systematic etch-depth error on one mask changes the height of every level that uses
+systematic errors. The re-design instead keeps the process as it was measured (or as the job
+sheet leaves it) and changes the element: the design loop
+(:func:`doedesign.optimizer.optimize.design_doe`) runs with the fitted process as its nominal
+process, so that the new levels, made with that process, give the best merit. A systematic etch-depth error on one mask changes the height of every level that uses
 that mask; the re-design absorbs it by choosing, per pixel, the level whose *actual* height
 gives the wanted phase, and by re-optimizing the heights against the element's target.
 
 How:
 
 - the process: the measured wafer of :func:`metrology.correction.merit.params_for_wafer` (every
-  combined parameter at its mean), as a smooth process sample on continuous heights
+  combined parameter at its mean; with a job sheet, ``--redesign-for corrected``, the corrected
+  wafer: what the knobs leave), as a smooth process sample on continuous heights
   (:class:`masks.tolerance.smooth.SmoothProcess`: etch depth, etch gradient, linewidth bias,
   overlay and rotation; loading, blur, sidewalls and trenches act in the merit only). With
   ``robust_samples`` > 0, draws of the measured spreads are added and the loop minimizes the mean
   loss over all of them; they are draws ``samples .. samples + robust_samples - 1`` of the merit's
   seed, so out of the merit's own sample;
 - the start: the design's levels remapped, level ``k`` -> the level whose height under the
-  fitted etch depths is nearest to level ``k``'s nominal height modulo the 2 pi height (the
-  identity for an ideal process), then the loop's continuous stage and its annealing back to
-  the levels, short (``iterations``), as the starting point is already close;
+  fitted etch depths is nearest to level ``k``'s nominal height modulo the 2 pi height at the
+  design wavelength (the identity for an ideal process), then the loop's continuous stage and
+  its annealing back to the levels, short (``iterations``), as the start is already close. The
+  loop's quantized result is kept only where its loss (under the fitted process) is no higher
+  than the start's; pixels the coded view does not see keep their levels;
 - the target: the design's own built-in target (:func:`masks.tolerance.metrics.design_target`),
-  else (a design that names none) its ideal element's PSF as an image target;
+  else the light of its ideal element on the pixels its merit scores; the loss is the kind's
+  default where it has one (Bayer: the design's own objective, the soft minimum of the colours;
+  spots: L1 and energy, for their balance too; depth rings: L1), else the light missing from the
+  target pixels (the merit itself);
 - the merit: the re-designed levels in the design's own evaluator (the same target pixels and
-  metrics) under the measured wafer's process, with the same Monte Carlo draws as the other
-  wafers (:func:`metrology.correction.merit.wafer_merit`).
+  metrics) under the same process and Monte Carlo draws as the wafer it stands beside
+  (:func:`metrology.correction.merit.wafer_merit`).
 """
 
 from __future__ import annotations
@@ -54,7 +60,8 @@ log = logging.getLogger(__name__)
 DEFAULT_ITERATIONS = 20
 
 
-def remap_levels(levels: np.ndarray, actual_depths_m: np.ndarray, step_m: float, n_levels: int) -> tuple[np.ndarray, list]:
+def remap_levels(levels: np.ndarray, actual_depths_m: np.ndarray, step_m: float,
+                 n_levels: int) -> tuple[np.ndarray, list]:
     """Each level -> the level whose actual depth is nearest its nominal depth, modulo ``n_levels`` steps.
 
     Parameters
@@ -80,13 +87,11 @@ def remap_levels(levels: np.ndarray, actual_depths_m: np.ndarray, step_m: float,
 
 
 def redesign_target(design: Design, ev):
-    """The target the re-design optimizes, and its loss.
+    """The target the re-design optimizes, and its loss (see the module docstring).
 
     The design's built-in target (:func:`masks.tolerance.metrics.design_target`), else the light
     of its ideal element on the pixels the merit scores (``ev``'s target pixels, the brightest
-    holding 90 % of the ideal PSF). Where the merit is the light on those pixels (every kind but
-    Bayer, whose objective is the soft minimum of the colours, and depth rings) the loss is the
-    light missing from them (``energy``), the merit itself; else the kind's default loss.
+    holding 90 % of the ideal PSF).
     """
     from doedesign import targets
     from doedesign.optimizer.losses import LossSpec
@@ -104,7 +109,7 @@ def redesign_target(design: Design, ev):
                                 name=f"{design.name} ideal PSF",
                                 meta={"kind": "image", "source": "the design's ideal PSF on the merit's pixels"})
     kind = str(target.meta.get("kind", "image"))
-    loss = LossSpec.parse(targets.DEFAULT_LOSS.get(kind, "l1") if kind in ("bayer", "depth") else "energy")
+    loss = LossSpec.parse(targets.DEFAULT_LOSS.get(kind, "l1" if kind == "depth" else "energy"))
     return target, loss
 
 
@@ -122,7 +127,8 @@ def _settings(design: Design, iterations: int, seed: int):
     try:
         return OptimizerSettings(**keep)
     except (DoeError, TypeError) as exc:
-        raise DoeError(f"{design.name}: its recorded optimizer settings cannot be reused for the re-design: {exc}") from None
+        raise DoeError(f"{design.name}: its recorded optimizer settings cannot be reused for the re-design: "
+                       f"{exc}") from None
 
 
 def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Sequence[float], *,
