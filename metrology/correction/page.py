@@ -62,7 +62,8 @@ def job_page(sheet: dict, folder: Path) -> Path:
                     f"({md.fmt(merit['redesigned_wafer']['primary_change_percent'], 3)} %), "
                     f"{rd['levels_changed_fraction'] * 100:.1f} % of the pixels the coded view sees on another level, "
                     f"{rd['evaluations']} evaluations; level remap "
-                    f"{', '.join(f'{k}->{v}' for k, v in enumerate(rd['level_remap']) if k != v) or 'none'}."
+                    f"{', '.join(f'{k}->{v}' for k, v in enumerate(rd['level_remap']) if k != v) or 'none'} "
+                    f"(the remap alone: {md.fmt(rd['remap_only_central'][primary], 4)}; kept: {rd['kept']})."
                     + "".join(f" Note: {n}." for n in rd["notes"]) + "\n")
     conventions = "\n".join(f"- {k}: {v}" for k, v in sheet["conventions"].items()) + "\n"
     parts = [f"# Job sheet for `{sheet['design']}`", summary, "## Per mask", job, conventions,

@@ -224,6 +224,9 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
                     "redesign": {"of": source, "process": spec.describe()["parameters"],
                                  "robust_samples": int(robust_samples), "level_remap": table}}
     new.aperture = design.aperture if design.aperture is not None else new.aperture
+    remapped_only = dataclasses.replace(ev, levels=np.where(seen, start_levels, levels).astype(np.int16))
+    remapped_only.spec = spec
+    remap_merit = remapped_only({"id": "remap", "values": spec.nominal_values(), "seed": seed})["metrics"]
     ev = dataclasses.replace(ev, levels=np.asarray(new.levels, np.int16))
     with Progress(samples + 1, desc="doe correct: re-design merit") as bar:
         wafer = wafer_merit(ev, spec, samples, seed, "redesigned_wafer", bar)
@@ -256,7 +259,7 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
         "levels_changed_from_remap_fraction": float(np.mean((new.levels != start_levels)[seen])),
         "loss_at_start": start_loss, "loss_final": min(final_loss, start_loss),
         "loss_of_the_loop": final_loss, "quantized_from": run.report.get("quantized_from"), "kept": kept,
-        "notes": notes, "merit": wafer,
+        "remap_only_central": remap_merit, "notes": notes, "merit": wafer,
     }
     return new, report
 

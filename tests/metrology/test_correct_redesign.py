@@ -110,6 +110,7 @@ def test_redesign_takes_back_a_deep_etch_the_fab_keeps(tmp_path):
     assert measured / design == pytest.approx(as_etched, abs=0.01)
     remapped = _first_order_factor([0.0] * 8 + [-2 * math.pi / 16] + [0.2 * 2 * math.pi / 16] * 7)
     assert redesigned / design == pytest.approx(remapped, abs=0.01)
+    assert redesigned >= sheet["redesign"]["remap_only_central"][p]
     # Better than the uncorrected wafer far beyond the Monte Carlo spread of either.
     sd = max(merit[k]["draws"][p]["std"] for k in ("measured_wafer", "redesigned_wafer"))
     assert redesigned - measured > 10 * sd
@@ -137,6 +138,9 @@ def test_redesign_without_a_built_in_target_scores_the_merits_pixels(tmp_path):
     assert p == "efficiency" and sheet["redesign"]["target"] == "image"
     sd = max(merit[k]["draws"][p]["std"] for k in ("measured_wafer", "redesigned_wafer"))
     assert merit["redesigned_wafer"]["central"][p] - merit["measured_wafer"]["central"][p] > 10 * sd
+    # Here the loop adds to the remap (its ideal-PSF target is the light on the same pixels).
+    assert sheet["redesign"]["kept"] == "design loop"
+    assert merit["redesigned_wafer"]["central"][p] - sheet["redesign"]["remap_only_central"][p] > 5 * sd
 
 
 @pytest.mark.parametrize("with_target", [True, False])
