@@ -25,11 +25,19 @@ def level_penalty(height_m: ArrayLike, step_m: float,
                   support: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
     h = np.asarray(height_m, dtype=float)
-    s = np.ones(h.shape, bool) if support is None else support
-    n = max(int(s.sum()), 1)
-    x = np.pi * h / step_m
-    value = float(np.sum(np.sin(x)[s] ** 2) / n)
-    grad = np.where(s, np.pi / step_m * np.sin(2 * x) / n, 0.0)
+    # On the support only, one sine and one cosine: sin 2x = 2 sin x cos x. It runs once per
+    # annealing evaluation over the whole map, on the host beside nlopt.
+    x = (np.pi / step_m) * (h if support is None else h[support])
+    n = max(x.size, 1)
+    sin = np.sin(x)
+    value = float(np.vdot(sin, sin)) / n
+    g = np.cos(x)
+    g *= sin
+    g *= 2 * np.pi / step_m / n
+    if support is None:
+        return value, g
+    grad = np.zeros(h.shape)
+    grad[support] = g
     return value, grad
 
 
