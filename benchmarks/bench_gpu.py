@@ -8,18 +8,27 @@ PSFs and gradients come out as NumPy arrays):
   stack relative to its peak;
 - ``value_and_grad`` of the demo's Bayer loss (the few target pixels and the window energy) at
   1600 px;
-- the demo's Bayer design at 1600 px (its settings, as bench_design's ``bayer_design_time``).
+- the demo's Bayer design at 1600 px (its settings, as bench_design's ``bayer_design_time``);
+- ``doe tolerance``: N Monte Carlo samples (default 1,000) of the full-size Bayer element
+  (1600 px, the demo's camera and 512 x 512 window) at 31 wavelengths, process render, PSFs
+  and metrics on the GPU, timed whole (nominal, samples, report) with the issue's limit of
+  5 minutes per 1,000 samples; beside it a few samples of the same run on the CPU, whose
+  per-sample time is extrapolated to N (labelled so in the row).
 
 Run where CuPy finds a GPU: ``python -m benchmarks.bench_gpu --out rows.json`` (what
-``benchmarks/gpu_check.sh`` does). Times are medians of repeated runs after a warm-up.
+``benchmarks/gpu_check.sh`` does; ``--rows tolerance --tolerance-samples 200`` for a shorter
+check). Times are medians of repeated runs after a warm-up. ``--device cpu`` runs the
+tolerance rows on the CPU alone, at any size, to check the code where there is no GPU.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
+import tempfile
 import time
 
 import numpy as np
@@ -102,19 +111,102 @@ def design_rows(n=1600):
                  notes=gpu["notes"])]
 
 
+def _bayer_element(n, n_wl, window=512):
+    """The full-size Bayer element's geometry: the demo's camera (focused at infinity, ``window``
+    pixels) over an n px aperture of 16 random levels (a sample's cost does not depend on the
+    level map). Scored by the generic figure (light on the nominal PSF's brightest pixels), as
+    the Bayer figure is defined at its three colours only."""
+    from doedesign.design import Design
+    from doedesign.levels import level_step_m
+
+    levels = np.random.default_rng(0).integers(0, 16, (n, n)).astype(np.int16)
+    cam = Camera(aperture_diameter_m=n * PITCH, focus_distance_m=math.inf, window_shape=(window, window),
+                 axis_pixel=(window // 2, window // 2))
+    wavelengths_nm = np.linspace(400.0, 700.0, n_wl) if n_wl > 1 else np.array([550.0])
+    meta = {"camera": cam.to_dict(), "n_levels": 16,
+            "target": {"kind": "image", "wavelengths_nm": [float(w) for w in wavelengths_nm], "depths_m": ["inf"]}}
+    return Design(height_m=-levels * level_step_m("fused_silica", 550e-9, 16), pitch_m=PITCH, levels=levels,
+                  metadata=meta)
+
+
+def _tolerance_run(design, n_samples, device, scheduler):
+    from masks.tolerance.analysis import nominal_depths, tolerance_analysis
+    from masks.tolerance.spec import default_spec
+
+    spec = default_spec(nominal_depths(design))
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        report = tolerance_analysis(design, spec, n_samples, tmp, design_name="bayer element", seed=0,
+                                    scheduler=scheduler, sobol_base=0, one_at_a_time=False, device=device)
+        return time.perf_counter() - t0, report
+
+
+def tolerance_rows(n=1600, n_wl=31, samples=1000, cpu_samples=2, device="gpu", scheduler="inline", window=512):
+    """``doe tolerance``'s Monte Carlo run on ``device`` beside a few samples of it on the CPU.
+
+    Both run :func:`masks.tolerance.analysis.tolerance_analysis` whole (nominal element,
+    samples, report; the default spec, no Sobol or one-at-a-time runs), oversample 2. The CPU
+    run is ``cpu_samples`` samples in process (its FFTs on every core); its N-sample time is
+    its nominal and report time plus N times its median per-sample time: an extrapolation.
+    """
+    design = _bayer_element(n, n_wl, window)
+    t_dev, rep_dev = _tolerance_run(design, samples, device, scheduler)
+    t_cpu, rep_cpu = _tolerance_run(design, cpu_samples, "cpu", "inline")
+    per_dev = rep_dev["timing"]["seconds_per_sample"]
+    per_cpu = rep_cpu["timing"]["seconds_per_sample"]
+    cpu_extrapolated = t_cpu + (samples - cpu_samples) * per_cpu
+    limit = 300.0 * samples / 1000
+    primary = rep_dev["primary_metric"]
+    same = [abs(a["metrics"][primary] - b["metrics"][primary]) for a, b in zip(rep_dev["samples"], rep_cpu["samples"])]
+    case = (f"{n} px Bayer element (demo camera, {window}x{window} window, random 16-level map), {n_wl} wavelengths "
+            f"400-700 nm, oversample 2, default spec, sobol and one-at-a-time off, scheduler {scheduler}")
+    return [dict(benchmark="gpu_tolerance", figure=f"doe tolerance, {samples} samples on the {device.upper()} ({case})",
+                 value=t_dev, unit="s", peer=f"{cpu_samples} CPU samples extrapolated to {samples} "
+                 f"({CPU_THREADS} CPU threads, in process)", peer_value=cpu_extrapolated,
+                 ratio=t_dev / cpu_extrapolated, limit=limit,
+                 notes=f"limit: 5 min per 1,000 samples; {device}: {per_dev:.3f} s per sample (median), projected "
+                       f"1,000 samples {t_dev + (1000 - samples) * per_dev:.0f} s; CPU: {t_cpu:.1f} s for "
+                       f"{cpu_samples} sample(s) incl. nominal and report, {per_cpu:.2f} s per sample; the first "
+                       f"{len(same)} samples' {primary} differ by at most {max(same, default=0.0):.1e} "
+                       "between the two runs")]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="rows (JSON list)")
     parser.add_argument("--skip-design", action="store_true")
+    parser.add_argument("--rows", default="psf,grad,design,tolerance",
+                        help="comma-separated rows to run: psf, grad, design, tolerance (default all)")
+    parser.add_argument("--device", choices=("gpu", "cpu"), default="gpu",
+                        help="cpu: the tolerance rows alone, on the CPU (a check where there is no GPU)")
+    parser.add_argument("--tolerance-samples", type=int, default=1000, help="device samples (default 1000)")
+    parser.add_argument("--tolerance-cpu-samples", type=int, default=2, help="CPU samples beside them (default 2)")
+    parser.add_argument("--tolerance-size", type=int, default=1600, help="element size, px (default 1600)")
+    parser.add_argument("--tolerance-wavelengths", type=int, default=31, help="wavelengths (default 31)")
+    parser.add_argument("--tolerance-window", type=int, default=512, help="sensor window, px (default 512)")
+    parser.add_argument("--tolerance-scheduler", default="inline",
+                        help="inline (default) or processes (one dask worker per GPU)")
     args = parser.parse_args(argv)
-    backend = select_backend("gpu")
-    import cupy
+    wanted = {r.strip() for r in args.rows.split(",") if r.strip()}
+    if args.device == "cpu":
+        machine, wanted = f"no GPU: both runs on {CPU_THREADS} CPU threads", {"tolerance"}
+    else:
+        backend = select_backend("gpu")
+        import cupy
 
-    props = cupy.cuda.runtime.getDeviceProperties(0)
-    machine = f"{props['name'].decode()}, {CPU_THREADS} CPU threads for the CPU rows ({backend.name})"
-    rows = psf_stack_rows() + value_and_grad_rows()
-    if not args.skip_design:
+        props = cupy.cuda.runtime.getDeviceProperties(0)
+        machine = f"{props['name'].decode()}, {CPU_THREADS} CPU threads for the CPU rows ({backend.name})"
+    rows = []
+    if "psf" in wanted:
+        rows += psf_stack_rows()
+    if "grad" in wanted:
+        rows += value_and_grad_rows()
+    if "design" in wanted and not args.skip_design:
         rows += design_rows()
+    if "tolerance" in wanted:
+        rows += tolerance_rows(args.tolerance_size, args.tolerance_wavelengths, args.tolerance_samples,
+                               args.tolerance_cpu_samples, args.device, args.tolerance_scheduler,
+                               args.tolerance_window)
     for r in rows:
         r["notes"] = f"{machine}; {r['notes']}"
         print(f"{r['figure']}: {r['value']:.4g} {r['unit']} (CPU {r['peer_value']:.4g}, ratio {r['ratio']:.3g}, "

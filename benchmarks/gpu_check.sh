@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The GPU checks, for a machine with an NVIDIA GPU and CuPy: the `gpu` tests (the CPU tests'
 # cases on CuPy) and the GPU benchmark rows beside the same engine on that machine's CPU.
-# Usage: benchmarks/gpu_check.sh [OUT_DIR]   (rows in OUT_DIR/gpu_rows.json, log in OUT_DIR/gpu_check.log)
+# Usage: benchmarks/gpu_check.sh [OUT_DIR] [bench_gpu options]   (rows in OUT_DIR/gpu_rows.json, log in
+# OUT_DIR/gpu_check.log). Options after OUT_DIR go to benchmarks/bench_gpu.py, e.g. the tolerance row alone
+# on fewer samples (about 2 minutes): benchmarks/gpu_check.sh OUT --rows tolerance --tolerance-samples 200
 # Missing Python packages may be given as wheels in .whl/ (installed to /tmp/site, no network needed);
 # the project itself runs from this checkout (PYTHONPATH), so nothing is built.
 set -euo pipefail

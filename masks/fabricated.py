@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from doedesign.engine.backend import Array, Backend
 from doedesign.errors import DoeError
 
+from . import litho
 from .process import simulate_surface
 from .process_params import ProcessParams
 
@@ -44,7 +46,7 @@ def target_from_psf(psf: np.ndarray, fraction: float = DEFAULT_TARGET_FRACTION) 
 
 
 def fabricated_height(levels: np.ndarray, pitch_m: float, params: ProcessParams, oversample: int = 2,
-                      process_upsample: int | None = None) -> np.ndarray:
+                      process_upsample: int | None = None, backend: str | Backend | None = None) -> Array:
     """Height map (m) of the whole element made with ``params``, ``oversample`` samples per pixel.
 
     Parameters
@@ -58,10 +60,12 @@ def fabricated_height(levels: np.ndarray, pitch_m: float, params: ProcessParams,
     process_upsample : int, optional
         Samples per design pixel of the process grid, a multiple of ``oversample``
         (default ``oversample``); the surface is area-averaged down to ``oversample``.
+    backend : str or Backend, optional
+        Where the process model runs (:mod:`doedesign.engine.backend`; default the CPU).
 
     Returns
     -------
-    ndarray of float64, shape (rows * oversample, cols * oversample)
+    array of float64 (of ``backend``), shape (rows * oversample, cols * oversample)
         z up, 0 = unetched top, negative where etched; row 0 at the top.
     """
     q = int(oversample)
@@ -70,11 +74,12 @@ def fabricated_height(levels: np.ndarray, pitch_m: float, params: ProcessParams,
         raise DoeError(f"oversample {oversample} must be >= 1 and process_upsample {process_upsample} "
                        "a multiple of it")
     levels = np.asarray(levels)
-    height = simulate_surface(levels, pitch_m, params, step_m=pitch_m / u).height_m
+    height = simulate_surface(levels, pitch_m, params, step_m=pitch_m / u, backend=backend).height_m
     shape = (levels.shape[0] * u, levels.shape[1] * u)
-    if height.shape != shape:
-        raise DoeError(f"process surface shape {height.shape} differs from {shape}")
+    if tuple(height.shape) != shape:
+        raise DoeError(f"process surface shape {tuple(height.shape)} differs from {shape}")
     f = u // q
     if f > 1:
-        height = height.reshape(shape[0] // f, f, shape[1] // f, f).mean(axis=(1, 3))
+        xp = litho.backend_of(backend).xp
+        height = xp.mean(xp.reshape(height, (shape[0] // f, f, shape[1] // f, f)), axis=(1, 3))
     return height

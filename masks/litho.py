@@ -5,6 +5,13 @@ fraction of that (square) pixel covered by the printed opening. Working with are
 coverage instead of a binary image is what makes the simulated surface vary
 continuously with sub-pixel overlay, bias and blur, so that least-squares fits of those
 parameters see smooth residuals. Arrays are row-major, row 0 at the top.
+
+The image functions take a ``backend`` (:mod:`doedesign.engine.backend`, default the CPU's
+NumPy) and work on its arrays with the array API standard and the backend's ``ndimage``, so
+the same formulas run on a GPU (``doe tolerance --device gpu``). Small 1-D index and weight
+vectors are made on the host and copied over. The one exception is the microtrench's
+chessboard distance transform (:func:`edge_foot`): no GPU library has one, so the distance
+is found by SciPy on a host copy of the coverage and copied back.
 """
 
 from __future__ import annotations
@@ -12,7 +19,8 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
-from scipy import ndimage as ndi
+
+from doedesign.engine.backend import Array, Backend, select_backend
 
 __all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable",
            "inverse_motion", "move", "upsample_mask"]
@@ -23,7 +31,12 @@ FOOT_DISTANCES_KEPT = 4
 _FOOT_DISTANCES: dict = {}
 
 
-def upsample_mask(mask: np.ndarray, upsample: int) -> np.ndarray:
+def backend_of(backend: str | Backend | None) -> Backend:
+    """The backend the image functions compute on (None: the CPU's NumPy)."""
+    return select_backend("cpu" if backend is None else backend)
+
+
+def upsample_mask(mask: Array, upsample: int, backend: Backend | None = None) -> Array:
     """Nearest-neighbour upsampling of a binary design mask to float32 coverage.
 
     Parameters
@@ -37,13 +50,15 @@ def upsample_mask(mask: np.ndarray, upsample: int) -> np.ndarray:
     ndarray of float32, shape (rows * upsample, cols * upsample)
         1 inside openings, 0 elsewhere; opening edges fall on fine-pixel boundaries.
     """
-    mask = np.asarray(mask, dtype=np.float32)
+    be = backend_of(backend)
+    xp = be.xp
+    mask = xp.astype(be.asarray(mask), xp.float32)
     rows, cols = mask.shape
-    fine = np.broadcast_to(mask[:, None, :, None], (rows, upsample, cols, upsample))
-    return fine.reshape(rows * upsample, cols * upsample)
+    fine = xp.broadcast_to(mask[:, None, :, None], (rows, upsample, cols, upsample))
+    return xp.reshape(fine, (rows * upsample, cols * upsample))
 
 
-def grow(coverage: np.ndarray, bias_px: float) -> np.ndarray:
+def grow(coverage: Array, bias_px: float, backend: Backend | None = None) -> Array:
     """Grow (bias > 0) or shrink (bias < 0) openings by ``bias_px`` fine pixels on every edge.
 
     The growth uses a square structuring element, so a square opening of side L becomes a
@@ -66,34 +81,47 @@ def grow(coverage: np.ndarray, bias_px: float) -> np.ndarray:
     if bias_px == 0:
         return coverage
     if bias_px < 0:
-        return 1.0 - grow(1.0 - coverage, -bias_px)
+        return 1.0 - grow(1.0 - coverage, -bias_px, backend)
+    be = backend_of(backend)
+    xp = be.xp
     whole = int(np.floor(bias_px))
-    frac = np.float32(bias_px - whole)
-    out = np.asarray(coverage, dtype=np.float32)
+    frac = float(np.float32(bias_px - whole))
+    out = xp.astype(coverage, xp.float32, copy=False)
     for axis in (0, 1):
         if whole:
-            out = ndi.maximum_filter1d(out, 2 * whole + 1, axis=axis, mode="constant", cval=0.0)
+            out = be.ndimage.maximum_filter1d(out, 2 * whole + 1, axis=axis, mode="constant", cval=0.0)
         if frac > 0:
-            outer = _max3(out, axis)
+            outer = _max3(out, axis, be)
             outer *= frac
-            out = np.maximum(out, outer, out=outer)
+            _maximum_at(be, outer, (...,), out)
+            out = outer
     return out
 
 
-def _max3(image, axis):
+def _max3(image, axis, be):
     """Maximum over each pixel and its two neighbours along ``axis``, for values >= 0 (zero
     beyond the edges): ``maximum_filter1d(size=3, mode="constant")`` from shifted slices, 4-8x
     faster on a large image than the filter's line buffers."""
-    out = image.copy()
-    ahead = (slice(None),) * axis + (slice(1, None),)
-    behind = (slice(None),) * axis + (slice(None, -1),)
-    np.maximum(out[ahead], image[behind], out=out[ahead])
-    np.maximum(out[behind], image[ahead], out=out[behind])
+    out = be.xp.asarray(image, copy=True)
+    ahead = (slice(None),) * axis + (slice(1, None), ...)
+    behind = (slice(None),) * axis + (slice(None, -1), ...)
+    _maximum_at(be, out, ahead, image[behind])
+    _maximum_at(be, out, behind, image[ahead])
     return out
 
 
-def move(coverage: np.ndarray, shift_rc: tuple[float, float], rotation_rad: float,
-         centre_rc: tuple[float, float]) -> np.ndarray:
+def _maximum_at(be, out, index, other):
+    """``out[index] = max(out[index], other)``: in place where the namespace's ufuncs take
+    ``out=`` (NumPy, CuPy; no temporary image), else through a temporary (the standard's way)."""
+    if be.name in ("numpy", "cupy"):
+        view = out[index]
+        be.xp.maximum(view, other, out=view)
+    else:
+        out[index] = be.xp.maximum(out[index], other)
+
+
+def move(coverage: Array, shift_rc: tuple[float, float], rotation_rad: float,
+         centre_rc: tuple[float, float], backend: Backend | None = None) -> Array:
     """Move a coverage image by a translation and a counter-clockwise rotation.
 
     Linear interpolation of a box-sampled image is its exact area coverage after a
@@ -113,15 +141,16 @@ def move(coverage: np.ndarray, shift_rc: tuple[float, float], rotation_rad: floa
     -------
     ndarray of float32
     """
+    be = backend_of(backend)
     shift_rc = np.asarray(shift_rc, dtype=float)
     if rotation_rad == 0:
         out = coverage
         for axis in (0, 1):
-            out = _translate_axis(out, shift_rc[axis], axis)
+            out = _translate_axis(out, float(shift_rc[axis]), axis, be.xp)
         return out
     inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
-    return ndi.affine_transform(coverage, inverse, offset=offset, order=1, mode="grid-constant",
-                                cval=0.0, prefilter=False)
+    return be.ndimage.affine_transform(coverage, be.asarray(inverse), offset=tuple(float(v) for v in offset),
+                                       order=1, mode="grid-constant", cval=0.0, prefilter=False)
 
 
 def inverse_motion(shift_rc: tuple[float, float], rotation_rad: float,
@@ -142,7 +171,7 @@ def inverse_motion(shift_rc: tuple[float, float], rotation_rad: float,
     return inverse, centre - inverse @ (centre + np.asarray(shift_rc, dtype=float))
 
 
-def _translate_axis(image, shift, axis):
+def _translate_axis(image, shift, axis, xp):
     """Linear-interpolation translation by ``shift`` pixels along ``axis``, zero fill.
 
     ``out[o] = (1 - f) image[o - k] + f image[o - k - 1]`` with ``shift = k + f``; the same
@@ -152,8 +181,8 @@ def _translate_axis(image, shift, axis):
         return image
     k = int(np.floor(shift))
     f = np.float32(shift - k)
-    out = np.zeros_like(image, dtype=np.float32)
-    for offset, weight in ((k, 1 - f), (k + 1, f)):
+    out = xp.zeros_like(image, dtype=xp.float32)
+    for offset, weight in ((k, float(1 - f)), (k + 1, float(f))):
         if weight == 0 or abs(offset) >= image.shape[axis]:
             continue
         dst = [slice(None), slice(None)]
@@ -166,7 +195,8 @@ def _translate_axis(image, shift, axis):
     return out
 
 
-def expose(coverage: np.ndarray, blur_px: float, threshold: float, upsample: int = 1) -> np.ndarray:
+def expose(coverage: Array, blur_px: float, threshold: float, upsample: int = 1,
+           backend: Backend | None = None) -> Array:
     """Print a mask through a Gaussian aerial-image blur and a resist threshold.
 
     The aerial image is the coverage blurred by a Gaussian of ``blur_px`` fine pixels; the
@@ -197,18 +227,33 @@ def expose(coverage: np.ndarray, blur_px: float, threshold: float, upsample: int
     # Even block sizes up to sigma / 2 keep the aerial image within ~4e-3 of the exact blur
     # (edges within ~0.01 sigma); odd ones were measured several times worse.
     blocks = [k for k in range(2, upsample + 1, 2) if upsample % k == 0 and k <= blur_px / 2]
-    aerial = blurred(coverage, blur_px, max(blocks, default=1))
-    grad_r, grad_c = np.gradient(aerial)
-    slope = np.hypot(grad_r, grad_c, out=grad_r)
+    xp = backend_of(backend).xp
+    aerial = blurred(coverage, blur_px, max(blocks, default=1), backend)
+    slope = xp.hypot(_gradient(aerial, 0, xp), _gradient(aerial, 1, xp))
     # A flat aerial image far from the threshold prints as 0 or 1 whatever the guard.
-    np.maximum(slope, np.float32(1e-6), out=slope)
-    aerial -= np.float32(threshold)
+    slope = xp.maximum(slope, float(np.float32(1e-6)))
+    aerial -= float(np.float32(threshold))
     aerial /= slope
-    aerial += np.float32(0.5)
-    return np.clip(aerial, 0.0, 1.0, out=aerial)
+    aerial += 0.5
+    return xp.clip(aerial, 0.0, 1.0)
 
 
-def blurred(image: np.ndarray, sigma_px: float, block: int = 1) -> np.ndarray:
+def _gradient(image, axis, xp):
+    """``numpy.gradient`` along one axis of a 2-D image (unit spacing; central differences
+    inside, one-sided at the two ends), in the image's dtype."""
+    n = image.shape[axis]
+    out = xp.empty_like(image)
+
+    def part(sl):
+        return (slice(None), sl) if axis else (sl, slice(None))
+
+    out[part(slice(1, n - 1))] = (image[part(slice(2, None))] - image[part(slice(None, n - 2))]) / 2.0
+    out[part(slice(0, 1))] = image[part(slice(1, 2))] - image[part(slice(0, 1))]
+    out[part(slice(n - 1, n))] = image[part(slice(n - 1, n))] - image[part(slice(n - 2, n - 1))]
+    return out
+
+
+def blurred(image: Array, sigma_px: float, block: int = 1, backend: Backend | None = None) -> Array:
     """Gaussian blur with zero outside the array, cheap for wide kernels.
 
     With ``block = k > 1`` the image is first block-averaged by a factor ``k``, blurred
@@ -227,47 +272,54 @@ def blurred(image: np.ndarray, sigma_px: float, block: int = 1) -> np.ndarray:
     -------
     ndarray of float32
     """
+    be = backend_of(backend)
+    xp = be.xp
     k = int(block)
     rows, cols = image.shape
+    image = xp.astype(image, xp.float32, copy=False)
     if k < 2 or rows < 4 * k or cols < 4 * k:
-        return ndi.gaussian_filter(image.astype(np.float32, copy=False), sigma_px, mode="constant", cval=0.0)
+        return be.ndimage.gaussian_filter(image, sigma_px, mode="constant", cval=0.0)
     # Two zero blocks on every side give the interpolation samples beyond the edges.
     pr, pc = -rows % k, -cols % k
-    padded = np.pad(image.astype(np.float32, copy=False), ((2 * k, pr + 2 * k), (2 * k, pc + 2 * k)))
+    padded = xp.zeros((rows + pr + 4 * k, cols + pc + 4 * k), dtype=xp.float32)
+    padded[2 * k:2 * k + rows, 2 * k:2 * k + cols] = image
     # Block sum from k * k strided views: much faster than a 4-D reshape().mean().
-    coarse = np.zeros((padded.shape[0] // k, padded.shape[1] // k), dtype=np.float32)
+    coarse = xp.zeros((padded.shape[0] // k, padded.shape[1] // k), dtype=xp.float32)
     for a in range(k):
         for b in range(k):
             coarse += padded[a::k, b::k]
-    coarse *= np.float32(1.0 / k ** 2)
+    coarse *= float(np.float32(1.0 / k ** 2))
     sigma_c = np.sqrt(max(sigma_px ** 2 - (k ** 2 - 1) / 12.0, 0.0)) / k
-    coarse = ndi.gaussian_filter(coarse, sigma_c, mode="constant", cval=0.0)
+    coarse = be.ndimage.gaussian_filter(coarse, sigma_c, mode="constant", cval=0.0)
     # Coarse sample i is the mean of fine pixels (i - 2) k .. (i - 2) k + k - 1 of the image.
     return interpolate_separable(coarse, (np.arange(rows) - (k - 1) / 2) / k + 2,
-                                 (np.arange(cols) - (k - 1) / 2) / k + 2)
+                                 (np.arange(cols) - (k - 1) / 2) / k + 2, be)
 
 
-def interpolate_separable(coarse: np.ndarray, row_coords: np.ndarray, col_coords: np.ndarray) -> np.ndarray:
+def interpolate_separable(coarse: Array, row_coords: np.ndarray, col_coords: np.ndarray,
+                          backend: Backend | None = None) -> Array:
     """Bilinear interpolation of ``coarse`` at the grid ``row_coords x col_coords``.
 
-    Coordinates are in coarse-sample index units; outside the array the edge value is
-    held (the callers keep their windows wide enough that this never matters).
+    Coordinates (host arrays) are in coarse-sample index units; outside the array the edge
+    value is held (the callers keep their windows wide enough that this never matters).
 
     Returns
     -------
     ndarray of float32, shape (len(row_coords), len(col_coords))
     """
-    out = coarse.astype(np.float32, copy=False)
+    be = backend_of(backend)
+    xp = be.xp
+    out = xp.astype(be.asarray(coarse), xp.float32, copy=False)
     for axis, coords in ((0, row_coords), (1, col_coords)):
         n = out.shape[axis]
         coords = np.clip(np.asarray(coords, dtype=float), 0, n - 1)
-        i0 = np.minimum(np.floor(coords).astype(int), max(n - 2, 0))
+        i0 = np.minimum(np.floor(coords).astype(np.int64), max(n - 2, 0))
         i1 = np.minimum(i0 + 1, n - 1)
         shape = [1, 1]
         shape[axis] = -1
-        w = (coords - i0).astype(np.float32).reshape(shape)
-        low = np.take(out, i0, axis=axis)
-        high = np.take(out, i1, axis=axis)
+        w = be.asarray((coords - i0).astype(np.float32).reshape(shape))
+        low = xp.take(out, be.asarray(i0), axis=axis)
+        high = xp.take(out, be.asarray(i1), axis=axis)
         high -= low
         high *= w
         high += low
@@ -275,7 +327,7 @@ def interpolate_separable(coarse: np.ndarray, row_coords: np.ndarray, col_coords
     return out
 
 
-def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
+def edge_foot(coverage: Array, width_px: float, backend: Backend | None = None) -> Array:
     """Profile of a microtrench: ``exp(-s / w)`` at distance ``s`` from the nearest sidewall.
 
     ``s`` is the chessboard (L-infinity) distance from a pixel centre to the nearest closed
@@ -285,7 +337,8 @@ def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
     falls from ``n + 0.5`` (the fully closed pixel beyond) to ``n + 0.5 - c``. Trenches of two
     nearby sidewalls do not add: the nearest one sets the depth, at an opening's corner as
     along its edges (ions reflected from the nearer wall dominate). SciPy's chessboard distance
-    transform finds the nearest closed pixel; outside the array is closed.
+    transform finds the nearest closed pixel, on the host whatever the backend (GPU libraries
+    have only Euclidean ones, whose nearest pixel differs); outside the array is closed.
 
     Parameters
     ----------
@@ -296,18 +349,20 @@ def edge_foot(coverage: np.ndarray, width_px: float) -> np.ndarray:
 
     Returns
     -------
-    ndarray of float64
+    array of float64
         0 deep inside wide openings, 1 at the foot of a straight edge (capped at 1);
         meaningful where the coverage is non-zero (the caller multiplies by it).
     """
-    return np.minimum(np.exp(-_foot_distance(coverage) / width_px), 1.0)
+    be = backend_of(backend)
+    s = _foot_distance(coverage) if be.is_numpy else be.asarray(_foot_distance(be.to_host(coverage)))
+    return be.xp.minimum(be.xp.exp(-be.xp.astype(s, be.xp.float64) / float(width_px)), 1.0)
 
 
 def _foot_distance(coverage):
     """The distance ``s`` of :func:`edge_foot` (fine pixels, float32), kept for the last few
     coverages: a fit of the trenches' depth and width changes neither the coverage nor ``s``,
     and the distance transform is most of the trench's cost."""
-    from scipy.ndimage import distance_transform_cdt
+    from scipy.ndimage import distance_transform_cdt  # on host arrays only (see edge_foot)
 
     coverage = np.ascontiguousarray(coverage)
     key = (coverage.shape, coverage.dtype.str, hashlib.sha1(memoryview(coverage).cast("B")).digest())

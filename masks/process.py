@@ -34,6 +34,12 @@ Approximations, in words:
   its mask;
 - the etch gradient multiplies every mask's depth by ``1 + g . r``, r from the field centre;
 - outside the design array the wafer is unetched (masks closed).
+
+The fine-grid work runs on the arrays of a ``backend`` (:mod:`doedesign.engine.backend`; the
+CPU's NumPy by default, a GPU's CuPy for ``doe tolerance --device gpu``) through the
+functions of :mod:`masks.litho`: one copy of every formula. The design-pixel masks, the
+roughness noise (NumPy's generator, so a seed gives the same surface everywhere) and the
+small coordinate vectors are made on the host and copied over.
 """
 
 from __future__ import annotations
@@ -43,8 +49,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage as ndi
 
+from doedesign.engine.backend import Array, Backend
 from doedesign.errors import DoeError
 
 from . import litho
@@ -72,24 +78,25 @@ class SimulatedSurface:
 
     Attributes
     ----------
-    height_m : ndarray of float64, shape (H, W)
-        Height (m), z up, 0 = unetched top, negative where etched; row 0 at the top.
+    height_m : array of float64, shape (H, W)
+        Height (m), z up, 0 = unetched top, negative where etched; row 0 at the top; an
+        array of the backend it was simulated on (NumPy by default).
     step_m : float
         Fine-grid spacing (m), ``pitch_m / upsample``.
     upsample : int
         Fine pixels per design pixel along each axis.
     region : tuple of int
         ``(row0, row1, col0, col1)`` of the design that was simulated (half-open).
-    masks_printed : ndarray of float32, shape (n_masks, H, W)
+    masks_printed : array of float32, shape (n_masks, H, W)
         Area coverage 0..1 of each mask's printed opening after lithography (overlay,
         bias, blur and threshold; before the etch's sidewall, loading and roughness).
     """
 
-    height_m: np.ndarray
+    height_m: Array
     step_m: float
     upsample: int
     region: tuple
-    masks_printed: np.ndarray
+    masks_printed: Array
 
     def design_coords(self) -> tuple[np.ndarray, np.ndarray]:
         """Fine-pixel centres in design-pixel units.
@@ -113,8 +120,8 @@ def fine_upsample(pitch_m: float, step_m: float) -> int:
 
 
 def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams | None = None,
-                     step_m: float = 0.25e-6,
-                     region: tuple[int, int, int, int] | None = None) -> SimulatedSurface:
+                     step_m: float = 0.25e-6, region: tuple[int, int, int, int] | None = None,
+                     backend: str | Backend | None = None) -> SimulatedSurface:
     """Simulate the etched surface of (a region of) a multi-level element.
 
     Parameters
@@ -132,6 +139,9 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
         Half-open design-pixel window to simulate (default: the whole design). Effects
         reaching in from outside the window are included (the window is padded before
         filtering), so the result does not depend on the crop.
+    backend : str or Backend, optional
+        Where the fine grid is computed (:mod:`doedesign.engine.backend`; default the CPU);
+        the surface's arrays are that backend's.
 
     Returns
     -------
@@ -165,19 +175,22 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
     pad = margin * u
     fine_shape = ((row1 - row0) * u + 2 * pad, (col1 - col0) * u + 2 * pad)
     crop = (slice(pad, fine_shape[0] - pad), slice(pad, fine_shape[1] - pad))
-    height = np.zeros(fine_shape)
-    printed = np.empty((n, (row1 - row0) * u, (col1 - col0) * u), dtype=np.float32)
+    be = litho.backend_of(backend)
+    xp = be.xp
+    height = xp.zeros(fine_shape, dtype=xp.float64)
+    printed = xp.empty((n, (row1 - row0) * u, (col1 - col0) * u), dtype=xp.float32)
     for j in range(n):
-        coverage, etched = _print_and_etch(levels, window, params, j, pitch_m, u, centre_design)
-        printed[j] = coverage[crop]
+        coverage, etched = _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be)
+        printed[j, ...] = coverage[crop]
         height -= etched
-    height = finish_surface(height, params, step, pad)
+    height = finish_surface(height, params, step, pad, be)
     return SimulatedSurface(height_m=height, step_m=step, upsample=u, region=region,
                             masks_printed=printed)
 
 
 def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: int, step_m: float = 0.25e-6,
-              region: tuple[int, int, int, int] | None = None, pad_px: int = 0) -> np.ndarray:
+              region: tuple[int, int, int, int] | None = None, pad_px: int = 0,
+              backend: str | Backend | None = None) -> Array:
     """Depth (m, >= 0) that one mask's etch removes, on the fine grid of a region.
 
     :func:`simulate_surface` is ``finish_surface(-sum of mask_etch over the masks, ...)``; one
@@ -191,10 +204,12 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
         Mask index.
     pad_px : int
         Fine pixels added on every side of the region (beyond the design: unetched).
+    backend : str or Backend, optional
+        Where it is computed (default the CPU).
 
     Returns
     -------
-    ndarray of float64, shape ``((row1 - row0) * u + 2 pad_px, (col1 - col0) * u + 2 pad_px)``
+    array of float64 (of ``backend``), shape ``((row1 - row0) * u + 2 pad_px, (col1 - col0) * u + 2 pad_px)``
     """
     levels = _check_levels(levels, params.n_masks)
     region = _check_region(region, levels.shape)
@@ -203,24 +218,28 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     centre_design = design_centre(levels.shape)
     margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
-    _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design)
+    _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design,
+                                litho.backend_of(backend))
     a = margin * u - int(pad_px)
     return etched[a:etched.shape[0] - a, a:etched.shape[1] - a]
 
 
-def finish_surface(height_m: np.ndarray, params: ProcessParams, step_m: float, pad_px: int) -> np.ndarray:
+def finish_surface(height_m: Array, params: ProcessParams, step_m: float, pad_px: int,
+                   backend: str | Backend | None = None) -> Array:
     """The summed etches (negative heights, m) with the sidewall ramp, cropped by ``pad_px``
-    fine pixels on every side, plus roughness: the last stage of :func:`simulate_surface`."""
+    fine pixels on every side, plus roughness: the last stage of :func:`simulate_surface`
+    (on ``backend``'s arrays, default the CPU's)."""
+    be = litho.backend_of(backend)
     height = height_m
     if params.sidewall_slope > 0:
-        kernel = litho.box_kernel(params.sidewall_slope / step_m)
+        kernel = be.asarray(litho.box_kernel(params.sidewall_slope / step_m))
         for axis in (0, 1):
-            height = ndi.correlate1d(height, kernel, axis=axis, mode="nearest")
+            height = be.ndimage.correlate1d(height, kernel, axis=axis, mode="nearest")
     p = int(pad_px)
-    height = np.ascontiguousarray(height[p:height.shape[0] - p, p:height.shape[1] - p])
+    height = be.xp.asarray(height[p:height.shape[0] - p, p:height.shape[1] - p], copy=True)
     if params.roughness > 0:
         rng = np.random.default_rng(params.seed)
-        height += params.roughness * rng.standard_normal(height.shape, dtype=np.float32)
+        height += params.roughness * be.asarray(rng.standard_normal(tuple(height.shape), dtype=np.float32))
     return height
 
 
@@ -263,37 +282,42 @@ def without_motion(params: ProcessParams) -> ProcessParams:
                        mask_rotation=np.zeros_like(params.mask_rotation))
 
 
-def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design):
+def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be):
     """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
-    of ``window`` (design pixels, may extend beyond the design)."""
+    of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``."""
+    xp = be.xp
     step = pitch_m / u
     mask = levels_to_masks(_window(levels, window), params.n_masks)[j]
     # Rotation centre in fine-pixel indices of the window.
     centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
                    (centre_design[1] - window[2] + 0.5) * u - 0.5)
-    coverage = litho.upsample_mask(mask, u)
-    coverage = litho.grow(coverage, params.linewidth_bias[j] / step)
+    coverage = litho.upsample_mask(mask, u, be)
+    coverage = litho.grow(coverage, float(params.linewidth_bias[j] / step), be)
     shift_px, rotation = mask_motion(params, j, pitch_m)
-    coverage = litho.move(coverage, (shift_px[0] * u, shift_px[1] * u), rotation, centre_fine)
-    coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u)
-    depth = _depth_map(levels, window, params, j, pitch_m, u)
-    gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design)
+    coverage = litho.move(coverage, (shift_px[0] * u, shift_px[1] * u), rotation, centre_fine, be)
+    coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
+    depth = _depth_map(levels, window, params, j, pitch_m, u, be)
+    gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design, be)
     if gradient is not None:
         depth = depth * gradient
     trench_m, trench_width_m = params.microtrenching[j]
     if trench_m > 0 and params.etch_depth[j] > 0:
-        foot = litho.edge_foot(coverage, trench_width_m / step)
-        depth = depth * (1.0 + trench_m / params.etch_depth[j] * foot)
-    # In float64, so that the ideal surface is exact to double precision.
-    etched = np.empty(coverage.shape)
-    np.multiply(coverage, depth, out=etched)
+        foot = litho.edge_foot(coverage, trench_width_m / step, be)
+        depth = depth * (1.0 + float(trench_m / params.etch_depth[j]) * foot)
+    # In float64, so that the ideal surface is exact to double precision (a float32 depth map
+    # multiplies in float32, as NumPy's loop for two float32 arrays does).
+    if isinstance(depth, float):
+        etched = xp.astype(coverage, xp.float64)
+        etched *= depth
+    else:
+        etched = xp.astype(coverage * depth, xp.float64, copy=False)
     return coverage, etched
 
 
-def _depth_map(levels, window, params, j, pitch_m, u):
-    """Etch depth of mask ``j`` (m): a scalar, or a fine-grid map with etch loading."""
+def _depth_map(levels, window, params, j, pitch_m, u, be):
+    """Etch depth of mask ``j`` (m): a float, or a fine-grid map with etch loading."""
     if params.etch_loading == 0:
-        return np.float64(params.etch_depth[j])
+        return float(params.etch_depth[j])
     sigma_px = params.loading_radius / pitch_m
     reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
     wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
@@ -304,14 +328,15 @@ def _depth_map(levels, window, params, j, pitch_m, u):
     # start, i.e. at index reach + that in the wide array.
     fine_r = reach + (np.arange(rows * u) + 0.5) / u - 0.5
     fine_c = reach + (np.arange(cols * u) + 0.5) / u - 0.5
-    rho = ndi.gaussian_filter(wide_mask, sigma_px, mode="constant", cval=0.0, truncate=_TRUNCATE)
-    rho_fine = litho.interpolate_separable(rho, fine_r, fine_c)
-    rho_fine *= np.float32(-params.etch_loading * params.etch_depth[j])
-    rho_fine += np.float32(params.etch_depth[j])
+    rho = be.ndimage.gaussian_filter(be.asarray(wide_mask), sigma_px, mode="constant", cval=0.0,
+                                     truncate=_TRUNCATE)
+    rho_fine = litho.interpolate_separable(rho, fine_r, fine_c, be)
+    rho_fine *= float(np.float32(-params.etch_loading * params.etch_depth[j]))
+    rho_fine += float(np.float32(params.etch_depth[j]))
     return rho_fine
 
 
-def _gradient_map(window, gradient, pitch_m, u, centre_design):
+def _gradient_map(window, gradient, pitch_m, u, centre_design, be):
     """``1 + g . r`` on the fine grid of the window (float64), or None for a uniform etch."""
     if not np.any(gradient):
         return None
@@ -319,8 +344,9 @@ def _gradient_map(window, gradient, pitch_m, u, centre_design):
     rows = window[0] + (np.arange((window[1] - window[0]) * u) + 0.5) / u - 0.5
     cols = window[2] + (np.arange((window[3] - window[2]) * u) + 0.5) / u - 0.5
     x_m = (cols - centre_design[1]) * pitch_m
-    y_m = (centre_design[0] - rows) * pitch_m          # y up: toward row 0
-    return 1.0 + gradient[1] * y_m[:, None] + gradient[0] * x_m[None, :]
+    y_m = be.asarray((centre_design[0] - rows) * pitch_m)          # y up: toward row 0
+    x_m = be.asarray(x_m)
+    return 1.0 + float(gradient[1]) * y_m[:, None] + float(gradient[0]) * x_m[None, :]
 
 
 def _margin_px(params, pitch_m, region, centre_design, masks=slice(None)):

@@ -9,7 +9,10 @@ run the engine on it, so a NumPy-only call fails on a CPU machine before it fail
 A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`` with its
 thread count on NumPy (faster than NumPy's own), ``cupyx.scipy.fft`` on CuPy (cuFFT plans
 cached), the standard's ``xp.fft`` elsewhere. Written here because no library does this choice:
-``array_api_compat`` gives the namespace but not the fastest FFT of each library.
+``array_api_compat`` gives the namespace but not the fastest FFT of each library. The same holds
+for the image filters the process model needs (:attr:`Backend.ndimage`): ``scipy.ndimage`` on
+NumPy, ``cupyx.scipy.ndimage`` on CuPy, and on ``array_api_strict`` SciPy's through host copies
+(the standard has no filters; the copies keep the arrays around them strict).
 
 The device is chosen once per run (``--device cpu|gpu|auto``): ``auto`` takes the GPU when CuPy
 imports and a real allocation on the device succeeds, else the CPU, with one log line saying why.
@@ -52,6 +55,7 @@ class Backend:
     xp: Any
     device: str
     _fft: Any = None
+    _ndimage: Any = None
 
     @property
     def is_numpy(self) -> bool:
@@ -72,6 +76,13 @@ class Backend:
         if self.name == "cupy":
             return a.get()
         return np.asarray(a)
+
+    @property
+    def ndimage(self) -> Any:
+        """``scipy.ndimage``'s functions for this backend's arrays (filters, interpolation,
+        label sums): arrays in, arrays of this backend out. Arguments that are arrays (weights,
+        matrices, labels, indices) must be this backend's arrays too (:meth:`asarray`)."""
+        return self._ndimage
 
     # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads.
     def _threads(self, workers: int) -> dict:
@@ -98,21 +109,49 @@ def numpy_backend() -> Backend:
     import array_api_compat.numpy as xnp
     import scipy.fft
 
-    return Backend("numpy", xnp, "cpu", scipy.fft)
+    return Backend("numpy", xnp, "cpu", scipy.fft, _ndimage())
 
 
 def strict_backend() -> Backend:
     """``array_api_strict`` on the CPU: the standard and nothing else (for tests)."""
     import array_api_strict
 
-    return Backend("array_api_strict", array_api_strict, "cpu", array_api_strict.fft)
+    return Backend("array_api_strict", array_api_strict, "cpu", array_api_strict.fft, _HostNdimage(array_api_strict))
 
 
 def _cupy_backend() -> Backend:
     import array_api_compat.cupy as xcp
     import cupyx.scipy.fft
+    import cupyx.scipy.ndimage
 
-    return Backend("cupy", xcp, "gpu", cupyx.scipy.fft)
+    return Backend("cupy", xcp, "gpu", cupyx.scipy.fft, cupyx.scipy.ndimage)
+
+
+def _ndimage():
+    import scipy.ndimage
+
+    return scipy.ndimage
+
+
+class _HostNdimage:
+    """``scipy.ndimage`` for a namespace without one (``array_api_strict``): array arguments
+    are copied to NumPy, array results copied back."""
+
+    def __init__(self, xp):
+        self._xp = xp
+
+    def __getattr__(self, name):
+        func = getattr(_ndimage(), name)
+        xp = self._xp
+
+        def host(a):
+            return np.from_dlpack(a) if hasattr(a, "__dlpack__") and not isinstance(a, np.ndarray) else a
+
+        def call(*args, **kwargs):
+            out = func(*(host(a) for a in args), **{k: host(v) for k, v in kwargs.items()})
+            return xp.asarray(out) if isinstance(out, np.ndarray) else out
+
+        return call
 
 
 def gpu_unavailable_reason() -> str | None:

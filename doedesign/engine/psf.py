@@ -43,7 +43,7 @@ from threadpoolctl import threadpool_limits
 from ..camera import Camera
 from ..errors import DoeError, SamplingError
 from ..materials import get_material
-from .backend import Backend, select_backend
+from .backend import Array, Backend, select_backend
 from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
 from .reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
 from .result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
@@ -348,6 +348,16 @@ class PSFEngine:
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
+        if not self.backend.is_numpy and not isinstance(height_m, (np.ndarray, list, tuple)):
+            # Already on the device (a process render there): checked there, one scalar back.
+            xp = self.xp
+            h = xp.astype(self.backend.asarray(height_m), xp.float64, copy=False)
+            if tuple(h.shape) != self.shape:
+                raise DoeError(f"height map has shape {tuple(h.shape)}, the engine was built for {self.shape}")
+            bad = int(xp.sum(xp.astype(~xp.isfinite(h), xp.int64)))
+            if bad:
+                raise DoeError(f"height map holds {bad} NaN or infinite values")
+            return h
         h = np.asarray(height_m, dtype=float)
         if h.shape != self.shape:
             raise DoeError(f"height map has shape {h.shape}, the engine was built for {self.shape}")
@@ -364,6 +374,16 @@ class PSFEngine:
         wavelength's transforms (about 0.3 GB for a 1600 px element in double precision). On a
         GPU the wavelengths run one after another (the device is busy with one).
         """
+        out = self.psf_stack(height_m, views, progress, threads)
+        return PSFResult(psf=self.backend.to_host(out), views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
+                         depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
+                         axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
+
+    def psf_stack(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
+                  threads: int = 1) -> Array:
+        """The PSF stack of :meth:`psf` (views, depths, wavelengths, rows, cols) left where it was
+        computed: an array of the engine's backend, for a caller that reduces it there (the
+        tolerance metrics). ``height_m`` may be a host array or one of the backend's."""
         h = self._check_height(height_m)
         if not self.backend.is_numpy:
             threads = 1
@@ -398,9 +418,7 @@ class PSFEngine:
             for n in itertools.chain([channel(tasks[0], -1)], mapper(channel, tasks[1:])):
                 if progress is not None:
                     progress.update(n)
-        return PSFResult(psf=self.backend.to_host(out), views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
-                         depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
-                         axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
+        return out
 
     def value_and_grad(self, height_m: ArrayLike, loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
                        full_window: bool = False) -> tuple[float, np.ndarray]:

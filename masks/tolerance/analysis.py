@@ -9,7 +9,6 @@ import hashlib
 import itertools
 import logging
 import math
-import os
 import time
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from .evaluate import Evaluator
 from .metrics import DIRECTIONS, design_wavelengths_depths, metric_set
 from .report import (default_thresholds, metric_summary, plot_distributions, plot_tornado, tolerance_page,
                      yield_summary)
-from .runner import make_client, n_workers, open_store, run_jobs, run_key
+from .runner import local_workers, make_client, n_workers, open_store, run_jobs, run_key
 from .sensitivity import oat_jobs, oat_table, sobol_indices, sobol_jobs
 from .spec import ToleranceSpec, check_yield_goal, nominal_process
 
@@ -103,8 +102,9 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
         Share of elements that must meet every threshold, in (0, 1); default the spec's
         (``[yield] goal``, else 0.9).
     device : {"cpu", "gpu", "auto"}
-        Where each sample's PSFs are computed (:mod:`doedesign.engine.backend`); the process
-        render and the metrics stay on the host.
+        Where each sample is computed (:mod:`doedesign.engine.backend`): process render, PSFs
+        and metrics. On GPUs the local ``processes`` cluster has one single-threaded worker per
+        visible GPU, pinned to it (:func:`masks.tolerance.runner.make_client`).
 
     Returns
     -------
@@ -142,11 +142,12 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
     t_run = time.perf_counter()
     # Connect first: a run that cannot reach its scheduler writes nothing. The folder says
     # INCOMPLETE until the report is written; finished samples are kept for a rerun to resume.
-    if scheduler in ("processes", "threads"):
-        local = int(workers or os.cpu_count() or 1)
+    gpu = ev.backend.device == "gpu"
+    if scheduler in ("processes", "threads") and not gpu:  # GPU workers hold a sample in device memory
+        local = local_workers(scheduler, workers)
         check_memory((local + 1) * evaluation_bytes(ev),
                      f"{design_name}: {local} local tolerance worker(s) of {format_bytes(evaluation_bytes(ev))} each")
-    with make_client(scheduler, workers) as client:
+    with make_client(scheduler, workers, gpu=gpu) as client:
         n_threads = n_workers(client)
         with output_run(out_dir, f"doe tolerance {design_name}", keep_partial=True):
             samples_dir = open_store(out_dir, key, {"design": design_name, "seed": seed})

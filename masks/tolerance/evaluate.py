@@ -9,6 +9,10 @@ Sampling (the per-sample cost): the process model runs on the whole element at
 per pixel and goes through :class:`doedesign.engine.psf.PSFEngine` at ``pitch / oversample``
 (coded view only: the uncoded half is clear glass, untouched by the process), at the
 design's wavelengths and depths. See :mod:`masks.fabricated` for what this grid misses.
+
+A sample runs where its engine computes (``device``, :mod:`doedesign.engine.backend`): the
+process render, the PSFs and the metrics' reductions all on that device (one copy of each
+formula, the same on NumPy and CuPy); the job's metrics cross to the host as one small vector.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from doedesign.camera import Camera
+from doedesign.engine.backend import Array, Backend
 from doedesign.engine.psf import PSFEngine
 
 from ..fabricated import fabricated_height
@@ -45,7 +50,7 @@ class Evaluator:
     metrics: MetricSet
     oversample: int = 2
     process_upsample: int | None = None
-    device: str = "cpu"  # where the PSFs are computed (doedesign.engine.backend)
+    device: str = "cpu"  # where samples are computed (doedesign.engine.backend)
 
     def __post_init__(self):
         self._local = threading.local()
@@ -70,20 +75,30 @@ class Evaluator:
             self._local.engine = engine
         return engine
 
-    def height(self, values: dict, seed: int | None = None) -> np.ndarray:
-        """Fabricated height map (m) for parameter values (SI, by :attr:`Param.name`)."""
-        params = self.spec.params_for(values, self.base, seed=seed)
-        return fabricated_height(self.levels, self.pitch_m, params, self.oversample, self.process_upsample)
+    @property
+    def backend(self) -> Backend:
+        """Where this thread's samples are computed (the engine's backend)."""
+        return self.engine.backend
 
-    def coded_psf(self, height_m: np.ndarray) -> np.ndarray:
-        """Coded PSF (depths, wavelengths, rows, cols) of a height map on the engine's grid."""
-        return self.engine.psf(height_m, views=("coded",)).view("coded")
+    def height(self, values: dict, seed: int | None = None) -> Array:
+        """Fabricated height map (m) for parameter values (SI, by :attr:`Param.name`), an
+        array of :attr:`backend` (NumPy on the CPU)."""
+        params = self.spec.params_for(values, self.base, seed=seed)
+        return fabricated_height(self.levels, self.pitch_m, params, self.oversample, self.process_upsample,
+                                 backend=self.backend)
+
+    def _coded_stack(self, height_m: Array) -> Array:
+        return self.engine.psf_stack(height_m, views=("coded",))[0, ...]
+
+    def coded_psf(self, height_m: Array) -> np.ndarray:
+        """Coded PSF (depths, wavelengths, rows, cols) of a height map on the engine's grid (NumPy)."""
+        return self.backend.to_host(self._coded_stack(height_m))
 
     def __call__(self, job):
         """Metrics of one job ``{"id", "values", "seed", ...}``; returns the job plus ``metrics``."""
         t0 = time.perf_counter()
-        psf = self.coded_psf(self.height(job["values"], job.get("seed")))
-        return {**job, "metrics": self.metrics(psf), "seconds": time.perf_counter() - t0}
+        psf = self._coded_stack(self.height(job["values"], job.get("seed")))
+        return {**job, "metrics": self.metrics(psf, self.backend), "seconds": time.perf_counter() - t0}
 
 
 def evaluate_batch(evaluator: Evaluator, jobs: list[dict]) -> list[dict]:

@@ -19,6 +19,10 @@ of the light through the coded half-aperture per sensor pixel (row 0 at the top)
 User metrics come from a Python script: every top-level function named ``metric_<name>``
 is called as ``f(psf, info)`` (``info``: ``wavelengths_m``, ``depths_m``, ``axis_pixel``)
 and must return a number; set ``f.direction = "lower"`` when lower is better.
+
+The built-in metrics reduce the PSF where it was computed (NumPy, or CuPy on a GPU: the same
+array API code) to a few numbers per plane, which cross to the host as one small vector per
+sample; the last statistics over planes are taken there. A user script gets a NumPy copy.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from scipy import ndimage as ndi
 from doedesign import targets
 from doedesign.camera import Camera
 from doedesign.design import Design
+from doedesign.engine.backend import Array, Backend, select_backend
 from doedesign.errors import DoeError
 
 from ..fabricated import target_from_psf
@@ -83,39 +88,78 @@ class MetricSet:
     def primary(self) -> str:
         return PRIMARY.get(self.kind, "efficiency")
 
-    def __call__(self, psf):
-        psf = np.asarray(psf, float)
-        out = {}
-        plane_on = np.sum(psf * self.target_mask, axis=(-2, -1))
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_device", None)  # device copies stay with the process that made them
+        return state
+
+    def _on(self, be: Backend, name: str, make) -> Array:
+        """A constant array (target mask, spot labels) on ``be``, copied there once."""
+        cache = self.__dict__.setdefault("_device", {})
+        key = (be.name, name)
+        if key not in cache:
+            cache[key] = be.asarray(make())
+        return cache[key]
+
+    def __call__(self, psf: Array, backend: str | Backend | None = None) -> dict:
+        """The metrics of a coded PSF (depths, wavelengths, rows, cols): a host array, or one of
+        ``backend`` (default the CPU), on which the reductions run."""
+        be = select_backend("cpu" if backend is None else backend)
+        xp = be.xp
+        psf = xp.astype(be.asarray(psf), xp.float64, copy=False)
+        r0, c0 = self.axis_pixel
+        # Per-plane reductions where the PSF is; they come back as one vector.
+        parts = {}
         if self.kind == "bayer":
-            r0, c0 = self.axis_pixel
-            vals = [sum(psf[0, w, r0 + dr, c0 + dc] for dr, dc in cells) for w, cells in enumerate(self.bayer_cells)]
+            for w, (name, cells) in enumerate(zip(BAYER_CHANNELS, self.bayer_cells)):
+                parts[name] = sum(psf[0, w, r0 + dr, c0 + dc] for dr, dc in cells)
+        else:
+            target = self._on(be, "target", lambda: np.asarray(self.target_mask, dtype=np.float64))
+            parts["on"] = xp.sum(psf * target, axis=(-2, -1))
+        if self.kind == "hdr-streak":
+            window = xp.sum(psf, axis=(-2, -1))
+            parts["peak"] = xp.max(psf, axis=(-2, -1)) / xp.maximum(window, 1e-300)
+        leak = self.kind in ("hyperspectral", "spots") and not self._axis_in_target()
+        if leak:
+            parts["leak"] = xp.sum(psf[..., r0 - 1:r0 + 2, c0 - 1:c0 + 2], axis=(-2, -1))
+        if self.kind == "spots" and self.spot_labels is not None:
+            n = int(self.spot_labels.max())
+            labels = self._on(be, "labels", lambda: self.spot_labels)
+            index = self._on(be, "index", lambda: np.arange(1, n + 1))
+            parts["spots"] = be.ndimage.sum(xp.sum(psf, axis=(0, 1)), labels, index)
+        if self.kind == "depth":
+            parts["radii"] = ring_radii_px(psf, self.axis_pixel, be)
+        names = list(parts)
+        flat = be.to_host(xp.concat([xp.reshape(xp.asarray(parts[k]), (-1,)) for k in names]))
+        sizes = np.cumsum([0] + [int(np.prod(tuple(parts[k].shape))) for k in names])
+        host = {k: flat[sizes[i]:sizes[i + 1]] for i, k in enumerate(names)}
+
+        out = {}
+        if self.kind == "bayer":
+            vals = [host[name][0] for name in BAYER_CHANNELS]
             for name, v in zip(BAYER_CHANNELS, vals):
                 out[f"on_target_{name}"] = float(v)
             out["on_target_mean"] = float(np.mean(vals))
             out["on_target_min"] = float(np.min(vals))
         elif self.kind == "hyperspectral":
-            out["first_order_efficiency"] = float(plane_on.mean())
+            out["first_order_efficiency"] = float(host["on"].mean())
         elif self.kind == "hdr-streak":
-            out["streak_energy"] = float(plane_on.mean())
-            window = psf.sum(axis=(-2, -1))
-            out["peak_fraction"] = float(np.mean(psf.max(axis=(-2, -1)) / np.maximum(window, 1e-300)))
+            out["streak_energy"] = float(host["on"].mean())
+            out["peak_fraction"] = float(np.mean(host["peak"]))
         else:
-            out["efficiency"] = float(plane_on.mean())
-        if self.kind in ("hyperspectral", "spots") and not self._axis_in_target():
-            r0, c0 = self.axis_pixel
-            out["zero_order_leak"] = float(psf[..., r0 - 1:r0 + 2, c0 - 1:c0 + 2].sum(axis=(-2, -1)).mean())
-        if self.kind == "spots" and self.spot_labels is not None:
-            n = int(self.spot_labels.max())
-            energies = ndi.sum_labels(psf.sum(axis=(0, 1)), self.spot_labels, index=np.arange(1, n + 1))
-            hi, lo = float(np.max(energies)), float(np.min(energies))
+            out["efficiency"] = float(host["on"].mean())
+        if leak:
+            out["zero_order_leak"] = float(host["leak"].mean())
+        if "spots" in host:
+            hi, lo = float(np.max(host["spots"])), float(np.min(host["spots"]))
             out["spot_uniformity"] = 1.0 - (hi - lo) / (hi + lo) if hi + lo > 0 else 0.0
         if self.kind == "depth":
-            radii = ring_radii_px(psf, self.axis_pixel)
+            radii = host["radii"]
             for d, r in zip(self.depths_m, radii):
                 out[f"ring_radius_px[{d:g} m]"] = float(r)
             out["ring_radius_error_px"] = float(np.max(np.abs(radii - self.target_radii_px)))
-        out.update(self._user_metrics(psf))
+        if self.script_source:
+            out.update(self._user_metrics(be.to_host(psf)))
         return out
 
     def _axis_in_target(self):
@@ -165,14 +209,17 @@ def user_metric_functions(source: str, name: str = "metrics script") -> dict:
     return _SCRIPTS[key]
 
 
-def ring_radii_px(psf: np.ndarray, axis_pixel: tuple) -> np.ndarray:
-    """Light-weighted mean distance (px) from the axis per depth, averaged over wavelengths."""
+def ring_radii_px(psf: Array, axis_pixel: tuple, backend: str | Backend | None = None) -> Array:
+    """Light-weighted mean distance (px) from the axis per depth, averaged over wavelengths
+    (on ``backend``'s arrays, default the CPU's)."""
+    be = select_backend("cpu" if backend is None else backend)
+    xp = be.xp
     rows, cols = psf.shape[-2:]
     rr, cc = np.mgrid[:rows, :cols]
-    radius = np.hypot(rr - axis_pixel[0], cc - axis_pixel[1])
-    total = psf.sum(axis=(-2, -1))
-    mean_r = (psf * radius).sum(axis=(-2, -1)) / np.maximum(total, 1e-300)
-    return mean_r.mean(axis=1)
+    radius = be.asarray(np.hypot(rr - axis_pixel[0], cc - axis_pixel[1]))
+    total = xp.sum(psf, axis=(-2, -1))
+    mean_r = xp.sum(psf * radius, axis=(-2, -1)) / xp.maximum(total, 1e-300)
+    return xp.mean(mean_r, axis=1)
 
 
 def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, wavelengths_m: np.ndarray,

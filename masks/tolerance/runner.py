@@ -8,6 +8,10 @@ key of the inputs; a folder filled by another run is refused rather than mixed.
 
 Results never depend on the worker: every job carries its own seed (see
 :func:`masks.tolerance.spec.sample_seed`) and the PSF engine is deterministic.
+
+On GPUs (``--device gpu``) the local cluster has one single-threaded worker process per
+visible GPU, each started with ``CUDA_VISIBLE_DEVICES`` naming its own GPU, so each sees one
+device (its device 0) and the GPUs never share a worker (:func:`gpu_worker_devices`).
 """
 
 from __future__ import annotations
@@ -33,8 +37,8 @@ from .scheduler import PROBE_TIMEOUT_S, probe_scheduler
 if TYPE_CHECKING:
     from distributed import Client
 
-__all__ = ["SCHEDULERS", "batch_size", "load_done", "make_client", "n_workers", "open_store", "run_jobs",
-           "run_key"]
+__all__ = ["SCHEDULERS", "batch_size", "gpu_worker_devices", "load_done", "local_workers", "make_client", "n_workers",
+           "open_store", "run_jobs", "run_key", "visible_gpus"]
 
 log = logging.getLogger(__name__)
 
@@ -103,19 +107,81 @@ def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
     return max(1, min(by_time, by_spread))
 
 
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use, as ``CUDA_VISIBLE_DEVICES`` names them: that
+    variable's entries when it is set, else ``0 .. n-1`` for the n devices CuPy counts."""
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if listed is not None:
+        return [d.strip() for d in listed.split(",") if d.strip()]
+    try:
+        import cupy
+
+        return [str(i) for i in range(cupy.cuda.runtime.getDeviceCount())]
+    except Exception:  # no CuPy or no driver: no GPU to give a worker
+        return []
+
+
+def gpu_worker_devices(workers: int | None = None, devices: list[str] | None = None) -> list[str]:
+    """The GPU each local worker is pinned to (its ``CUDA_VISIBLE_DEVICES``): one worker per
+    visible GPU, or ``workers`` of them dealt round the GPUs.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Number of workers (default: one per GPU).
+    devices : list of str, optional
+        The GPUs (default :func:`visible_gpus`).
+    """
+    devices = visible_gpus() if devices is None else list(devices)
+    if not devices:
+        raise DoeError("--device gpu: no visible CUDA device to give the dask workers")
+    n = len(devices) if workers is None else int(workers)
+    if n < 1:
+        raise DoeError(f"--workers {workers}: need at least one worker")
+    return [devices[i % len(devices)] for i in range(n)]
+
+
+def _gpu_cluster(devices: list[str]):
+    """A local cluster of one single-threaded worker process per entry of ``devices``, each
+    seeing only that GPU. LocalCluster gives every worker the same environment, so the
+    workers are listed one by one (as dask-cuda's cluster does)."""
+    from distributed import Nanny, Scheduler, SpecCluster
+    from distributed.system import MEMORY_LIMIT
+
+    host = "127.0.0.1"
+    scheduler = {"cls": Scheduler, "options": {"host": host, "protocol": "tcp://", "dashboard": False,
+                                               "dashboard_address": None}}
+    workers = {f"gpu-{i}-{device}": {"cls": Nanny, "options": {
+        "host": host, "protocol": "tcp://", "nthreads": 1, "memory_limit": MEMORY_LIMIT // len(devices),
+        "dashboard": False, "dashboard_address": None, "silence_logs": logging.CRITICAL,
+        "env": {"CUDA_VISIBLE_DEVICES": device}}} for i, device in enumerate(devices)}
+    return SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.CRITICAL)
+
+
+def local_workers(scheduler: str, workers: int | None = None, gpu: bool = False) -> int:
+    """Worker processes (or threads) a local cluster of :func:`make_client` will have."""
+    if gpu:
+        return len(gpu_worker_devices(workers)) if scheduler == "processes" else int(workers or 1)
+    return int(workers or os.cpu_count() or 1)
+
+
 @contextlib.contextmanager
-def make_client(scheduler: str = "processes", workers: int | None = None) -> Iterator[Client | None]:
+def make_client(scheduler: str = "processes", workers: int | None = None,
+                gpu: bool = False) -> Iterator[Client | None]:
     """A dask client: a LocalCluster of processes or threads, an existing cluster, or None (inline).
 
-    ``workers`` defaults to the machine's cores. ``tcp://host:port`` connects to a running
-    dask.distributed scheduler as is (SLURM via dask-jobqueue, Kubernetes, ...).
+    ``workers`` defaults to the machine's cores, or with ``gpu`` and ``processes`` to one
+    single-threaded worker per visible GPU, each pinned to its GPU (:func:`gpu_worker_devices`);
+    ``threads`` on a GPU default to one (each thread holds a sample in device memory).
+    ``tcp://host:port`` connects to a running dask.distributed scheduler as is (SLURM via
+    dask-jobqueue, Kubernetes, ...).
     """
     if scheduler == "inline":
         yield None
         return
     from distributed import Client, LocalCluster
 
-    n = int(workers or os.cpu_count() or 1)
+    n = int(workers or (1 if gpu else os.cpu_count()) or 1)
     if n < 1:
         raise DoeError(f"--workers {workers}: need at least one worker")
     if "://" in scheduler:
@@ -130,6 +196,13 @@ def make_client(scheduler: str = "processes", workers: int | None = None) -> Ite
     if scheduler not in SCHEDULERS:
         raise DoeError(f"--scheduler {scheduler!r}: use {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
     processes = scheduler == "processes"
+    if gpu and processes:
+        devices = gpu_worker_devices(workers)
+        log.info("one dask worker per GPU: CUDA_VISIBLE_DEVICES %s", ", ".join(devices))
+        with _quiet_dask():
+            with _gpu_cluster(devices) as cluster, Client(cluster) as client:
+                yield client
+        return
     with _quiet_dask():
         cluster = LocalCluster(n_workers=n if processes else 1, threads_per_worker=1 if processes else n,
                                processes=processes, dashboard_address=None, silence_logs=logging.CRITICAL)
