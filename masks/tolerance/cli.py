@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="run seed S; sample k uses SeedSequence([S, k])")
     p.add_argument("--scheduler", default="processes",
                    help="processes (default, a LocalCluster), threads, inline (no dask) or tcp://HOST:PORT")
-    p.add_argument("--workers", type=Number(int, 1, 4096), help="local workers (default: the machine's cores)")
+    p.add_argument("--workers", type=Number(int, 1, 4096), help="local workers (default: the machine's cores; on GPUs one per visible GPU, each pinned to it)")
     add_device_option(p)
     p.add_argument("--oversample", type=Number(int, 1, 16), default=2, help="PSF samples per design pixel (default 2)")
     p.add_argument("--process-upsample", type=Number(int, 1, 64),
