@@ -93,7 +93,7 @@ def grow(coverage: Array, bias_px: float, backend: Backend | None = None) -> Arr
         if frac > 0:
             outer = _max3(out, axis, be)
             outer *= frac
-            _maximum_at(be, outer, (...,), out)
+            _elementwise_at(be, "maximum", outer, (...,), out)
             out = outer
     return out
 
@@ -105,19 +105,21 @@ def _max3(image, axis, be):
     out = be.xp.asarray(image, copy=True)
     ahead = (slice(None),) * axis + (slice(1, None), ...)
     behind = (slice(None),) * axis + (slice(None, -1), ...)
-    _maximum_at(be, out, ahead, image[behind])
-    _maximum_at(be, out, behind, image[ahead])
+    _elementwise_at(be, "maximum", out, ahead, image[behind])
+    _elementwise_at(be, "maximum", out, behind, image[ahead])
     return out
 
 
-def _maximum_at(be, out, index, other):
-    """``out[index] = max(out[index], other)``: in place where the namespace's ufuncs take
-    ``out=`` (NumPy, CuPy; no temporary image), else through a temporary (the standard's way)."""
+def _elementwise_at(be, name, out, index, other):
+    """``out[index] = f(out[index], other)`` for the standard's two-argument function ``name``
+    (``maximum``, ``minimum``): in place where the namespace's ufuncs take ``out=`` (NumPy,
+    CuPy; no temporary image), else through a temporary (the standard's way)."""
+    f = getattr(be.xp, name)
     if be.name in ("numpy", "cupy"):
         view = out[index]
-        be.xp.maximum(view, other, out=view)
+        f(view, other, out=view)
     else:
-        out[index] = be.xp.maximum(out[index], other)
+        out[index] = f(out[index], other)
 
 
 def move(coverage: Array, shift_rc: tuple[float, float], rotation_rad: float,
@@ -227,15 +229,19 @@ def expose(coverage: Array, blur_px: float, threshold: float, upsample: int = 1,
     # Even block sizes up to sigma / 2 keep the aerial image within ~4e-3 of the exact blur
     # (edges within ~0.01 sigma); odd ones were measured several times worse.
     blocks = [k for k in range(2, upsample + 1, 2) if upsample % k == 0 and k <= blur_px / 2]
-    xp = backend_of(backend).xp
-    aerial = blurred(coverage, blur_px, max(blocks, default=1), backend)
+    be = backend_of(backend)
+    xp = be.xp
+    aerial = blurred(coverage, blur_px, max(blocks, default=1), be)
     slope = xp.hypot(_gradient(aerial, 0, xp), _gradient(aerial, 1, xp))
     # A flat aerial image far from the threshold prints as 0 or 1 whatever the guard.
-    slope = xp.maximum(slope, float(np.float32(1e-6)))
+    _elementwise_at(be, "maximum", slope, (...,), float(np.float32(1e-6)))
     aerial -= float(np.float32(threshold))
     aerial /= slope
     aerial += 0.5
-    return xp.clip(aerial, 0.0, 1.0)
+    # Clipped to 0..1 (array_api_compat's clip masks element by element: slow on a large image).
+    _elementwise_at(be, "maximum", aerial, (...,), 0.0)
+    _elementwise_at(be, "minimum", aerial, (...,), 1.0)
+    return aerial
 
 
 def _gradient(image, axis, xp):
