@@ -107,3 +107,29 @@ def test_psf_command_same_stack_on_cpu_and_auto(tmp_path):
     a, b = (PSFResult.load(tmp_path / f"{k}.npz").psf for k in ("cpu", "auto"))
     assert np.abs(a - b).max() <= 1e-10 * a.max()
 
+
+
+def test_ndimage_of_a_backend_gives_scipys_filters_on_its_arrays(namespace_backend):
+    # The filters the process model uses, on the namespace under test, against SciPy's on the
+    # host: a Gaussian blur, a 1-D maximum, a linear rotation and a sum per label.
+    from scipy import ndimage as ndi
+
+    img = np.random.default_rng(2).random((30, 26)).astype(np.float32)
+    dev = namespace_backend.asarray(img)
+    nd = namespace_backend.ndimage
+    host = namespace_backend.to_host
+    np.testing.assert_allclose(host(nd.gaussian_filter(dev, 1.7, mode="constant", cval=0.0)),
+                               ndi.gaussian_filter(img, 1.7, mode="constant", cval=0.0), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(host(nd.maximum_filter1d(dev, 5, axis=1, mode="constant", cval=0.0)),
+                                  ndi.maximum_filter1d(img, 5, axis=1, mode="constant", cval=0.0))
+    c, s = np.cos(0.01), np.sin(0.01)
+    matrix = np.array([[c, s], [-s, c]])
+    np.testing.assert_allclose(
+        host(nd.affine_transform(dev, namespace_backend.asarray(matrix), offset=(0.3, -0.2), order=1,
+                                 mode="grid-constant", cval=0.0, prefilter=False)),
+        ndi.affine_transform(img, matrix, offset=(0.3, -0.2), order=1, mode="grid-constant", cval=0.0,
+                             prefilter=False), rtol=0, atol=1e-6)
+    labels = (np.arange(30 * 26).reshape(30, 26) % 3).astype(np.int32)
+    sums = nd.sum(namespace_backend.asarray(img.astype(np.float64)), namespace_backend.asarray(labels),
+                  namespace_backend.asarray(np.arange(1, 3)))
+    np.testing.assert_allclose(host(sums), [img[labels == 1].sum(), img[labels == 2].sum()], rtol=1e-6)
