@@ -348,8 +348,9 @@ class PSFEngine:
 
     # -- public API ----------------------------------------------------------------------------
     def _check_height(self, height_m):
-        if not self.backend.is_numpy and not isinstance(height_m, (np.ndarray, list, tuple)):
-            # Already on the device (a process render there): checked there, one scalar back.
+        if not self.backend.is_numpy:
+            # Checked on the device after the one copy there (or where a process render left it):
+            # a reduction and one scalar back, not a pass over the map on the host.
             xp = self.xp
             h = xp.astype(self.backend.asarray(height_m), xp.float64, copy=False)
             if tuple(h.shape) != self.shape:
@@ -363,7 +364,7 @@ class PSFEngine:
             raise DoeError(f"height map has shape {h.shape}, the engine was built for {self.shape}")
         if not np.all(np.isfinite(h)):
             raise DoeError(f"height map holds {np.count_nonzero(~np.isfinite(h))} NaN or infinite values")
-        return self.backend.asarray(h)
+        return h
 
     def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
             threads: int = 1) -> PSFResult:

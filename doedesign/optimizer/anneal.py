@@ -18,7 +18,6 @@ __all__ = ["ANNEAL_SCHEDULE", "anneal", "level_penalty"]
 # Weights of the level penalty relative to the continuous loss, one re-optimization each.
 ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
 
-ValueAndGrad = Callable[[np.ndarray], tuple[float, np.ndarray]]
 
 
 def level_penalty(height_m: ArrayLike, step_m: float,
@@ -41,19 +40,17 @@ def level_penalty(height_m: ArrayLike, step_m: float,
     return value, grad
 
 
-def anneal(run_stage: Callable[..., tuple[np.ndarray, list[float]]],
-           objective: Callable[[np.ndarray, ValueAndGrad | None], tuple[float, np.ndarray]],
-           height_m: np.ndarray, step_m: float, support: np.ndarray, scale: float, iterations: int,
-           max_time_s: float | None = None,
+def anneal(run_stage: Callable[..., tuple[np.ndarray, list[float]]], height_m: np.ndarray, step_m: float,
+           scale: float, iterations: int, max_time_s: float | None = None,
            before_stage: Callable[[np.ndarray], None] | None = None) -> tuple[np.ndarray, list[float]]:
     """Re-optimize ``height_m`` once per weight of :data:`ANNEAL_SCHEDULE` with the level penalty added.
 
     Parameters
     ----------
     run_stage : callable
-        ``run_stage(fun, h_start, max_iter, max_time_s, desc) -> (h, history)``, one nlopt stage.
-    objective : callable
-        ``objective(h, extra) -> (value, grad)``: the design loss plus ``extra(h)``.
+        ``run_stage(h_start, max_iter, max_time_s, desc, penalty) -> (h, history)``, one nlopt stage
+        of the design loss plus ``penalty(x) -> (value, grad)`` on its free heights ``x`` (a vector:
+        the penalty is separable, so it never needs the whole map).
     scale : float
         The continuous loss, so the penalty weights are relative to it.
     iterations : int
@@ -73,11 +70,12 @@ def anneal(run_stage: Callable[..., tuple[np.ndarray, list[float]]],
     h = height_m
     for mu in ANNEAL_SCHEDULE:
         def penalized(x, mu=mu):
-            v, g = level_penalty(x, step_m, support)
-            return scale * mu * v, scale * mu * g
+            v, g = level_penalty(x, step_m)
+            g *= scale * mu
+            return scale * mu * v, g
 
         if before_stage is not None:
             before_stage(h)
-        h, hist = run_stage(lambda x, p=penalized: objective(x, p), h, iterations, stage_time, f"anneal x{mu:g}")
+        h, hist = run_stage(h, iterations, stage_time, f"anneal x{mu:g}", penalized)
         history.extend(hist)
     return h, history

@@ -175,7 +175,7 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
              else make_loss(target, loss)}
     bound = spot_bound(camera, pitch_m, tuple(shape), target, material, device=engine.backend)
 
-    def objective(h, extra=None):
+    def objective(h):
         if perturbations:
             value, grad = robust_value_and_grad(
                 lambda x: engine.value_and_grad(x, state["loss"], full_window=full_window), h, perturbations,
@@ -186,10 +186,6 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
             v, g = isolation_penalty(h, step)
             value += settings.fab_weight * v
             grad = grad + settings.fab_weight * g
-        if extra is not None:
-            v, g = extra(h)
-            value += v
-            grad = grad + g
         return value, grad
 
     def metrics(h):
@@ -205,11 +201,16 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
             state["target"] = reweight_target(state["target"], psf, settings.reweight_alpha)
             state["loss"] = make_loss(state["target"], loss)
 
-    # Only the pixels the coded view sees are free; the others stay at 0 (unetched).
-    def on_support(fun):
+    # Only the pixels the coded view sees are free; the others stay at 0 (unetched). A penalty
+    # on the free heights alone (the annealing's) is added on that vector, not on the map.
+    def on_support(fun, penalty=None):
         def wrapped(x):
             value, grad = fun(full(x))
-            return value, grad[support]
+            grad = grad[support]
+            if penalty is not None:
+                v, g = penalty(x)
+                value, grad = value + v, grad + g
+            return value, grad
         return wrapped
 
     def full(x):
@@ -220,8 +221,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     def stage_callback(i, value, x):
         return callback(i, value, full(x)) if callback is not None else False
 
-    def run_stage(fun, h_start, max_iter, max_time, desc):
-        x, hist = minimize(on_support(fun), h_start[support], lower, upper, settings.algorithm, max_iter,
+    def run_stage(fun, h_start, max_iter, max_time, desc, penalty=None):
+        x, hist = minimize(on_support(fun, penalty), h_start[support], lower, upper, settings.algorithm, max_iter,
                            settings.ftol_rel, max_time, stage_callback, desc=desc)
         return full(x), hist
 
@@ -252,7 +253,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     levels, h_final = q.levels, q.height_m
     if settings.quantize:
         scale = max(report["continuous"]["loss"], 1e-6)
-        h, history["anneal"] = anneal(run_stage, objective, h_cont, step, support, scale, settings.anneal_iter,
+        h, history["anneal"] = anneal(lambda h, n, t, desc, p: run_stage(objective, h, n, t, desc, p), h_cont,
+                                      step, scale, settings.anneal_iter,
                                       settings.max_time_s, before_stage=reweight)
         q = quantize(h, step, settings.n_levels)
         lev_a, h_a = q.levels, q.height_m
