@@ -196,23 +196,22 @@ def main(argv=None):
 
         props = cupy.cuda.runtime.getDeviceProperties(0)
         machine = f"{props['name'].decode()}, {CPU_THREADS} CPU threads for the CPU rows ({backend.name})"
+    groups = {"psf": psf_stack_rows, "grad": value_and_grad_rows, "design": design_rows,
+              "tolerance": lambda: tolerance_rows(args.tolerance_size, args.tolerance_wavelengths,
+                                                  args.tolerance_samples, args.tolerance_cpu_samples, args.device,
+                                                  args.tolerance_scheduler, args.tolerance_window)}
+    if args.skip_design:
+        wanted.discard("design")
     rows = []
-    if "psf" in wanted:
-        rows += psf_stack_rows()
-    if "grad" in wanted:
-        rows += value_and_grad_rows()
-    if "design" in wanted and not args.skip_design:
-        rows += design_rows()
-    if "tolerance" in wanted:
-        rows += tolerance_rows(args.tolerance_size, args.tolerance_wavelengths, args.tolerance_samples,
-                               args.tolerance_cpu_samples, args.device, args.tolerance_scheduler,
-                               args.tolerance_window)
-    for r in rows:
-        r["notes"] = f"{machine}; {r['notes']}"
-        print(f"{r['figure']}: {r['value']:.4g} {r['unit']} (CPU {r['peer_value']:.4g}, ratio {r['ratio']:.3g}, "
-              f"limit {r['limit']})", flush=True)
-    with open(args.out, "w") as f:
-        json.dump(rows, f, indent=1)
+    # Each group's rows are printed and written as they come, so a later failure keeps them.
+    for name in (g for g in groups if g in wanted):
+        for r in groups[name]():
+            r["notes"] = f"{machine}; {r['notes']}"
+            print(f"{r['figure']}: {r['value']:.4g} {r['unit']} (CPU {r['peer_value']:.4g}, "
+                  f"ratio {r['ratio']:.3g}, limit {r['limit']})", flush=True)
+            rows.append(r)
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -53,11 +53,11 @@ def _problem(spec):
 
 def sobol_jobs(spec: ToleranceSpec, base_n: int, seed: int) -> list[dict]:
     """Saltelli jobs (``base_n`` rounded up to a power of two), or [] when nothing varies."""
-    from SALib.sample import sobol as sobol_sample
-
     params = spec.random_params
     if base_n <= 0 or not params:
         return []
+    from SALib.sample import sobol as sobol_sample
+
     n = 1 << int(np.ceil(np.log2(base_n)))
     u = sobol_sample.sample(_problem(spec), n, calc_second_order=False, seed=seed)
     u = np.clip(u, _U_EPS, 1 - _U_EPS)
@@ -72,11 +72,11 @@ def sobol_jobs(spec: ToleranceSpec, base_n: int, seed: int) -> list[dict]:
 
 def sobol_indices(spec: ToleranceSpec, results: dict, metric: str, seed: int) -> dict:
     """First-order and total Sobol indices of ``metric`` per group (effect on one mask)."""
-    from SALib.analyze import sobol as sobol_analyze
-
     ids = sorted(k for k in results if k.startswith("sobol-"))
     if not ids:
         return None
+    from SALib.analyze import sobol as sobol_analyze
+
     y = np.array([results[k]["metrics"][metric] for k in ids])
     problem = _problem(spec)
     if np.ptp(y) == 0:
