@@ -8,6 +8,8 @@ The simulated fabrication hides one process error (by default a 0.4 um x-overlay
 600 nm mask) that the report does not reveal until the diagnosis has named it; the
 measurement adds what a white-light interferometer adds (lateral blur, tilt, noise, a few
 invalid pixels, its own pixel size and a small rotation) and is written as a Zygo ``.datx``.
+The demo ends with the fab loop (:mod:`metrology.demo_loop`): ``doe correct`` of the
+diagnosis, and the next wafer made with the job sheet, measured, compared and diagnosed.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ if TYPE_CHECKING:
     from metrology.matching.compare import Comparison
 
 __all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
-           "fabricate_and_measure", "markdown_report", "masks_step", "psf_step", "run_demo", "tolerance_step"]
+           "fabricate_and_measure", "hidden_process", "markdown_report", "masks_step", "psf_step", "run_demo",
+           "tolerance_step"]
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -69,6 +72,7 @@ class DemoConfig:
     rggb: bool = True
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
     diagnose_window_px: int = 128  # camera pixels per side diagnosed in the camera's frame
+    next_wafer: bool = True       # the fab loop makes, measures and diagnoses the corrected next wafer
 
     @classmethod
     def quick(cls) -> DemoConfig:
@@ -130,18 +134,27 @@ def masks_step(design: Design, design_path: Path, out: Path) -> dict:
     return write_element(design, out / "masks", source=str(design_path))
 
 
-def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[Path, dict]:
-    """Simulate the etched surface with the hidden error and write the Zygo file."""
+def hidden_process(cfg: DemoConfig):
+    """The demo wafer's hidden process (:class:`masks.process.ProcessParams`): the overlay error, roughness."""
     from masks.process import ProcessParams
+
+    overlay = np.zeros((4, 3))
+    overlay[cfg.hidden_mask, :2] = cfg.hidden_overlay_m
+    return ProcessParams.ideal().copy(mask_overlay=overlay, roughness=0.5e-9, seed=cfg.seed)
+
+
+def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params=None, seed: int | None = None
+                          ) -> tuple[Path, dict]:
+    """Simulate the etched surface with the hidden error (or the process ``params``) and write
+    the Zygo file ``out/measurement.datx``; ``seed`` (default the config's) draws the field's
+    placement and the instrument noise."""
     from metrology.formats.writers import write_datx
     from metrology.matching import compare, register
     from metrology.matching.window import busiest_window
 
-    rng = np.random.default_rng(cfg.seed)
-    n_masks = 4
-    overlay = np.zeros((n_masks, 3))
-    overlay[cfg.hidden_mask, :2] = cfg.hidden_overlay_m
-    params = ProcessParams.ideal().copy(mask_overlay=overlay, roughness=0.5e-9, seed=cfg.seed)
+    seed = cfg.seed if seed is None else seed
+    rng = np.random.default_rng(seed)
+    params = hidden_process(cfg) if params is None else params.copy(seed=seed)
     # Place the field where the pattern has structure, inside the element's inscribed circle: a
     # flat zone of a lens-like design cannot be registered or tell anything about the masks.
     # It must also hold unetched surface (1 % of the field), which compare levels on.
@@ -160,6 +173,7 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[P
     tilt = 2e-6 * (rows - shape_px / 2) / shape_px - 1e-6 * (cols - shape_px / 2) / shape_px
     height = height + tilt + rng.normal(0, cfg.noise_m, height.shape)
     height[rng.random(height.shape) < 0.002] = np.nan
+    out.mkdir(parents=True, exist_ok=True)
     path = out / "measurement.datx"
     write_datx(path, height, cfg.measurement_pixel_m, unit="NanoMeters")
     hidden = {"mask_overlay": {"mask": cfg.hidden_mask, "dx_um": cfg.hidden_overlay_m[0] * 1e6,
@@ -169,7 +183,7 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path) -> tuple[P
 
 
 def compare_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> tuple[dict, Comparison]:
-    """``doe compare`` on the measurement file; returns its report and the comparison."""
+    """``doe compare`` on the measurement file into ``out/compare``; returns its report and the comparison."""
     from metrology.formats.readers import read_measurement
     from metrology.matching.compare import compare_measurement
     from metrology.matching.report import write_comparison
@@ -183,15 +197,18 @@ def compare_step(measurement_path: Path, design: Design, design_path: Path, out:
 
 def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out: Path, cfg: DemoConfig,
                   comparison: Comparison) -> dict:
-    """The diagnosis in the camera's frame: the model is rendered into the measured pixels,
-    started from the comparison's camera-frame placement."""
+    """The diagnosis in the camera's frame into ``out/diagnose``: the model is rendered into the
+    measured pixels, started from the comparison's camera-frame placement. Its inputs carry the
+    design's fingerprint, as ``doe diagnose`` writes it, so that ``doe correct`` can read it."""
+    from metrology.correction.diagnoses import design_fingerprint
     from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
     diag, inputs = diagnose_camera_measurement(design, read_measurement(measurement_path),
                                                window_px=cfg.diagnose_window_px, source=str(measurement_path),
                                                comparison=comparison)
-    return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs})
+    return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs,
+                                        **design_fingerprint(design, design_path)})
 
 
 def tolerance_step(design: Design, design_path: Path, out: Path, cfg: DemoConfig) -> dict:
@@ -225,6 +242,7 @@ def run_demo(out_dir: str | Path, cfg: DemoConfig | None = None) -> dict:
                                    out)
     diagnosis = timings.run("diagnose (camera frame)", diagnose_step, meas_path, design, design_path, out, cfg, comp)
     tolerance = timings.run("tolerance (process Monte Carlo)", tolerance_step, design, design_path, out, cfg)
+    loop = _fab_loop(timings, design, design_path, out, cfg)
     report = {
         "config": cfg.__dict__,
         "timings": timings.steps,
@@ -235,11 +253,29 @@ def run_demo(out_dir: str | Path, cfg: DemoConfig | None = None) -> dict:
         "diagnosis": diagnosis,
         "hidden_error": hidden,
         "tolerance": tolerance,
+        "fab_loop": loop,
     }
     write_json(out / "report.json", report)
     with atomic_path(out / "report.md") as tmp:
         tmp.write_text(markdown_report(json_ready(report), out))
     return report
+
+
+def _fab_loop(timings: Timings, design: Design, design_path: Path, out: Path, cfg: DemoConfig) -> dict:
+    """The closing loop (:mod:`metrology.demo_loop`): correct, then the next wafer made with the job sheet."""
+    from metrology.demo_loop import correct_step, loop_summary, next_wafer_params
+
+    sheet = timings.run("fab loop: doe correct (masks, job sheet, merit)", correct_step, design, design_path, out,
+                        seed=cfg.seed)
+    if not cfg.next_wafer:
+        return loop_summary(sheet, None)
+    nxt = out / "next_wafer"
+    params = next_wafer_params(hidden_process(cfg), sheet)
+    meas, _ = timings.run("fab loop: next wafer made and measured", fabricate_and_measure, design, cfg, nxt, params,
+                          seed=cfg.seed + 1)
+    _, comp = timings.run("fab loop: next wafer compared", compare_step, meas, design, design_path, nxt)
+    diag = timings.run("fab loop: next wafer diagnosed", diagnose_step, meas, design, design_path, nxt, cfg, comp)
+    return loop_summary(sheet, diag)
 
 
 def markdown_report(report: dict, out: Path) -> str:
@@ -276,6 +312,7 @@ def markdown_report(report: dict, out: Path) -> str:
         f"- **How sure**: {pages.match_sentence(comp)}; "
         + ("the named effects explain the residual down to the noise floor"
            if not diag.get("unexplained") else "a structured residual remains unexplained") + ".",
+        *([f"- **Fab loop**: {_loop_verdict(report['fab_loop'])}."] if report.get("fab_loop") else []),
         "",
         "## Light on target per colour",
         "Energies are fractions of the coded half-aperture's light on each colour's target pixel (the "
@@ -325,7 +362,17 @@ def markdown_report(report: dict, out: Path) -> str:
                        f"{md.fmt(y['ci95'][0], 2)}-{md.fmt(y['ci95'][1], 2)}")],
                      ("metric", "nominal", "mean", "worst decile", "yield", "95 % interval")),
             md.figure(out, "tolerance/distributions.png", "metric distributions against the nominal element")]
+    if report.get("fab_loop"):
+        from metrology.demo_loop import loop_sections
+
+        parts[-1:-1] = loop_sections(report["fab_loop"])
     return md.join(parts)
+
+
+def _loop_verdict(loop):
+    from metrology.demo_loop import loop_verdict
+
+    return loop_verdict(loop)
 
 
 def _per_colour(result, key="energy_on_target"):

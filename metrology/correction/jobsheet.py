@@ -7,9 +7,19 @@ the measured errors (a mask printed 0.4 um to +x is placed 0.4 um to -x next tim
 target is what to aim at so that the etch lands on nominal: ``nominal / (1 + error)``, and,
 with a significant etch loading ``L``, divided by ``1 - L rho`` with ``rho`` the mean local open
 fraction over that mask's openings (the process model's loading rule,
-:func:`masks.process.mask_etch`): binary masks cannot vary the local etch rate, so only the
-mean loss is taken out. The linewidth bias taken out is the measured one; the drawn edges move
-by its negative.
+:func:`masks.process.mask_etch`). The linewidth bias taken out is the measured one; the drawn
+edges move by its negative.
+
+Etch loading, what the fab can act on: ``doe diagnose`` reports one coefficient ``L`` of the
+process model ``depth_j(x) = d_j (1 - L rho_j(x))``, a *depth* that varies with the local open
+fraction. The etch time sets one depth per mask, so the target takes out the mean loss over the
+mask's openings (the least-squares best uniform depth). What varies with the density is left:
+binary masks cannot vary the local etch rate, and an edge offset moves where an opening ends,
+not how deep it is (widening dense openings would even raise their density and their loading).
+The job sheet says so in a warning with the measured coefficient and, per mask, the rms depth
+left over the openings (:func:`loading_warnings`); a re-design for the measured process is the
+remedy. The proof that the mean went out is each mask's measured mean depth error over its
+openings, ``(1 + e_j)(1 - L rho_mean_j) - 1`` (``etch_mean_error_measured``), before and after.
 """
 
 from __future__ import annotations
@@ -22,7 +32,8 @@ from doedesign.errors import DoeError
 
 from .systematic import DISAGREEMENT_CHI2, SIGNIFICANCE, Estimate
 
-__all__ = ["check_same_process", "job_entries", "mean_loading_loss", "warnings_for"]
+__all__ = ["check_same_process", "job_entries", "loading_losses", "loading_warnings", "mask_label",
+           "mean_loading_loss", "warnings_for"]
 
 
 def _value(estimates, effect, mask, prefix, corrected_only=True):
@@ -32,20 +43,29 @@ def _value(estimates, effect, mask, prefix, corrected_only=True):
     return None
 
 
-def mean_loading_loss(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float], loading: float) -> np.ndarray:
-    """Per mask, the mean fractional depth lost to etch loading over its openings (process model)."""
+def loading_losses(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float], loading: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Per mask, the mean and the rms about it of the fractional depth lost to etch loading over
+    its openings (process model, at design-pixel resolution)."""
     from masks.process import ProcessParams, mask_etch
 
     params = ProcessParams(etch_depth=np.asarray(depths_m, float), etch_loading=float(loading))
     levels = sum(np.asarray(m, np.int64) << j for j, m in enumerate(masks))
-    out = []
+    mean, rms = [], []
     for j, m in enumerate(masks):
         if not m.any():
-            out.append(0.0)
+            mean.append(0.0)
+            rms.append(0.0)
             continue
-        etched = mask_etch(levels, pitch_m, params, j, step_m=pitch_m)
-        out.append(float(1.0 - etched[m].mean() / depths_m[j]))
-    return np.array(out)
+        lost = 1.0 - mask_etch(levels, pitch_m, params, j, step_m=pitch_m)[m] / depths_m[j]
+        mean.append(float(lost.mean()))
+        rms.append(float(lost.std()))
+    return np.array(mean), np.array(rms)
+
+
+def mean_loading_loss(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float], loading: float) -> np.ndarray:
+    """Per mask, the mean fractional depth lost to etch loading over its openings (process model)."""
+    return loading_losses(masks, pitch_m, depths_m, loading)[0]
 
 
 def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float, depths_m: Sequence[float],
@@ -54,7 +74,13 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
     linewidth bias taken out, and the corrections that went in (strict-JSON ready)."""
     n = len(depths_m)
     loading = _value(estimates, "etch_loading", None, "loading")
-    loss = mean_loading_loss(masks, pitch_m, depths_m, loading.mean) if loading else np.zeros(n)
+    loss, rest = loading_losses(masks, pitch_m, depths_m, loading.mean) if loading else (np.zeros(n), np.zeros(n))
+    # The measured mean depth error over each mask's openings, corrected or not (what the etch target acts on).
+    measured_loss = loss
+    if not loading:
+        named = _value(estimates, "etch_loading", None, "loading", corrected_only=False)
+        if named and named.mean:
+            measured_loss = mean_loading_loss(masks, pitch_m, depths_m, named.mean)
     entries = []
     for j in range(n):
         done = []
@@ -67,7 +93,10 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
         if loading:
             target /= 1.0 - loss[j]
             done.append(f"etch loading {loading.mean:.3f}: mean loss {loss[j] * 100:.2f} % over the openings "
-                        "added to the target")
+                        f"added to the target (density-dependent rest, rms {rest[j] * nominal * 1e9:.2f} nm, "
+                        "not correctable by mask or etch)")
+        measured_depth = _value(estimates, "etch_depth", j, "depth_error", corrected_only=False)
+        mean_error = (1.0 + (measured_depth.mean if measured_depth else 0.0)) * (1.0 - measured_loss[j]) - 1.0
         shift = [0.0, 0.0]
         for c, axis in enumerate(("dx", "dy")):
             e = _value(estimates, "mask_overlay", j, axis)
@@ -89,14 +118,17 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
             "align_offset_um": [v * 1e6 for v in shift], "align_rotation_deg": rotation,
             "linewidth_bias_um": bias_m * 1e6, "drawn_edge_offset_um": -bias_m * 1e6,
             "etch_loading_mean_loss_fraction": float(loss[j]) if loading else 0.0,
+            "etch_loading_residual_rms_nm": float(rest[j]) * nominal * 1e9 if loading else 0.0,
+            "etch_mean_error_measured": float(mean_error),
             "corrections": done or ["none: nothing systematic and significant on this mask"]})
     return entries
 
 
-def warnings_for(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
+def warnings_for(estimates: Sequence[Estimate], fields: Sequence, jobs: Sequence[dict] = ()) -> list[str]:
     """Warnings for the job sheet: fields that disagree beyond their uncertainties (in sign, or
-    in scatter on a corrected parameter), systematic effects no knob acts on, diagnoses that left
-    a residual unexplained."""
+    in scatter on a corrected parameter), systematic effects no knob acts on, what of a
+    compensated etch loading no knob removes (given the ``jobs``), diagnoses that left a
+    residual unexplained."""
     out, scatter, spread = [], [], []
     for e in estimates:
         signs = {np.sign(v - e.null) for v, s in zip(e.values, e.uncertainties) if abs(v - e.null) > SIGNIFICANCE * s}
@@ -116,10 +148,38 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
     if spread:
         out.append("the fields scatter beyond their fitted uncertainties about a mean that is not significant on "
                    + ", ".join(spread) + ": reported as spread, not corrected")
+    out += loading_warnings(estimates, jobs)
     for f in fields:
         if f.unexplained:
             out.append(f"{f.source}: its diagnosis left a structured residual unexplained; its effects may be incomplete")
     return out
+
+
+def loading_warnings(estimates: Sequence[Estimate], jobs: Sequence[dict]) -> list[str]:
+    """The part of a compensated etch loading that no knob removes, with the measured values."""
+    loading = _value(estimates, "etch_loading", None, "loading")
+    if not loading or not jobs:
+        return []
+    rest = ", ".join(f"mask {m['mask']} {m['etch_loading_residual_rms_nm']:.2f} nm" for m in jobs)
+    return [f"etch_loading loading = {loading.mean:.4g} +- {loading.standard_error:.2g} is systematic: the etch targets "
+            "take out its mean loss over each mask's openings, but the depth that varies with the local open fraction "
+            f"(rms over the openings: {rest}) cannot be corrected by a mask edge, the aligner or the etch time "
+            "(binary masks cannot vary the local etch rate); a re-design for the measured process can"]
+
+
+def mask_label(job: dict) -> str:
+    """The label line of a corrected mask: which corrections went in (a job entry of :func:`job_entries`)."""
+    bits = []
+    if job["drawn_edge_offset_um"]:
+        bits.append(f"edges {job['drawn_edge_offset_um']:+.3f} um")
+    if abs(job["etch_depth_target_nm"] - job["etch_depth_nm"]) > 1e-6:
+        why = " incl. loading mean loss {:.2f} %".format(job["etch_loading_mean_loss_fraction"] * 100) \
+            if job["etch_loading_mean_loss_fraction"] else ""
+        bits.append(f"etch target {job['etch_depth_target_nm']:.1f} nm{why}")
+    if any(job["align_offset_um"]) or job["align_rotation_deg"]:
+        bits.append(f"align {job['align_offset_um'][0]:+.3f},{job['align_offset_um'][1]:+.3f} um "
+                    f"{job['align_rotation_deg']:+.4f} deg")
+    return "corrected: " + ", ".join(bits) if bits else "no correction"
 
 
 def check_same_process(fields: Sequence) -> list[float]:

@@ -17,14 +17,17 @@ def job_page(sheet: dict, folder: Path) -> Path:
     primary = merit["primary_metric"]
     rows = [[m["mask"], f"{m['layer']}/{m['datatype']}", f"{m['etch_depth_nm']:.1f}", f"{m['etch_depth_target_nm']:.1f}",
              f"{m['align_offset_um'][0]:+.3f}, {m['align_offset_um'][1]:+.3f}", f"{m['align_rotation_deg']:+.4f}",
-             f"{m['linewidth_bias_um']:+.3f}", "; ".join(m["corrections"])] for m in sheet["masks"]]
+             f"{m['linewidth_bias_um']:+.3f}", f"{m['etch_mean_error_measured'] * 100:+.2f}",
+             "; ".join(m["corrections"])] for m in sheet["masks"]]
     job = md.table(rows, ["mask", "layer/datatype", "etch nominal (nm)", "etch target (nm)",
                           "aligner offset dx, dy (um)", "aligner rotation (deg)", "linewidth bias taken out (um)",
-                          "corrections"])
+                          "measured mean etch error over the openings (%)", "corrections"])
     est_rows = []
     for e in sheet["estimates"]:
         scale, unit = _SCALE.get(e["unit"], (1.0, e["unit"]))
         verdict = "corrected" if e["corrected"] else ("systematic, no knob" if e["systematic"] else "spread only")
+        if e["corrected"] and e["effect"] == "etch_loading":
+            verdict = "mean loss corrected (etch targets); the density-dependent rest is not (see warnings)"
         est_rows.append([e["effect"], e["param"], md.fmt_pm(e["mean"] * scale, e["standard_error"] * scale, 3, unit),
                          md.fmt(e["spread"] * scale, 3, unit), md.fmt(e["detection_limit"] * scale, 2, unit),
                          f"{e['named_in']}/{len(e['values'])}", verdict])

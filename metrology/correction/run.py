@@ -18,7 +18,7 @@ from doedesign.fileio import atomic_path, ensure_output_dir, output_run, write_j
 from doedesign.levels import design_levels
 
 from .diagnoses import design_fingerprint, read_diagnosis
-from .jobsheet import check_same_process, job_entries, warnings_for
+from .jobsheet import check_same_process, job_entries, mask_label, warnings_for
 from .merit import predict_merit
 from .page import job_page
 from .process_spec import spec_table, toml_text
@@ -94,7 +94,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         if why:
             raise DoeError(f"{name}: mask {job['mask']}: taking out a linewidth bias of {job['linewidth_bias_um']:+.3f} "
                            f"um cannot be drawn: {why}")
-    warnings = warnings_for(estimates, fields)
+    warnings = warnings_for(estimates, fields, jobs)
     merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
     if redesign_iterations:
         redesign_jobs = jobs if redesign_for == "corrected" else None
@@ -119,17 +119,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         "masks_folder": "masks", "process_spec": "process_spec.toml",
         "process_spec_notes": spec_notes,
     }
-    notes = {}
-    for job in jobs:
-        bits = []
-        if job["drawn_edge_offset_um"]:
-            bits.append(f"edges {job['drawn_edge_offset_um']:+.3f} um")
-        if abs(job["etch_depth_target_nm"] - job["etch_depth_nm"]) > 1e-6:
-            bits.append(f"etch target {job['etch_depth_target_nm']:.1f} nm")
-        if any(job["align_offset_um"]) or job["align_rotation_deg"]:
-            bits.append(f"align {job['align_offset_um'][0]:+.3f},{job['align_offset_um'][1]:+.3f} um "
-                        f"{job['align_rotation_deg']:+.4f} deg")
-        notes[job["mask"]] = "corrected: " + ", ".join(bits) if bits else "no correction"
+    notes = {job["mask"]: mask_label(job) for job in jobs}
     with output_run(out, f"doe correct {name}"):
         masks_dir = ensure_output_dir(out / "masks", create=True)
         report = write_offset_element(design, masks_dir, [j["drawn_edge_offset_um"] * 1e-6 for j in jobs],

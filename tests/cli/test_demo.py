@@ -10,7 +10,7 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
     assert main(["demo", "--quick", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     steps = [s["step"] for s in report["timings"]]
-    assert len(steps) == 7 and all(s["seconds"] > 0 for s in report["timings"])
+    assert len(steps) == 11 and all(s["seconds"] > 0 for s in report["timings"])
     assert report["masks"]["verification"]["passed"]
     assert (out / "masks" / "bayer_demo.gds").stat().st_size > 0
     assert (out / "measurement.datx").exists()
@@ -66,6 +66,42 @@ def test_quick_demo_runs_end_to_end_and_finds_the_hidden_error(tmp_path):
         "report.json", "design_report.json", "masks/report.json", "compare/report.json", "diagnose/report.json"}
     for path in written:
         json.loads(path.read_text(), parse_constant=_reject)
+    _check_fab_loop(out, report, text)
+
+
+def _check_fab_loop(out, report, text):
+    """The demo ends with the fab loop: its numbers are the job sheet's and the diagnoses', and
+    the next wafer made with the job sheet no longer carries the corrected overlay."""
+    import pytest
+
+    loop = report["fab_loop"]
+    sheet = json.loads((out / "correct" / "job.json").read_text())
+    assert sheet["diagnoses"] == [str(out / "diagnose")] and sheet["masks_verification"]["passed"]
+    # The one corrected parameter is the diagnosed overlay, dialled out on mask 3 only.
+    diag_dx = next(s for s in report["diagnosis"]["steps"] if s["effect"] == "mask_overlay")["params"]["dx_mask3_m"]
+    assert [r["parameter"] for r in loop["corrected"]] == ["mask_overlay.dx_mask3_m"] == sheet["corrected"]
+    assert loop["corrected"][0]["wafer1"] == pytest.approx(diag_dx, rel=1e-12)
+    assert loop["masks"][3]["align_offset_um"][0] == pytest.approx(-diag_dx * 1e6, rel=1e-12)
+    assert all(m["align_offset_um"] == [0.0, 0.0] for m in loop["masks"][:3])
+    # The merit of the three wafers is the job sheet's; the corrected one is back near the design.
+    for key in ("design", "measured_wafer", "corrected_wafer"):
+        assert loop["merit"][key]["change_percent"] == sheet["merit"][key]["primary_change_percent"]
+    lost, left = loop["merit"]["measured_wafer"]["change_percent"], loop["merit"]["corrected_wafer"]["change_percent"]
+    assert lost < 0 and abs(left) < 0.2 * abs(lost)
+    # The next wafer, diagnosed: the overlay of mask 3 is gone (not named, or below the limit).
+    diag2 = json.loads((out / "next_wafer" / "diagnose" / "report.json").read_text())
+    overlay2 = next((s["params"] for s in diag2["steps"] if s["effect"] == "mask_overlay"), {})
+    assert abs(overlay2.get("dx_mask3_m", 0.0)) < 0.05e-6 and loop["corrected"][0]["closed"]
+    assert loop["corrected"][0]["wafer2"] == overlay2.get("dx_mask3_m", 0.0)
+    # The page shows the loop with those numbers and a verdict, last before the JSON link.
+    from doedesign import report_md as md
+
+    section = text.split("## Closing the fab loop (doe correct)")[1]
+    assert "**Verdict**: **OK**: the loop closed" in section and "[report.json](report.json)" in section
+    assert f"| wafer 1 as measured | {md.fmt(sheet['merit']['measured_wafer']['central'][loop['primary_metric']], 4)} | " \
+        f"{md.fmt(lost, 3)} |" in section
+    assert f"| mask 3 | aligner offset {-diag_dx * 1e6:+.3f}, +0.000 um |" in section
+    assert "**Fab loop**: **OK**" in text.split("## Light on target")[0]
 
 
 def _reject(name):

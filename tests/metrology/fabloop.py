@@ -9,7 +9,10 @@ sets (:func:`apply_job_sheet`): the drawn edges move by ``drawn_edge_offset_um``
 opening is the drawn one grown by the process bias, so the biases add: the generator's
 coverage is a Chebyshev distance, which is what an edge offset of Manhattan polygons is), the
 aligner adds its dials to the hidden overlay and rotation, and the etch aimed at the target
-removes ``(1 + hidden error) target``.
+removes ``(1 + hidden error) target``. Etch loading is physics the fab cannot switch off: the
+next wafer carries the same loading (the generator's own rule, the depth of mask j falling as
+``1 - L rho_j`` with ``rho_j`` the local open fraction of the printed mask, a 50 um Gaussian);
+only its mean loss can be aimed at through the target.
 """
 
 from __future__ import annotations
@@ -25,18 +28,19 @@ import numpy as np
 import filegen
 
 # The hidden systematic process of wafer 1: overlay on two masks, one mask rotated, a bias on
-# every mask, one deep etch (issue 27).
+# every mask, one deep etch, etch loading (issue 27).
 SYSTEMATIC = {
     "mask_overlay": {"mask": [1, 3], "shift_m": [[0.40e-6, -0.25e-6], [-0.30e-6, 0.35e-6]]},
     "mask_rotation": {"mask": [2], "angle_deg": [0.03]},
     "linewidth_bias": {"bias_m": [0.25e-6, 0.25e-6, 0.25e-6, 0.25e-6]},
     "etch_depth": {"error": [0.0, 0.0, 0.0, 0.05]},
+    "etch_loading": {"loading": 0.08},
 }
 # Field-to-field spread (standard deviations) drawn afresh on every field.
-SPREAD = {"overlay_m": 0.02e-6, "rotation_deg": 0.001, "bias_m": 0.008e-6, "depth": 0.002}
+SPREAD = {"overlay_m": 0.02e-6, "rotation_deg": 0.001, "bias_m": 0.008e-6, "depth": 0.002, "loading": 0.004}
 # The candidates the fields are diagnosed with: the hidden ones and the generator's instrument needs no
 # artefact beyond the blur every camera-frame fit holds (a shorter list is a faster diagnosis).
-EFFECTS = "etch_depth,mask_overlay,linewidth_bias,mask_rotation"
+EFFECTS = "etch_depth,mask_overlay,linewidth_bias,mask_rotation,etch_loading"
 
 
 def design_metadata():
@@ -68,11 +72,14 @@ def field_truth(systematic, rng, spread=SPREAD):
                                + rng.normal(0, spread["bias_m"], 4)}
     if "etch_depth" in t:
         t["etch_depth"] = {"error": np.array(t["etch_depth"]["error"], float) + rng.normal(0, spread["depth"], 4)}
+    if "etch_loading" in t:
+        t["etch_loading"] = {"loading": float(t["etch_loading"]["loading"] + rng.normal(0, spread["loading"]))}
     return t
 
 
 def apply_job_sheet(systematic, job):
-    """The hidden process of the next wafer when the fab follows ``job`` (a job.json dict)."""
+    """The hidden process of the next wafer when the fab follows ``job`` (a job.json dict); its
+    etch loading, if any, unchanged."""
     t = copy.deepcopy(systematic)
     shift, angles = np.zeros((4, 2)), np.zeros(4)
     if "mask_overlay" in t:

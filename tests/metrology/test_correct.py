@@ -186,3 +186,71 @@ def test_loading_compensation_is_the_mean_loss_over_each_masks_openings():
     for j, m in enumerate(masks):
         rho = ndi.gaussian_filter(m.astype(float), 50e-6 / filegen.PITCH_M, mode="constant", truncate=4.0)
         assert loss[j] == pytest.approx(0.08 * rho[m].mean(), rel=1e-4)
+
+
+def test_loading_is_compensated_in_the_mean_and_the_rest_is_a_warning(tmp_path):
+    """A systematic loading of 8 % on three fields: every etch target takes out the mean loss over
+    its mask's openings (independently: L times the mean 50 um Gaussian open fraction there), the
+    measured mean depth error per mask is (1 + e)(1 - L rho_mean) - 1, the masks' labels say the
+    targets include the loading, and what varies with the density is a warning with the values."""
+    import scipy.ndimage as ndi
+
+    design, path = _design(tmp_path)
+    diags = []
+    for k, (load, d3) in enumerate(((0.081, 0.050), (0.079, 0.052), (0.080, 0.048))):
+        folder = _field(tmp_path, f"L{k}", design, path, 0.40e-6, 0.30e-6, d3, 0.03)
+        rep = json.loads((folder / "report.json").read_text())
+        rep["steps"].append(_step("etch_loading", {"loading": load}, {"loading": 0.003}))
+        (folder / "report.json").write_text(json.dumps(rep))
+        diags.append(folder)
+    out = tmp_path / "out"
+    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", "0"]) == 0
+    sheet = json.loads((out / "job.json").read_text())
+    assert "etch_loading.loading" in sheet["corrected"]
+    masks = filegen.masks_of(design.levels)
+    errors = [0.001, -0.001, 0.0, 0.05]  # means over the fields; only mask 3's is significant
+    for j, m in enumerate(sheet["masks"]):
+        rho = ndi.gaussian_filter(masks[j].astype(float), 50e-6 / filegen.PITCH_M, mode="constant", truncate=4.0)
+        loss = 0.080 * rho[masks[j]].mean()
+        rest_nm = 0.080 * rho[masks[j]].std() * DEPTHS[j] * 1e9
+        assert m["etch_loading_mean_loss_fraction"] == pytest.approx(loss, rel=1e-3)
+        assert m["etch_loading_residual_rms_nm"] == pytest.approx(rest_nm, rel=1e-3)
+        corrected_error = errors[j] if j == 3 else 0.0
+        assert m["etch_depth_target_nm"] == pytest.approx(DEPTHS[j] * 1e9 / (1 + corrected_error) / (1 - loss), rel=1e-6)
+        assert m["etch_mean_error_measured"] == pytest.approx((1 + errors[j]) * (1 - loss) - 1, rel=1e-4)
+        assert any("etch loading 0.080" in c for c in m["corrections"])
+    warn = [w for w in sheet["warnings"] if w.startswith("etch_loading loading = 0.08 ")]
+    assert len(warn) == 1 and "cannot be corrected" in warn[0]
+    assert f"mask 3 {sheet['masks'][3]['etch_loading_residual_rms_nm']:.2f} nm" in warn[0]
+    labels = json.loads((out / "masks" / "report.json").read_text())["layers"]
+    assert all("loading mean loss" in layer["note"] for layer in labels)
+    page = (out / "report.md").read_text()
+    assert "mean loss corrected (etch targets)" in page and "measured mean etch error over the openings (%)" in page
+    # The corrected wafer keeps the loading (no knob removes it) with the means taken out.
+    from masks.tolerance.spec import load_spec
+
+    spec = load_spec(out / "process_spec.toml", DEPTHS)
+    assert {p.name: p for p in spec.params}["etch_loading"].a == pytest.approx(0.080)
+
+
+def test_the_demo_fab_follows_the_job_sheet():
+    """The demo's next wafer: the dials cancel the hidden overlay and rotation, the drawn edges
+    add to the bias, the etch aimed at the target scales the actual depth by target / nominal."""
+    from masks.process import ProcessParams
+    from metrology.demo_loop import next_wafer_params
+
+    overlay = np.zeros((4, 3))
+    overlay[3, :2] = [0.4e-6, -0.1e-6]
+    hidden = ProcessParams.ideal().copy(mask_overlay=overlay, linewidth_bias=np.full(4, 0.2e-6),
+                                        etch_depth=np.array(DEPTHS) * [1, 1, 1, 1.05])
+    sheet = {"masks": [{"mask": j, "align_offset_um": [-0.4, 0.1] if j == 3 else [0.0, 0.0],
+                        "align_rotation_deg": -0.01 if j == 2 else 0.0, "drawn_edge_offset_um": -0.2,
+                        "etch_depth_target_nm": DEPTHS[j] * 1e9 / (1.05 if j == 3 else 1.0),
+                        "etch_depth_nm": DEPTHS[j] * 1e9} for j in range(4)]}
+    nxt = next_wafer_params(hidden, sheet)
+    assert np.abs(nxt.mask_overlay[:, :2]).max() < 1e-15
+    assert nxt.mask_rotation[2] == pytest.approx(-0.01) and np.count_nonzero(nxt.mask_rotation) == 1
+    assert np.abs(nxt.linewidth_bias).max() < 1e-15
+    assert nxt.etch_depth == pytest.approx(DEPTHS, rel=1e-12)
+    assert hidden.mask_overlay[3, 0] == 0.4e-6  # the measured wafer's process is left as it was
