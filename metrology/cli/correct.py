@@ -16,7 +16,9 @@ corrected: each mask's openings are redrawn with their edges offset against the 
 linewidth bias (OUT/masks/, the layout of doe masks, verified), and OUT/job.json (+ report.md)
 gives per mask the etch target, the aligner offset and rotation to dial in (the negative of the
 measured error; x toward increasing column, y up, counter-clockwise, relative to mask 0) and the
-bias taken out. The rest is reported as spread. The figure of merit of the design, the measured
+bias taken out. A systematic etch loading is taken out of the etch targets in the mean over each
+mask's openings; what varies with the local pattern density no mask or etch setting removes, and
+the job sheet warns with its rms per mask. The rest is reported as spread. The figure of merit of the design, the measured
 wafer and the corrected next wafer are predicted with doe tolerance's process model, and
 OUT/process_spec.toml (a doe tolerance spec) carries the measured spreads as sigmas.
 
