@@ -13,10 +13,14 @@ side by side in the demo's report, every number read from the job sheet and the 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from doedesign.design import Design
+
+if TYPE_CHECKING:
+    from masks.process import ProcessParams
 
 __all__ = ["correct_step", "loop_sections", "loop_summary", "loop_verdict", "next_wafer_params"]
 
@@ -29,7 +33,7 @@ def correct_step(design: Design, design_path: Path, out: Path, samples: int = 0,
                    seed=seed)
 
 
-def next_wafer_params(params, sheet: dict):
+def next_wafer_params(params: ProcessParams, sheet: dict) -> ProcessParams:
     """The process of the next wafer when the fab follows the job sheet ``sheet``.
 
     Parameters

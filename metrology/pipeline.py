@@ -29,6 +29,7 @@ from doedesign.engine.psf import compute_psf
 from doedesign.fileio import atomic_path, json_ready, write_json
 
 if TYPE_CHECKING:
+    from masks.process import ProcessParams
     from doedesign.engine.psf import PSFResult
     from doedesign.optimizer.optimize import DesignRun
     from metrology.matching.compare import Comparison
@@ -134,7 +135,7 @@ def masks_step(design: Design, design_path: Path, out: Path) -> dict:
     return write_element(design, out / "masks", source=str(design_path))
 
 
-def hidden_process(cfg: DemoConfig):
+def hidden_process(cfg: DemoConfig) -> ProcessParams:
     """The demo wafer's hidden process (:class:`masks.process.ProcessParams`): the overlay error, roughness."""
     from masks.process import ProcessParams
 
@@ -143,8 +144,8 @@ def hidden_process(cfg: DemoConfig):
     return ProcessParams.ideal().copy(mask_overlay=overlay, roughness=0.5e-9, seed=cfg.seed)
 
 
-def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params=None, seed: int | None = None
-                          ) -> tuple[Path, dict]:
+def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: ProcessParams | None = None,
+                          seed: int | None = None) -> tuple[Path, dict]:
     """Simulate the etched surface with the hidden error (or the process ``params``) and write
     the Zygo file ``out/measurement.datx``; ``seed`` (default the config's) draws the field's
     placement and the instrument noise."""
