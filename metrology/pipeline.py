@@ -29,9 +29,9 @@ from doedesign.engine.psf import compute_psf
 from doedesign.fileio import atomic_path, json_ready, write_json
 
 if TYPE_CHECKING:
-    from masks.process import ProcessParams
     from doedesign.engine.psf import PSFResult
     from doedesign.optimizer.optimize import DesignRun
+    from masks.process import ProcessParams
     from metrology.matching.compare import Comparison
 
 __all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
