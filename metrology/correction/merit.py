@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,10 @@ from doedesign.design import Design
 from doedesign.progress import Progress
 
 from .systematic import Estimate
+
+if TYPE_CHECKING:
+    from masks.tolerance.evaluate import Evaluator
+    from masks.tolerance.spec import ToleranceSpec
 
 __all__ = ["change_percent", "merit_evaluator", "params_for_wafer", "predict_merit", "wafer_merit"]
 
@@ -78,7 +83,7 @@ def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nomina
     return out
 
 
-def merit_evaluator(design: Design, nominal_depths_m: Sequence[float], source: str = "design", oversample: int = 2):
+def merit_evaluator(design: Design, nominal_depths_m: Sequence[float], source: str = "design", oversample: int = 2) -> Evaluator:
     """``doe tolerance``'s evaluator of ``design`` (its metrics set up on its ideal element) with
     the ideal process at the diagnosed nominal depths as the base every wafer's errors add to."""
     from masks.process import ProcessParams
@@ -90,7 +95,7 @@ def merit_evaluator(design: Design, nominal_depths_m: Sequence[float], source: s
     return ev
 
 
-def wafer_merit(ev, spec, samples: int, seed: int, key: str, bar: Progress | None = None) -> dict:
+def wafer_merit(ev: Evaluator, spec: ToleranceSpec, samples: int, seed: int, key: str, bar: Progress | None = None) -> dict:
     """Metrics of one wafer: ``ev``'s element made with process ``spec`` at its central values and
     at ``samples`` draws (sample k from ``SeedSequence([seed, k])``).
 

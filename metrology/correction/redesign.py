@@ -41,6 +41,7 @@ import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +52,11 @@ from doedesign.progress import Progress
 
 from .merit import change_percent, merit_evaluator, params_for_wafer, wafer_merit
 from .systematic import Estimate
+
+if TYPE_CHECKING:
+    from doedesign.optimizer.losses import LossSpec
+    from doedesign.targets import Target
+    from masks.tolerance.evaluate import Evaluator
 
 __all__ = ["DEFAULT_ITERATIONS", "redesign", "redesign_target", "remap_levels", "write_redesign"]
 
@@ -86,7 +92,7 @@ def remap_levels(levels: np.ndarray, actual_depths_m: np.ndarray, step_m: float,
     return table[np.asarray(levels)].astype(np.int16), [int(v) for v in table]
 
 
-def redesign_target(design: Design, ev):
+def redesign_target(design: Design, ev: Evaluator) -> tuple[Target, LossSpec]:
     """The target the re-design optimizes, and its loss (see the module docstring).
 
     The design's built-in target (:func:`masks.tolerance.metrics.design_target`), else the light
