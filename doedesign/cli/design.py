@@ -75,7 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--side", choices=("left", "right", "full"), help="aperture half carrying the DOE (default left)")
     p.add_argument("--seed", type=Number(int, 0, 2**32 - 1), help="random seed (default 0)")
     p.add_argument("--algorithm", choices=ALGORITHMS, help="nlopt algorithm (default LD_LBFGS; above 2,149,633 free heights, e.g. "
-                                                             "--paper-setting, LD_LBFGS runs as LD_MMA)")
+                                                             "--paper-setting, LD_LBFGS runs as LD_CCSAQ)")
     p.add_argument("--init", choices=INITS, help="initial height map (default per target)")
     p.add_argument("--init-design", help="start from this design file's heights")
     p.add_argument("--loss", help='loss terms, e.g. "l1" or "l1=1,energy=0.5,peak=0.1,uniformity=1" '
