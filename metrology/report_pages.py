@@ -194,6 +194,10 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
         if partial:
             extra.append(f"- Not named, they fit only part of the residual on their own footprint: {partial}.")
         parts[4:4] = extra
+    stopped = rep.get("stopped_early")
+    if isinstance(stopped, dict):
+        parts.insert(4, f"- Stopped early: {stopped.get('reason')} (final residual "
+                        f"{md.fmt(stopped.get('final_over_floor'), 3)} x the noise floor).")
     inst = ((rep.get("inputs") or {}).get("placement") or {}).get("instrument")
     if isinstance(inst, dict):
         parts.insert(4, "- Instrument's lateral transfer ({}): blur {} um, fill factor {}, NA {}.".format(

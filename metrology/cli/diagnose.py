@@ -15,6 +15,9 @@ from pathlib import Path
 from doedesign.cli.common import Number, NumberList, add_device_option
 
 log = logging.getLogger(__name__)
+# CPU seconds of the camera-frame selection (about 50 s on two cores with the comparison and the
+# report): a fit that cannot close stops there and says so.
+CPU_BUDGET_S = 80.0
 
 __all__ = ["load_effects_file", "parse_effects", "register", "run"]
 
@@ -57,6 +60,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--instrument", metavar="FILE.json",
                    help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed "
                         "(default: fitted with the placement)")
+    p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
+                   help="CPU seconds (both cores' together) the camera-frame selection may spend before it stops "
+                        f"trying candidates and says so in the report (default {CPU_BUDGET_S:g}: a fit that cannot "
+                        "close stops early)")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -152,7 +159,8 @@ def _camera(design, path, args, candidates):
     depths = [v * 1e-9 for v in args.depths_nm]
     diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
-                                               force=args.force, transfer=args.transfer)
+                                               force=args.force, transfer=args.transfer,
+                                               cpu_budget_s=args.cpu_budget_s)
     return diag, {"measured": str(path), **inputs}
 
 

@@ -33,8 +33,8 @@ from metrology.diagnosis.forked import forked_map
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
-from metrology.matching.instrument import (ETCH_CACHE_BYTES, ArrayCache,
-                                           InstrumentModel, Leveller, Placement, robust_valid)
+from metrology.matching.instrument import (ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Leveller, Placement,
+                                           levelling_plane, robust_valid)
 from metrology.matching.transfer import LateralTransfer, as_transfer
 from metrology.matching.window import busiest_camera_window
 
@@ -147,10 +147,11 @@ class CameraHeightProblem(dg.Problem):
         if self.keep.sum() < 100:
             raise DoeError("the measurement has fewer than 100 valid pixels in the diagnosed field")
         self.leveller = Leveller(self.measured.shape, self.keep, curvature)
+        # Bytes bound a large field's caches, counts a small window's (fits revisit dozens of maps).
         self._fine = ArrayCache(cache_bytes // 4, max_items=2)
-        self._coeffs = ArrayCache(cache_bytes, max_items=12)
-        self._spectra = ArrayCache(cache_bytes, max_items=8)
-        self._factors = ArrayCache(cache_bytes, max_items=4)
+        self._coeffs = ArrayCache(cache_bytes, max_items=32)
+        self._spectra = ArrayCache(cache_bytes, max_items=24)
+        self._factors = ArrayCache(cache_bytes, max_items=12)
         self._factor_reach = {}
         # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
         # the structure test and the breakdown.
@@ -409,7 +410,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
-                    screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None) -> dg.Diagnosis:
+                    screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None,
+                    cpu_budget_s: float | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -436,6 +438,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
         as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
+    cpu_budget_s : float, optional
+        CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
+        a pass that cannot close (above the unexplained level) is not rerun on re-admitted pixels.
 
     Returns
     -------
@@ -447,6 +452,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     # The fits' linear algebra is small (levelling, a few columns): BLAS threads would only spin
     # beside the renders and the forked workers.
     with threadpool_limits(limits=1, user_api="blas"):
+        deadline = None if cpu_budget_s is None else dg.cpu_seconds() + float(cpu_budget_s)
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)
@@ -499,9 +505,18 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
             # parameters after the residual has reached it.
             diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
-                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior)
-            new_keep = robust_valid(np.where(np.isfinite(crop), crop - problem.render(diag.model), np.nan)
-                                    - _plane(problem, crop, diag.model), np.isfinite(crop))
+                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
+                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0))
+            if (over := diag.final_residual_rms / diag.noise_floor) > dg.UNEXPLAINED_RATIO and not diag.stopped_early:
+                diag.stopped_early = {"reason": "the fit cannot close (its residual stays above the noise floor after "
+                                      "the instrument and the best candidates): not refitted on the pixels its model "
+                                      "re-admits", "final_over_floor": over}
+            if diag.stopped_early is not None:
+                log.info("stopped early (final residual %.2f x the floor): %s", over, diag.stopped_early["reason"])
+                break
+            r = crop - problem.render(diag.model)
+            new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
+                                    - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
             if np.array_equal(new_keep, keep):
                 break
             keep = new_keep
@@ -522,22 +537,12 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         return diag
 
 
-def _plane(problem, crop, model):
-    """The levelling fitted to the residual (on the kept pixels), evaluated everywhere."""
-    from metrology.matching.instrument import levelling_basis
-
-    r = crop - problem.render(model)
-    basis = levelling_basis(crop.shape, problem.curvature)
-    k = problem.keep.ravel()
-    coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(r), r, 0).ravel()[k], rcond=None)
-    return (basis @ coef).reshape(crop.shape)
-
-
 def diagnose_camera_measurement(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
                                 candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
                                 window_px: int = 160, source: str = "measurement", force: bool = False,
                                 comparison: Comparison | None = None,
-                                transfer: LateralTransfer | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
+                                transfer: LateralTransfer | None = None,
+                                cpu_budget_s: float | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -561,6 +566,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         design, if already made (its camera-frame placement starts the fit).
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
+    cpu_budget_s : float, optional
+        As for :func:`diagnose_camera`.
 
     Returns
     -------
@@ -585,7 +592,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     fit = comp.instrument_fit
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
-                           screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer)
+                           screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
+                           cpu_budget_s=cpu_budget_s)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

@@ -391,11 +391,12 @@ def batwing_transfer(values: Sequence[float], step_m: float, wr: np.ndarray, wc:
     def response(taps, w):
         return np.cos(np.outer(w, k)) @ taps
 
+    # The factor is kept in single precision: its two outer products are formed in it too.
     c = -amplitude * sigma_m ** 2 / _DOG_PEAK
-    out = np.outer(c * response(second, wr), response(smooth, wc))
-    out += np.outer(c * response(smooth, wr), response(second, wc))
-    out += 1.0
-    return out.astype(np.float32)
+    out = np.outer((c * response(second, wr)).astype(np.float32), response(smooth, wc).astype(np.float32))
+    out += np.outer((c * response(smooth, wr)).astype(np.float32), response(second, wc).astype(np.float32))
+    out += np.float32(1.0)
+    return out
 
 
 _UM = 1e-6

@@ -19,6 +19,7 @@ Method
    measurement artefact is preferred among them. A backward pass then swaps or drops named
    effects that the final model no longer needs (forward-backward stepwise selection).
    A residual shift of the whole pattern (registration) is fitted in every height model.
+   An optional budget of CPU seconds ends the selection early, and the diagnosis says so.
 5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum
    (the fits and their uncertainties: :mod:`metrology.diagnosis.fitting`).
 
@@ -29,6 +30,7 @@ A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) 
 from __future__ import annotations
 
 import logging
+import resource
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +45,7 @@ from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
-           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
+           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "cpu_seconds", "fit_effects", "run_diagnosis",
            "standard_errors"]
 
 log = logging.getLogger(__name__)
@@ -64,6 +66,14 @@ EARLY_ODD_SHARE = 0.8
 # ... and above which a final unexplained residual shared by every mask's edges is the
 # instrument's (fabrication names then withheld).
 FINAL_ODD_SHARE = 0.5
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished children (the forked workers that screen
+    candidates and compute Jacobian columns are reaped at the end of each batch): the measure of
+    a diagnosis's time budget, which a shared machine's load does not stretch as it does wall time."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
@@ -124,6 +134,9 @@ class Diagnosis:
         Residual broken down by what may explain it (see :func:`residual_breakdown`).
     residual_maps : list of ndarray
         Residual map before the first step and after each step (row 0 at the top).
+    stopped_early : dict or None
+        Why the selection stopped before the criterion did (``reason``, with the residual over
+        the noise floor and the CPU seconds spent): a fit that cannot close, or the time budget.
     """
 
     domain: str
@@ -144,6 +157,7 @@ class Diagnosis:
     map_step_m: float | None = None
     unexplained_where: dict | None = None
     partial_matches: list = field(default_factory=list)
+    stopped_early: dict | None = None
 
     @property
     def named(self) -> list[str]:
@@ -162,6 +176,7 @@ class Diagnosis:
                 "final_residual_rms": self.final_residual_rms,
                 "unexplained": self.unexplained, "structure_criterion": self.structure_criterion,
                 "unexplained_where": self.unexplained_where, "partial_matches": self.partial_matches,
+                "stopped_early": self.stopped_early,
                 "breakdown_initial": self.breakdown_initial, "breakdown_final": self.breakdown_final}
     def plot(self, out_dir: str | Path) -> list[Path]:
         """Write ``residual_steps.png`` (residual map before and after each step) and
@@ -252,20 +267,21 @@ def _criterion(problem, model, n, n_eff):
     return bic_eff(float(np.sum(r ** 2)), n, n_eff, sum(problem.effects[m].n_params for m in model))
 
 
-def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold):
+def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold, deadline=None):
     """Backward pass of the stepwise selection, once all named effects are in the model.
 
     Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
     be told apart once everything else is explained: each named effect is tried against the
     alternatives that scored close to it when it was chosen (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
-    dropped if the criterion no longer needs it.
+    dropped if the criterion no longer needs it. Past ``deadline`` (:func:`cpu_seconds`) the
+    pass stops where it is (the model stays the forward pass's or its last revision).
     """
     crit = _criterion(problem, model, n, n_eff)
     by_name = {st.effect: st for st in steps}
     for st in list(steps):
         for alt in alternatives.get(st.effect, []):
-            if alt in model or st.effect not in model:
+            if alt in model or st.effect not in model or _past(deadline):
                 continue
             trial = {k: v for k, v in model.items() if k != st.effect}
             trial[alt] = problem.effects[alt].start_values()
@@ -283,7 +299,7 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
                 by_name[alt] = st
                 model, errors, crit = fitted, errs, c_alt
     for st in list(steps):
-        if len(model) - len(nuisance) <= 1:
+        if len(model) - len(nuisance) <= 1 or _past(deadline):
             break
         trial = {k: v for k, v in model.items() if k != st.effect}
         fitted, rss, errs = fit_effects(problem, trial, list(trial))
@@ -294,10 +310,14 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
     return model, errors, crit
 
 
+def _past(deadline):
+    return deadline is not None and cpu_seconds() > deadline
+
+
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
-                  prior: dict[str, np.ndarray] | None = None) -> Diagnosis:
+                  prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
@@ -328,11 +348,18 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         A model of the same data from an earlier pass (e.g. before the robust rule re-admitted
         pixels): the nuisances and each candidate start from its values instead of the null
         ones. The selection itself is made afresh.
+    cpu_budget_s : float, optional
+        CPU seconds (:func:`cpu_seconds`, workers included) the selection may spend: past them
+        no further round of candidates and no further revision starts, and the diagnosis says
+        so (``stopped_early``). Default: no budget (the criterion alone stops).
 
     Returns
     -------
     Diagnosis
     """
+    cpu0 = cpu_seconds()
+    deadline = None if cpu_budget_s is None else cpu0 + float(cpu_budget_s)
+    stopped = None
     nuisance = list(getattr(problem, "nuisance", {}))
     screen = getattr(problem, "screening", None) or problem
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
@@ -367,6 +394,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     while early is None and len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
         pending = [nm for nm in names if nm not in model]
         if not pending:
+            break
+        if _past(deadline):
+            stopped = {"reason": "time budget: no further candidates were tried", "budget_cpu_s": cpu_budget_s}
+            log.info("diagnosis stopped: CPU budget of %.0f s spent after %d step(s)", cpu_budget_s, len(steps))
             break
         scores = {}
         fits = {}
@@ -434,7 +465,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         maps.append(problem.residual_map(model))
         r, crit = r_new, new_crit
     if steps:
-        model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold)
+        model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
+                                      deadline)
         r = problem.residual(model)
         steps = [st for st in steps if st.effect in model]
         if len(maps) > len(steps) + 1 or any(st.revised for st in steps):
@@ -502,4 +534,6 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                      initial_residual_rms=initial_rms, final_residual_rms=_rms(r),
                      unexplained=unexplained, structure_criterion=struct, units=problem.units,
                      breakdown_initial=breakdown_initial, breakdown_final=breakdown_final,
-                     residual_maps=maps, unexplained_where=where, partial_matches=partial)
+                     residual_maps=maps, unexplained_where=where, partial_matches=partial,
+                     stopped_early=None if stopped is None else dict(
+                         stopped, final_over_floor=_rms(r) / problem.noise.sigma, cpu_s=cpu_seconds() - cpu0))

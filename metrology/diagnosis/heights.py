@@ -171,7 +171,7 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
                      region: tuple[int, int, int, int] | None = None, region_px: int = 40,
                      depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                      threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6,
-                     stop_at_floor: bool = True) -> Diagnosis:
+                     stop_at_floor: bool = True, cpu_budget_s: float | None = None) -> Diagnosis:
     """Find, name and fit the effects that explain a measured height map.
 
     Parameters
@@ -200,6 +200,8 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
     max_steps : int
     stop_at_floor : bool
         Stop when the residual reaches the noise floor (default) or only on the criterion.
+    cpu_budget_s : float, optional
+        CPU seconds the selection may spend (:func:`~metrology.diagnosis.engine.run_diagnosis`).
 
     Returns
     -------
@@ -225,7 +227,7 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
     base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
     problem = HeightProblem(levels, pitch_m, meas, step_m, window, base, effects_for("height", candidates))
     diag = run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
-                         stop_at_floor=stop_at_floor)
+                         stop_at_floor=stop_at_floor, cpu_budget_s=cpu_budget_s)
     diag.map_step_m = problem.step_m
     return diag
 

@@ -70,7 +70,7 @@ class TiledCameraProblem(dg.Problem):
         self.slices = [(slice(r, r + tile_px), slice(c, c + tile_px))
                        for r in tile_origins(rows, tile_px, per_side) for c in tile_origins(cols, tile_px, per_side)]
         # The tiles share one placement matrix, so one store of blur transfers serves them all.
-        transfers = InstrumentModel.transfer_cache(max_items=16)
+        transfers = InstrumentModel.transfer_cache(max_items=32)
         self.tiles = [whole.sub(sr.start, sc.start, tile_px, margin_px=margin_px, transfers=transfers,
                                 share=len(self.slices)) for sr, sc in self.slices]
         self.compared = np.zeros(whole.measured.shape, bool)

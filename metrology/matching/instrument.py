@@ -54,7 +54,7 @@ if TYPE_CHECKING:
     from metrology.matching.register import Registration
 
 __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "Leveller", "PLACEMENT_PARAMS", "Placement",
-           "footprint_kernel", "kernel_half_width", "levelling_basis", "robust_valid"]
+           "footprint_kernel", "kernel_half_width", "levelling_basis", "levelling_plane", "robust_valid"]
 
 # Fine-grid spacing requested from the process model (m).
 FINE_STEP_M = 0.125e-6
@@ -204,11 +204,12 @@ class InstrumentModel:
         self.region = (max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols))
         if self.region[0] >= self.region[1] or self.region[2] >= self.region[3]:
             raise DoeError("the camera field does not overlap the design under this placement")
-        self._etches = ArrayCache(cache_bytes, max_items=8)
+        self._etches = ArrayCache(cache_bytes, max_items=24)
+        self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
 
     @staticmethod
-    def transfer_cache(max_items: int = 8) -> ArrayCache:
+    def transfer_cache(max_items: int = 24) -> ArrayCache:
         """An empty store of Fourier transfers (one per lateral transfer and padded shape; the
         default holds a Jacobian's values of the instrument's parameters)."""
         return ArrayCache(2 * ETCH_CACHE_BYTES // 3, max_items=max_items)
@@ -245,14 +246,22 @@ class InstrumentModel:
         return int(math.ceil(params.sidewall_slope / self.step_m / 2)) + 2
 
     def _etch(self, params, mask, pad):
-        """One mask's etch (m, >= 0) on the region padded by ``pad`` fine pixels, cached."""
+        """One mask's etch (m, >= 0) on the region padded by ``pad`` fine pixels, cached.
+
+        Without microtrenching the etch is its depth times the etch at unit depth (coverage,
+        loading and gradient only scale it): a change of depth, every step of a fit with the
+        etch depths free, costs a product, not a new print of the mask."""
         from masks.process import etch_key, mask_etch
 
         key = (etch_key(params, mask), pad)
         etch = self._etches.get(key)
         if etch is None:
-            etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
-                             pad_px=pad)
+            unit = _unit_depth(params, mask)
+            if unit is None:
+                etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
+                                 pad_px=pad)
+            else:
+                etch = self._etch(unit, mask, pad) * float(params.etch_depth[mask])
             self._etches.put(key, etch)
         return etch
 
@@ -293,6 +302,21 @@ class InstrumentModel:
             return self.spectrum(self.mask_surface(params, mask))
         if params.roughness > 0:
             raise DoeError("a rough surface is not the sum of its masks' parts")
+        unit = _unit_depth(params, mask)
+        if unit is not None:
+            # Linear in the depth (see :meth:`_etch`): the unit-depth spectrum, kept, scaled.
+            from masks.process import etch_key
+
+            key = etch_key(unit, mask)
+            spectrum = self._unit_spectra.get(key)
+            if spectrum is None:
+                spectrum = self._etch_spectrum(unit, mask)
+                self._unit_spectra.put(key, spectrum)
+            return spectrum * np.float32(params.etch_depth[mask])
+        return self._etch_spectrum(params, mask)
+
+    def _etch_spectrum(self, params, mask):
+        """:meth:`mask_spectrum` without a sidewall ramp, computed."""
         pad = self._pad(params)
         etch = self._etch(params, mask, pad)
         core = etch[pad:etch.shape[0] - pad, pad:etch.shape[1] - pad]
@@ -434,7 +458,10 @@ class InstrumentModel:
 
     def sample(self, coeffs: np.ndarray, placement: Placement) -> np.ndarray:
         """Camera-frame heights from :meth:`camera_map` coefficients under ``placement``."""
-        r, c = np.mgrid[:self.shape[0], :self.shape[1]].astype(float)
+        # The affine map broadcast over a row and a column of indices: the same numbers as on
+        # a full index grid, without building it every call.
+        r = np.arange(self.shape[0], dtype=float)[:, None]
+        c = np.arange(self.shape[1], dtype=float)[None, :]
         fr, fc = self._fine_index(placement, r, c)
         return ndi.map_coordinates(coeffs, [fr, fc], output=np.float64, order=3, mode="nearest", prefilter=False)
 
@@ -464,6 +491,18 @@ class InstrumentModel:
         return self.sample(self.camera_map(fine, sigma_m), placement)
 
 
+def _unit_depth(params, mask):
+    """``params`` with mask ``mask`` etched to unit depth (1 m), when its etch is proportional
+    to its depth (no microtrenching: the trench adds a depth of its own), else None; None too
+    when the depth is already 1."""
+    depth = float(params.etch_depth[mask])
+    if params.microtrenching[mask][0] > 0 or depth == 1.0:
+        return None
+    depths = np.array(params.etch_depth, float)
+    depths[mask] = 1.0
+    return params.copy(etch_depth=depths)
+
+
 def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarray:
     """Columns of the levelling fit on a camera field: piston, tilt (col, row), curvature.
 
@@ -474,6 +513,15 @@ def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarr
     c = (c - (shape[1] - 1) / 2) / max(shape[1] / 2, 1)
     cols = [np.ones(shape), c, r] + ([r * r + c * c] if curvature else [])
     return np.stack([x.ravel() for x in cols], axis=1)
+
+
+def levelling_plane(residual: np.ndarray, keep: np.ndarray, curvature: bool = False) -> np.ndarray:
+    """The levelling (:func:`levelling_basis`) fitted to a residual map on its ``keep`` pixels
+    (NaN read as 0), evaluated everywhere."""
+    basis = levelling_basis(residual.shape, curvature)
+    k = np.asarray(keep, bool).ravel()
+    coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(residual), residual, 0).ravel()[k], rcond=None)
+    return (basis @ coef).reshape(residual.shape)
 
 
 class Leveller:

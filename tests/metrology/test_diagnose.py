@@ -109,6 +109,19 @@ def test_null_height_case_names_nothing(seed):
     assert diag.noise_floor == pytest.approx(case.noise_rms, rel=0.15)
 
 
+def test_a_spent_time_budget_stops_the_selection_and_says_so():
+    # The case of test_single_hidden_height_effect's overlay (named there without a budget).
+    seed = 1000 + HEIGHT_EFFECTS.index("mask_overlay")
+    case, diag = _diagnose_height_case(["mask_overlay"], seed, cpu_budget_s=0.0)
+    assert diag.named == []
+    stop = diag.to_dict()["stopped_early"]
+    assert stop["reason"].startswith("time budget")
+    assert stop["final_over_floor"] > RESIDUAL_TOL
+    assert diag.unexplained
+    _, free = _diagnose_height_case(["mask_overlay"], seed, cpu_budget_s=1e6)
+    assert free.named == ["mask_overlay"] and free.stopped_early is None
+
+
 def test_missing_effect_is_reported_unexplained():
     # Etch loading hidden but not among the candidates: a structured residual must remain.
     case, diag = _diagnose_height_case(["etch_loading"], 31, candidates=["etch_depth", "mask_overlay"])
