@@ -30,7 +30,7 @@ from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, DEFAULT_TRANSF
                                                  STAGE_WINDOW_PX, choose_transfer, placement_report)
 from metrology.diagnosis.effects import Effect, effects_for, get_effect
 from metrology.diagnosis.forked import forked_map
-from metrology.diagnosis.heights import INTERIOR_MARGIN_M
+from metrology.diagnosis.heights import INTERIOR_MARGIN_M, sampled_edge_distance_m
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Leveller, Placement,
@@ -59,6 +59,9 @@ RENDER_CACHE_BYTES = 640 * 2 ** 20
 # RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
+# Share of the compared pixels that the final model may re-admit or exclude and the rerun on
+# them re-judge only the effects chosen (more, and it screens every candidate again).
+RERUN_FEW = 0.01
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
@@ -163,7 +166,7 @@ class CameraHeightProblem(dg.Problem):
         # Distance (m) of each camera pixel centre to the nearest edge of each mask, signed
         # (positive inside the opening), from the design pixel geometry.
         fr, fc = r - np.rint(r), c - np.rint(c)
-        self.edge_m = np.stack([self._edge_distance(m, ri, ci, fr, fc) for m in masks])
+        self.edge_m = np.stack([sampled_edge_distance_m(m, ri, ci, fr, fc, self.pitch_m) for m in masks])
         self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
         self._noise = noise
@@ -186,18 +189,6 @@ class CameraHeightProblem(dg.Problem):
         levelled = np.full(first.shape, np.nan)
         levelled[self.keep] = self.leveller(first[self.keep])
         return estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
-
-    def _edge_distance(self, mask, ri, ci, fr, fc):
-        here = mask[ri, ci]
-        rows, cols = mask.shape
-        best = np.full(ri.shape, 2.0)
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                i, j = np.clip(ri + di, 0, rows - 1), np.clip(ci + dj, 0, cols - 1)
-                other = mask[i, j] != here
-                d = np.maximum(np.maximum(np.abs(fr - di) - 0.5, 0), np.maximum(np.abs(fc - dj) - 0.5, 0))
-                best = np.where(other & (d < best), d, best)
-        return np.where(here, best, -best) * self.pitch_m
 
     def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model heights in the camera frame (before levelling).
@@ -499,6 +490,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 noise = seen.noise_at(prior)
                 log.info("noise floor %.3g m after the instrument stage (%.3g m before)", noise.sigma,
                          first.noise.sigma)
+        rejudge = None
         for _ in range(3):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
@@ -506,19 +498,21 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # parameters after the residual has reached it.
             diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                     quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
-                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0))
+                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0),
+                                    candidates=rejudge)
             if (over := diag.final_residual_rms / diag.noise_floor) > dg.UNEXPLAINED_RATIO and not diag.stopped_early:
-                diag.stopped_early = {"reason": "the fit cannot close (its residual stays above the noise floor after "
-                                      "the instrument and the best candidates): not refitted on the pixels its model "
-                                      "re-admits", "final_over_floor": over}
+                diag.stopped_early = {"reason": dg.CANNOT_CLOSE, "final_over_floor": over}
             if diag.stopped_early is not None:
                 log.info("stopped early (final residual %.2f x the floor): %s", over, diag.stopped_early["reason"])
                 break
             r = crop - problem.render(diag.model)
             new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
-            if np.array_equal(new_keep, keep):
+            if (changed := np.count_nonzero(new_keep != keep)) == 0:
                 break
+            # A few pixels more or less cannot make a candidate the pass rejected earn its parameters:
+            # the rerun then re-judges the effects the pass chose, not every candidate.
+            rejudge = [st.effect for st in diag.steps] if changed <= RERUN_FEW * keep.sum() else None
             keep = new_keep
         diag.map_step_m = problem.pixel_m
         if fit is not problem:

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from metrology.formats.measurement import Measurement
 
 __all__ = ["HeightProblem", "INTERIOR_MARGIN_M", "REGISTRATION", "diagnose_heights", "diagnose_measurement",
-           "signed_edge_distance_m"]
+           "sampled_edge_distance_m", "signed_edge_distance_m"]
 
 # Margin (m) around design edges excluded from the flat interiors used for the noise floor:
 # wider than plausible overlay / bias slivers plus instrument blur.
@@ -54,6 +54,23 @@ def signed_edge_distance_m(mask: np.ndarray, step_m: float) -> np.ndarray:
     inside = ndi.distance_transform_edt(mask) - 0.5
     outside = ndi.distance_transform_edt(~mask) - 0.5
     return np.where(mask, inside, -outside) * step_m
+
+
+def sampled_edge_distance_m(mask: np.ndarray, ri: np.ndarray, ci: np.ndarray, fr: np.ndarray, fc: np.ndarray,
+                            pitch_m: float) -> np.ndarray:
+    """Distance (m) of points to the nearest edge of a boolean design-pixel mask, signed
+    (positive inside): each point in design pixel (``ri``, ``ci``) at offset (``fr``, ``fc``)
+    (design pixels, within +-0.5) from its centre; edges within one pixel (else 2 pixels)."""
+    here = mask[ri, ci]
+    rows, cols = mask.shape
+    best = np.full(ri.shape, 2.0)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            i, j = np.clip(ri + di, 0, rows - 1), np.clip(ci + dj, 0, cols - 1)
+            other = mask[i, j] != here
+            d = np.maximum(np.maximum(np.abs(fr - di) - 0.5, 0), np.maximum(np.abs(fc - dj) - 0.5, 0))
+            best = np.where(other & (d < best), d, best)
+    return np.where(here, best, -best) * pitch_m
 
 
 class HeightProblem(Problem):
