@@ -431,7 +431,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        a pass that cannot close (above the unexplained level) is not rerun on re-admitted pixels.
+        a rerun that cannot close (above the unexplained level) is not rerun on re-admitted pixels.
 
     Returns
     -------
@@ -491,7 +491,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 log.info("noise floor %.3g m after the instrument stage (%.3g m before)", noise.sigma,
                          first.noise.sigma)
         rejudge = None
-        for _ in range(3):
+        for attempt in range(3):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
@@ -500,7 +500,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                     quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
                                     cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0),
                                     candidates=rejudge)
-            if (over := diag.final_residual_rms / diag.noise_floor) > dg.UNEXPLAINED_RATIO and not diag.stopped_early:
+            # The first rerun may still close it (the first pixels excluded real edge signal); a later one not.
+            over = diag.final_residual_rms / diag.noise_floor
+            if attempt and over > dg.UNEXPLAINED_RATIO and not diag.stopped_early:
                 diag.stopped_early = {"reason": dg.CANNOT_CLOSE, "final_over_floor": over}
             if diag.stopped_early is not None:
                 log.info("stopped early (final residual %.2f x the floor): %s", over, diag.stopped_early["reason"])

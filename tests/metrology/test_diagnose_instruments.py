@@ -104,9 +104,6 @@ def test_csi_null_does_not_crash_and_names_no_fabrication(tmp_path):
     assert _fabrication(report) == []
     inst = report["inputs"]["placement"]["instrument"]
     assert inst["blur_sigma_m"] >= 0 and 0 <= inst["fill_factor"] <= 1
-    # A fit that cannot close stops after its first pass and says so (issue 25).
-    if report["final_residual_rms"] > 1.25 * report["noise_floor"]:
-        assert "cannot close" in report["stopped_early"]["reason"]
 
 
 @pytest.mark.slow
