@@ -16,7 +16,7 @@ from doedesign.cli.common import Number, NumberList, add_device_option
 
 log = logging.getLogger(__name__)
 # CPU seconds of the camera-frame selection (about 50 s on two cores with the comparison and the
-# report): a fit that cannot close stops there and says so.
+# report): a fit that does not close within it stops there and says so.
 CPU_BUDGET_S = 80.0
 
 __all__ = ["load_effects_file", "parse_effects", "register", "run"]
@@ -62,8 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(default: fitted with the placement)")
     p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
                    help="CPU seconds (both cores' together) the camera-frame selection may spend before it stops "
-                        f"trying candidates and says so in the report (default {CPU_BUDGET_S:g}: a fit that cannot "
-                        "close stops early)")
+                        f"trying candidates and says so in the report (default {CPU_BUDGET_S:g}: a fit that does not "
+                        "close within it stops there)")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")

@@ -59,9 +59,6 @@ RENDER_CACHE_BYTES = 640 * 2 ** 20
 # RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
-# Share of the compared pixels that the final model may re-admit or exclude and the rerun on
-# them re-judge only the effects chosen (more, and it screens every candidate again).
-RERUN_FEW = 0.01
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
@@ -431,7 +428,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        a rerun that cannot close (above the unexplained level) is not rerun on re-admitted pixels.
+        once spent, no further round, revision or rerun on re-admitted pixels starts.
 
     Returns
     -------
@@ -490,31 +487,21 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 noise = seen.noise_at(prior)
                 log.info("noise floor %.3g m after the instrument stage (%.3g m before)", noise.sigma,
                          first.noise.sigma)
-        rejudge = None
-        for attempt in range(3):
+        for _ in range(3):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
             # parameters after the residual has reached it.
             diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                     quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
-                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0),
-                                    candidates=rejudge)
-            # The first rerun may still close it (the first pixels excluded real edge signal); a later one not.
-            over = diag.final_residual_rms / diag.noise_floor
-            if attempt and over > dg.UNEXPLAINED_RATIO and not diag.stopped_early:
-                diag.stopped_early = {"reason": dg.CANNOT_CLOSE, "final_over_floor": over}
-            if diag.stopped_early is not None:
-                log.info("stopped early (final residual %.2f x the floor): %s", over, diag.stopped_early["reason"])
+                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0))
+            if diag.stopped_early is not None:  # the budget is spent: no rerun
                 break
             r = crop - problem.render(diag.model)
             new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
-            if (changed := np.count_nonzero(new_keep != keep)) == 0:
+            if np.array_equal(new_keep, keep):
                 break
-            # A few pixels more or less cannot make a candidate the pass rejected earn its parameters:
-            # the rerun then re-judges the effects the pass chose, not every candidate.
-            rejudge = [st.effect for st in diag.steps] if changed <= RERUN_FEW * keep.sum() else None
             keep = new_keep
         diag.map_step_m = problem.pixel_m
         if fit is not problem:

@@ -44,7 +44,7 @@ from metrology.diagnosis.forked import WORKERS, forked_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 
-__all__ = ["CANNOT_CLOSE", "DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
+__all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
            "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "cpu_seconds", "fit_effects", "run_diagnosis",
            "standard_errors"]
 
@@ -66,9 +66,6 @@ EARLY_ODD_SHARE = 0.8
 # ... and above which a final unexplained residual shared by every mask's edges is the
 # instrument's (fabrication names then withheld).
 FINAL_ODD_SHARE = 0.5
-# What a diagnosis that stops because its fit cannot close says (``Diagnosis.stopped_early``).
-CANNOT_CLOSE = ("the fit cannot close (its residual stays above the noise floor after the instrument and the best "
-                "candidates): not refitted on the pixels its model re-admits")
 
 
 def cpu_seconds() -> float:
@@ -139,7 +136,7 @@ class Diagnosis:
         Residual map before the first step and after each step (row 0 at the top).
     stopped_early : dict or None
         Why the selection stopped before the criterion did (``reason``, with the residual over
-        the noise floor and the CPU seconds spent): a fit that cannot close, or the time budget.
+        the noise floor and the CPU seconds spent): the time budget was spent.
     """
 
     domain: str
