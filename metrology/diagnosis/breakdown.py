@@ -8,11 +8,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["INSTRUMENT_SHARE", "binned", "edge_breakdown", "instrument_signature", "radial_psd", "structure_groups"]
+__all__ = ["INSTRUMENT_SHARE", "MASK_AMPLITUDES", "binned", "edge_breakdown", "instrument_signature", "radial_psd", "structure_groups"]
 
 # Share of the edge-bound structure a profile common to every mask must hold for the residual to
 # be the instrument's.
 INSTRUMENT_SHARE = 0.7
+# Range of each well-measured mask's amplitude of the shared profile (1 = its full share).
+MASK_AMPLITUDES = (0.5, 1.5)
 
 
 def binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray | Sequence[float]) -> dict[str, list]:
@@ -81,7 +83,8 @@ def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], level
 
 def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
                          keep: np.ndarray, sigma: float, corr_area_px: float,
-                         share: float = INSTRUMENT_SHARE) -> dict | None:
+                         share: float = INSTRUMENT_SHARE,
+                         amplitudes: tuple[float, float] = MASK_AMPLITUDES) -> dict | None:
     """Whether a residual is the instrument's: the same at every mask's edges, on both sides.
 
     A lateral transfer the model gets wrong leaves, at each edge, the step's height times one
@@ -106,6 +109,9 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     keep : ndarray of bool
     sigma, corr_area_px : float
         Noise floor and correlation area (pixels).
+    share : float
+    amplitudes : (float, float)
+        Range of the ``a_j`` measured (default: full amplitude, 0.5 to 1.5).
 
     Returns
     -------
@@ -155,13 +161,14 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     scale = sigma * np.sqrt(max(corr_area_px, 1.0))
     if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + n_col or gain_shared < share * gain_mask:
         return None
+    low, high = amplitudes
     amplitudes = []
     for j in range(nm):
         blk = slice(j * nb, (j + 1) * nb)
         norm2 = float(profile @ gram[blk, blk] @ profile)
         amplitudes.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
     measured = [a for a in amplitudes if np.isfinite(a)]
-    if len(measured) < 2 or not all(0.5 <= a <= 1.5 for a in measured):
+    if len(measured) < 2 or not all(low <= a <= high for a in measured):
         return None
     odd = 0.5 * (profile - profile[::-1])  # the bins are symmetric about the edge
     return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,

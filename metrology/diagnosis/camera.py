@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -216,8 +217,10 @@ class CameraHeightProblem(dg.Problem):
             motions = [mask_motion(params, j, self.pitch_m) for j in range(params.n_masks)]
             moved = {m: placement.in_frame_of(*m, centre) for m in motions}
             if all(self.instrument.covers(pl, blur) for pl in moved.values()):
-                return self._render_masks(without_motion(params), surface, model, surface_values, blur, motions,
-                                          moved)
+                out = self._render_masks(without_motion(params), surface, model, surface_values, blur, motions,
+                                         moved)
+                if out is not None:
+                    return out
         # Keyed by the process the model amounts to (a candidate at its null start renders what
         # the model without it does) and the surface effects.
         key = (surface_key(params), surface_values)
@@ -225,13 +228,20 @@ class CameraHeightProblem(dg.Problem):
         # the fine surface, and only process parameters remake that surface.
         coeffs = self._coeffs.get((key, blur))
         if coeffs is None:
-            fine = self._fine.get(key)
+            # An instrument's edge response beside its objective (a batwing) is mapped without
+            # the objective's transfer and added (:meth:`InstrumentModel.map_of`).
+            apart = [e for e in surface if e.beside_objective] if blur.na > 0 else []
+            fine = self._fine.get((key, bool(apart)))
             if fine is None:
                 fine = self.instrument.fine_surface(params)
                 for e in surface:
-                    fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
-                self._fine.put(key, fine)
+                    if e not in apart:
+                        fine = e.apply(fine, e.check(model[e.name]), self.instrument.step_m)
+                self._fine.put((key, bool(apart)), fine)
             coeffs = self.instrument.camera_map(fine, blur)
+            if apart:
+                edge = sum(e.apply(fine, e.check(model[e.name]), self.instrument.step_m) - fine for e in apart)
+                coeffs = coeffs + self.instrument.camera_map(edge, replace(blur, na=0.0))
             self._coeffs.put((key, blur), coeffs)
         return self.instrument.sample(coeffs, placement)
 
@@ -251,14 +261,18 @@ class CameraHeightProblem(dg.Problem):
         per group, a change of motion only a sampling. A surface effect with a Fourier transfer
         (a batwing) multiplies the maps' spectra; any other acts on each mask's fine surface."""
         step = self.instrument.step_m
-        factors, direct = [], []
+        factors, beside, direct = [], [], []
         reach = self.instrument.fourier_reach(placements.values(), blur) if surface else 0
         for e in surface:
             factor = self._fourier_factor(e, model[e.name], reach) if e.fourier is not None else None
             if factor is None:
                 direct.append(e)
             else:
-                factors.append(factor)
+                (beside if e.beside_objective else factors).append(factor)
+        if blur.na > 0 and any(e.beside_objective for e in direct):
+            # An edge response beside the objective that the FFT grid cannot hold: the whole
+            # surface's route keeps it out of the objective's transfer.
+            return None
         direct_values = tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in direct)
         out = np.zeros(self.measured.shape)
         for motion in dict.fromkeys(motions):
@@ -279,7 +293,7 @@ class CameraHeightProblem(dg.Problem):
                             spectrum = self.instrument.mask_spectrum(still, j)
                         self._spectra.put(key, spectrum)
                     spectra.append(spectrum)
-                coeffs = self.instrument.map_of(spectra, blur, factors=factors)
+                coeffs = self.instrument.map_of(spectra, blur, factors=factors, beside=beside)
                 self._coeffs.put((keys, blur, surface_values), coeffs)
             out += self.instrument.sample(coeffs, placements[motion])
         return out
@@ -382,10 +396,11 @@ class CameraHeightProblem(dg.Problem):
         """Residual by signed distance to each mask's edges, level, field position, frequency."""
         return edge_breakdown(residual_map, self.edge_m, self.cam_levels, self.pixel_m)
 
-    def instrument_signature(self, residual_map: np.ndarray) -> dict | None:
-        """Whether the residual is the instrument's (:func:`~metrology.diagnosis.breakdown.instrument_signature`)."""
+    def instrument_signature(self, residual_map: np.ndarray, **kw: Any) -> dict | None:
+        """Whether the residual is the instrument's (:func:`~metrology.diagnosis.breakdown.instrument_signature`,
+        ``kw`` its options)."""
         return instrument_signature(residual_map, self.edge_m, self.base.etch_depth, self.keep, self.noise.sigma,
-                                    self.noise.corr_area_px)
+                                    self.noise.corr_area_px, **kw)
 
     def placement_report(self, model: dict[str, np.ndarray],
                          errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:

@@ -32,6 +32,11 @@ STAGE_WINDOW_PX = 96
 # Odd share of the shared edge profile (:func:`~metrology.diagnosis.breakdown.instrument_signature`)
 # the blur and fill factor must leave for the stage to try the objective and the batwing.
 STAGE_ODD_SHARE = 0.5
+# Range of each mask's amplitude of that profile the stage accepts: wider than the final rule's
+# full amplitude, since the blur and fill factor were just fitted mostly to the deepest mask's
+# edges, and the shallow masks' shares of what they leave scatter (a CSI-like null: 2.1, 0.35,
+# 0.93, 0.86). The stage only offers the members; the information criterion keeps them or not.
+STAGE_AMPLITUDES = (0.25, 4.0)
 # The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
 BATWING = "batwing"
 
@@ -127,7 +132,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     current = crit(plain, rss)
     # Only an instrument's residual (an odd profile shared by every mask's edges) asks for more of
     # the family: elsewhere the stage costs one short fit.
-    left = plain.instrument_signature(plain.residual_map(model))
+    left = plain.instrument_signature(plain.residual_map(model), amplitudes=STAGE_AMPLITUDES)
     if left is None or left["odd_share"] < STAGE_ODD_SHARE:
         log.info("instrument stage: blur and fill factor leave no instrument residual")
         return dict(state), model, {}

@@ -126,6 +126,12 @@ class Effect:
         reach further than ``reach_px`` cells (beyond, the FFT would wrap them around onto the
         pixels read), where ``apply`` on the fine grid must serve. The camera model then
         changes the effect's values at the cost of an inverse FFT, not of a new surface.
+    beside_objective : bool
+        A linear surface effect that is the instrument's own response at edges (a batwing),
+        whose fitted width already is its lateral reach in the measurement: its part
+        (transfer - 1) is added to the objective's optical transfer instead of imaged through it
+        again (:meth:`metrology.matching.instrument.InstrumentModel.map_of`). Without an
+        objective both are the same.
     """
 
     name: str
@@ -140,6 +146,7 @@ class Effect:
     per_channel: bool = False
     linear: bool = False
     fourier: object = None
+    beside_objective: bool = False
 
     def __post_init__(self):
         if self.domain not in DOMAINS:
@@ -450,7 +457,7 @@ _BUILTIN_HEIGHT = [
            _batwing,
            "Measurement artefact: a white-light interferometer overshoots at steps shorter than its coherence "
            "length, a signed edge spike proportional to the step height.", kind="artefact", order=10,
-           start=(0.05, 0.6 * _UM), linear=True, fourier=batwing_transfer),
+           start=(0.05, 0.6 * _UM), linear=True, fourier=batwing_transfer, beside_objective=True),
 ]
 for _e in _BUILTIN_HEIGHT:
     register_effect(_e)

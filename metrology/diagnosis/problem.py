@@ -7,7 +7,7 @@ Its own module so that the fits (:mod:`metrology.diagnosis.fitting`) and the sel
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -60,7 +60,8 @@ class Problem:
         grouping pixels that an unmodelled effect would show up in."""
         return []
 
-    def instrument_signature(self, residual_map: np.ndarray) -> dict | None:
+    def instrument_signature(self, residual_map: np.ndarray, **kw: Any) -> dict | None:
         """Where the forward model holds an instrument: a dict when an unexplained residual is
-        the instrument's (the same at every mask's edges), else None."""
+        the instrument's (the same at every mask's edges), else None; ``kw``: the test's
+        options (:func:`~metrology.diagnosis.breakdown.instrument_signature`)."""
         return None

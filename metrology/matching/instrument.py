@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -54,7 +54,8 @@ if TYPE_CHECKING:
     from metrology.matching.register import Registration
 
 __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "Leveller", "PLACEMENT_PARAMS", "Placement",
-           "footprint_kernel", "kernel_half_width", "levelling_basis", "levelling_plane", "robust_valid"]
+           "beside_transfer", "footprint_kernel", "kernel_half_width", "levelling_basis", "levelling_plane",
+           "robust_valid"]
 
 # Fine-grid spacing requested from the process model (m).
 FINE_STEP_M = 0.125e-6
@@ -328,14 +329,22 @@ class InstrumentModel:
         return self._padded_fft(buf)
 
     def map_of(self, spectrum: np.ndarray | Sequence[np.ndarray], sigma_m: float | LateralTransfer,
-               overwrite: bool = False, factors: Sequence[np.ndarray] = ()) -> np.ndarray:
+               overwrite: bool = False, factors: Sequence[np.ndarray] = (),
+               beside: Sequence[np.ndarray] = ()) -> np.ndarray:
         """:meth:`camera_map` of the surface whose :meth:`spectrum` is given, or of the sum of
         surfaces whose spectra are (multiplied in place with ``overwrite``, when the caller owns
         the one spectrum given). ``factors``: transfers of linear filters of the surface on
-        this FFT grid (:meth:`fourier_grid`), applied with the instrument's."""
+        this FFT grid (:meth:`fourier_grid`), applied with the instrument's. ``beside``:
+        transfers ``1 + b`` of the instrument's own edge responses (a batwing), whose ``b`` is
+        added to the objective's optical transfer, not imaged through it: the whole transfer is
+        ``pixel * blur * (MTF + sum b) * prod factors`` (:func:`beside_transfer`)."""
         h, shape = self._padding()
         rows, cols = self._fine_shape()
         transfer = self._transfer(shape, sigma_m)
+        if len(beside):
+            t = as_transfer(sigma_m)
+            plain = self._transfer(shape, replace(t, na=0.0)) if t.na > 0 else transfer
+            transfer = beside_transfer(transfer, plain, beside)
         parts = [spectrum] if isinstance(spectrum, np.ndarray) else list(spectrum)
         if len(parts) == 1:
             product = np.multiply(parts[0], transfer, out=parts[0] if overwrite else None)
@@ -501,6 +510,17 @@ def _unit_depth(params, mask):
     depths = np.array(params.etch_depth, float)
     depths[mask] = 1.0
     return params.copy(etch_depth=depths)
+
+
+def beside_transfer(transfer: np.ndarray, plain: np.ndarray, beside: Sequence[np.ndarray]) -> np.ndarray:
+    """``transfer + plain * sum(b - 1 for b in beside)``: the instrument's Fourier transfer
+    (pixel, blur, objective and spline prefilter) with edge responses ``b - 1`` added beside the
+    objective, whose part ``plain`` (the same without the objective) they pass through. A new
+    array: ``transfer`` is a cached one."""
+    extra = None
+    for b in beside:
+        extra = b - np.float32(1.0) if extra is None else extra + (b - np.float32(1.0))
+    return transfer + plain * extra
 
 
 def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarray:

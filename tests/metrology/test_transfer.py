@@ -89,3 +89,32 @@ def test_transfer_parameters_are_bounded_and_a_zero_width_kernel_is_a_cell():
     assert kern.shape[0] >= 3 and kern.sum() == pytest.approx(1.0)
     k = kern.shape[0] // 2
     assert kern[k, k] == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("na", [0.3, 0.5])
+def test_a_batwing_is_added_beside_the_objective_not_imaged_through_it(na):
+    # A CSI's batwing is its own edge response of a fitted width: across a straight step of
+    # height H it adds a H (x / w) phi(x / w) / phi(1) to the objective's image of the step,
+    # whatever the aperture (+a H at w on the high side). Imaged again through the objective
+    # (the product of the transfers) its peak would fall to a fraction of that.
+    from metrology.diagnosis.effects import batwing_transfer
+
+    amp, width, height = 0.1, 0.25e-6, 500e-9
+    model = _model((60, 60))
+    fine = np.zeros(model._fine_shape())
+    edge = fine.shape[1] // 2
+    fine[:, edge:] = -height
+    x = _camera_cols_m(model) - edge * model.step_m
+    t = LateralTransfer(0.0, 0.0, na)
+    spectrum = model.spectrum(fine)
+    wr, wc = model.fourier_grid()
+    wing = batwing_transfer([amp, width], model.step_m, wr, wc, 10 ** 6)
+    plain = model.sample(model.map_of(spectrum, t), model.placement)[30]
+    beside = model.sample(model.map_of(spectrum, t, beside=[wing]), model.placement)[30]
+    phi = lambda u: np.exp(-0.5 * u * u) / math.sqrt(2 * math.pi)  # noqa: E731
+    # The surface falls by H at x = 0: the high side is x < 0.
+    want = -amp * height * (x / width) * phi(x / width) / phi(1.0)
+    assert np.abs((beside - plain) - want).max() < 0.01 * amp * height
+    # The product of the transfers is a different (attenuated) profile: the check can fail.
+    through = model.sample(model.map_of(spectrum, t, factors=[wing]), model.placement)[30]
+    assert np.abs((through - plain) - want).max() > 0.1 * amp * height
