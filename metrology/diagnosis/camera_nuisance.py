@@ -80,7 +80,8 @@ def instrument_report(t: LateralTransfer, sigma_err_m: float = np.nan, fill_err:
     """The lateral transfer as a report gives it (and a calibration file holds it): SI units,
     uncertainties NaN where a parameter was held."""
     return {"model": "pixel box (fill factor: area fraction, a centred square of side sqrt(fill) pixels) "
-                     "* Gaussian blur * NA-limited incoherent objective (cut-off 2 NA / lambda; na 0 = none)",
+                     "* Gaussian blur * (NA-limited incoherent objective (cut-off 2 NA / lambda; na 0 = none) "
+                     "+ batwing band-pass, when fitted)",
             "blur_sigma_m": t.sigma_m, "blur_sigma_uncertainty_m": float(sigma_err_m),
             "fill_factor": t.fill_factor, "fill_factor_uncertainty": float(fill_err),
             "na": t.na, "na_uncertainty": float(na_err), "wavelength_m": t.wavelength_m,

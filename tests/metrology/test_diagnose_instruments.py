@@ -191,7 +191,7 @@ def test_the_instrument_stage_accepts_a_shared_profile_whose_shallow_masks_scatt
     # rule's full amplitude refuses it, the stage's range (which only offers the objective and
     # the batwing to the criterion) takes it; one mask's profile stays that mask's for both.
     from metrology.diagnosis.breakdown import instrument_signature
-    from metrology.diagnosis.camera_nuisance import STAGE_AMPLITUDES
+    from metrology.diagnosis.camera_nuisance import STAGE_AMPLITUDES, STAGE_SHARE
 
     rng = np.random.default_rng(5)
     shape, depths = (120, 120), [75e-9, 150e-9, 300e-9, 600e-9]
@@ -204,7 +204,9 @@ def test_the_instrument_stage_accepts_a_shared_profile_whose_shallow_masks_scatt
     noise = 0.5e-9 * rng.standard_normal(shape)
     scattered = sum(a * D * g(d) for a, D, d in zip([2.0, 0.35, 1.0, 1.0], depths, edge_m)) + noise
     assert instrument_signature(scattered, edge_m, depths, keep, 0.5e-9, 1.0) is None
-    found = instrument_signature(scattered, edge_m, depths, keep, 0.5e-9, 1.0, amplitudes=STAGE_AMPLITUDES)
+    found = instrument_signature(scattered, edge_m, depths, keep, 0.5e-9, 1.0, share=STAGE_SHARE,
+                                 amplitudes=STAGE_AMPLITUDES)
     assert found is not None and found["odd_share"] > 0.9
     one_mask = depths[3] * g(edge_m[3]) + noise
-    assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0, amplitudes=STAGE_AMPLITUDES) is None
+    assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0, share=STAGE_SHARE,
+                                amplitudes=STAGE_AMPLITUDES) is None
