@@ -34,14 +34,25 @@ if TYPE_CHECKING:
     from masks.process import ProcessParams
     from metrology.matching.compare import Comparison
 
-__all__ = ["DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step", "diagnose_step",
-           "fabricate_and_measure", "hidden_process", "markdown_report", "masks_step", "psf_step", "run_demo",
+__all__ = ["DEMO_INSTRUMENTS", "DemoConfig", "RGB_NM", "Timings", "compare_step", "demo_camera", "design_step",
+           "diagnose_step", "fabricate_and_measure", "hidden_process", "markdown_report", "masks_step", "psf_step", "run_demo",
            "tolerance_step"]
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 RGB_NM = (656.0, 589.0, 486.0)
+# Lateral transfers the demo's synthetic measurement can be made with (keyword arguments of
+# :func:`metrology.matching.forward.process_on_measurement` beside the blur): "boxcar", a
+# Gaussian blur (``instrument_blur_m``) and each pixel's whole area integrated; "point", a
+# 0.4 um Gaussian blur read at each pixel's centre (no pixel integration); "optical", a
+# coherence-scanning interferometer's objective (NA 0.4 incoherent circular pupil at 0.57 um,
+# a 0.1 um residual blur) and pixels integrating 60 % of their area.
+DEMO_INSTRUMENTS = {
+    "boxcar": {"pixel_subsamples": 8},
+    "point": {"blur_m": 0.4e-6, "pixel_subsamples": 1},
+    "optical": {"blur_m": 0.1e-6, "na": 0.4, "wavelength_m": 0.57e-6, "fill_factor": 0.6, "pixel_subsamples": 8},
+}
 
 
 @dataclass
@@ -62,6 +73,8 @@ class DemoConfig:
     hidden_overlay_m: tuple = (0.4e-6, 0.0)
     noise_m: float = 1.0e-9
     instrument_blur_m: float = 0.5e-6
+    # The profilometer's lateral transfer behind the synthetic measurement (DEMO_INSTRUMENTS).
+    instrument: str = "boxcar"
     seed: int = 7
     window: int = 512
     # Bayer objective (doedesign.optimizer.optimize.OBJECTIVES). The quick run's 160 px aperture has a spot ten
@@ -167,9 +180,9 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: Pr
     shape_px = int(cfg.field_px / scale)
     truth = register.Registration.from_parameters(scale, cfg.rotation_deg, (False, False, False), centre,
                                                   design.pitch_m, design.shape, (shape_px, shape_px))
-    # The camera integrates the blurred surface over each pixel's footprint.
-    height = compare.process_on_measurement(design.levels, design.pitch_m, params, truth,
-                                            blur_m=cfg.instrument_blur_m, step_m=0.25e-6, pixel_subsamples=8)
+    # The camera reports the surface through the instrument's lateral transfer.
+    transfer = {"blur_m": cfg.instrument_blur_m, **DEMO_INSTRUMENTS[cfg.instrument]}
+    height = compare.process_on_measurement(design.levels, design.pitch_m, params, truth, step_m=0.25e-6, **transfer)
     rows, cols = np.mgrid[:shape_px, :shape_px]
     tilt = 2e-6 * (rows - shape_px / 2) / shape_px - 1e-6 * (cols - shape_px / 2) / shape_px
     height = height + tilt + rng.normal(0, cfg.noise_m, height.shape)
@@ -179,7 +192,7 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: Pr
     write_datx(path, height, cfg.measurement_pixel_m, unit="NanoMeters")
     hidden = {"mask_overlay": {"mask": cfg.hidden_mask, "dx_um": cfg.hidden_overlay_m[0] * 1e6,
                                "dy_um": cfg.hidden_overlay_m[1] * 1e6},
-              "registration": truth.to_dict()}
+              "registration": truth.to_dict(), "instrument": {"name": cfg.instrument, **transfer}}
     return path, hidden
 
 

@@ -220,6 +220,12 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
                                      "criterion change (BIC, lower is better)")))
     else:
         parts.append("No effect lowered the criterion: the measurement agrees with the ideal model.\n")
+    # What each named fabrication effect's parameters refer to (an etch gradient's and a mask
+    # rotation's reference point is the design's centre, not the camera field's).
+    fab = [s for s in rep.get("steps") or [] if not s.get("measurement_artefact") and s.get("description")]
+    if fab:
+        parts += ["What the named effects mean (conventions and reference points):", ""]
+        parts += [f"- {s.get('effect')}: {s['description']}" for s in fab] + [""]
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in DIAGNOSE_FIGURES]
     return parts

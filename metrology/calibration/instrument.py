@@ -11,10 +11,20 @@ heights (a certified step is known to a percent; its height is not the transfer)
 is a JSON file that ``doe compare --instrument`` and ``doe diagnose --instrument`` read and then
 hold fixed.
 
+Height scale. With the artefact's certified step heights (``step_heights_m``) the calibration
+also fixes the instrument's height scale: the fitted step of each mask over its certified
+height is that mask's estimate of the scale (measured height per true height); their weighted
+mean is the scale, which compare and diagnose divide every measured height by. The masks must
+agree on it (one scale, :data:`STEP_TOLERANCE` apart at most beyond their fitted uncertainty)
+and it must be one a profilometer can have (within :data:`HEIGHT_SCALE_LIMIT` of 1): a
+certified height given wrong is refused, not absorbed. Without certified heights the scale is
+1 (not calibrated).
+
 File (strict JSON, SI units): ``format`` = :data:`FORMAT`, ``version``, ``lateral_transfer``
 (``blur_sigma_m``, ``fill_factor``, ``na`` (0 = no optical cut-off), ``wavelength_m`` and each
 one's uncertainty), ``artefact`` (design, measurement, fitted step heights), ``fit``
-(residual and noise floor, pixels). Camera arrays are row-major, row 0 at the top.
+(residual and noise floor, pixels), ``height_scale`` (``value``, ``uncertainty``,
+``certified_step_heights_m``; value 1 and no uncertainty when not calibrated). Camera arrays are row-major, row 0 at the top.
 """
 
 from __future__ import annotations
@@ -35,17 +45,26 @@ if TYPE_CHECKING:
     from doedesign.design import Design
     from metrology.formats.measurement import Measurement
 
-__all__ = ["FORMAT", "calibrate_instrument", "read_instrument"]
+__all__ = ["FORMAT", "HEIGHT_SCALE_LIMIT", "STEP_TOLERANCE", "apply_height_scale", "calibrate_instrument",
+           "height_scale", "read_calibration", "read_instrument"]
 
 log = logging.getLogger(__name__)
 
 FORMAT = "doe-toolkit instrument calibration"
 VERSION = 1
+# The most a profilometer's height scale departs from 1: vendors specify step-height accuracy
+# within 0.5-1 % (CSI, confocal); an instrument out of calibration may be off by a few percent.
+# Beyond 5 % the certified height given is more likely wrong than the instrument.
+HEIGHT_SCALE_LIMIT = 0.05
+# How far one mask's scale may stray from the common one beyond its fitted uncertainty: a
+# certified step's own uncertainty (about 1 %).
+STEP_TOLERANCE = 0.01
 
 
 def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
                          window_px: int = 160, threshold: float = 10.0, wavelength_m: float = DEFAULT_WAVELENGTH_M,
-                         source: str = "measurement", force: bool = False) -> dict[str, Any]:
+                         source: str = "measurement", force: bool = False,
+                         step_heights_m: Sequence[float] | None = None) -> dict[str, Any]:
     """Fit the lateral transfer on a measured artefact of known geometry.
 
     Parameters
@@ -65,7 +84,11 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     source : str
         The measurement's name in messages.
     force : bool
-        Go on when the measurement matches the design poorly.
+        Go on when the measurement matches the design poorly, or when the certified heights
+        and the measurement disagree (see :func:`height_scale`).
+    step_heights_m : sequence of float, optional
+        The artefact's certified step height per mask (its nominal depths in the fit, instead
+        of ``depths_m``): the calibration then fixes the height scale too.
 
     Returns
     -------
@@ -90,7 +113,13 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     except DoeError as exc:
         raise DoeError(f"{source}: {exc}") from None
     levels = design_levels(design)
+    if step_heights_m is not None:
+        if depths_m is not None:
+            raise DoeError("give either the artefact's certified step heights or nominal depths, not both")
+        depths_m = step_heights_m
     depths = list(binary_depths_m(design.level_step_m(16), 4)) if depths_m is None else [float(v) for v in depths_m]
+    if len(depths) != 4:
+        raise DoeError(f"the artefact's step heights: one per mask (4), got {len(depths)}")
     placement = comp.instrument_fit.placement
     meas = np.asarray(measurement.height_m, float)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -112,7 +141,11 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
             fitted, rss, errors = dg.fit_effects(problem, model, free)
             return problem, fitted, rss, errors
 
-        plain, m0, rss0, e0 = fit(False, {CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
+        # From full pixels and from point sampling: the blur and the fill factor trade along a
+        # narrow valley (their second moments add), and a solver started at one end stops short
+        # of an optimum near the other (0.32 um and fill 0.26 for a 0.35 um point-sampling camera).
+        plain, m0, rss0, e0 = min((fit(False, {CAMERA.name: cam, depth.name: depth.start_values()})
+                                   for cam in _camera_starts(CAMERA.start_values())), key=lambda t: t[2])
         optic = None
         rss1 = np.inf
         for init in objective_starts(m0, plain.transfer_of(m0)):
@@ -129,22 +162,78 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     lateral = instrument_report(t, cam_err[5], cam_err[6], na_err)
     lateral["source"] = f"calibrated on {source}"
     residual = float(np.sqrt(rss / n))
+    steps = np.asarray(depths) * (1 + np.asarray(model[depth.name], float))
+    steps_err = np.asarray(depths) * np.asarray(errors.get(depth.name), float)
+    scale = {"value": 1.0, "uncertainty": math.nan, "certified_step_heights_m": None,
+             "note": "not calibrated (no certified step heights): measured heights are taken as they are"}
+    if step_heights_m is not None:
+        value, err = height_scale(steps, steps_err, depths, source, force)
+        scale = {"value": value, "uncertainty": err, "certified_step_heights_m": depths,
+                 "note": "measured height per true height; compare and diagnose divide measured heights by it"}
     log.info("instrument calibrated: blur %.3f um, fill %.2f, NA %.3f; residual %.3g m against a floor of %.3g m",
              t.sigma_m * 1e6, t.fill_factor, t.na, residual, problem.noise.sigma)
     return {"format": FORMAT, "version": VERSION, "lateral_transfer": lateral,
-            "artefact": {"measurement": source,
-                         "step_heights_m": (np.asarray(depths) * (1 + np.asarray(model[depth.name], float))).tolist(),
-                         "step_heights_uncertainty_m": (np.asarray(depths)
-                                                        * np.asarray(errors.get(depth.name), float)).tolist(),
-                         "nominal_step_heights_m": depths},
+            "artefact": {"measurement": source, "step_heights_m": steps.tolist(),
+                         "step_heights_uncertainty_m": steps_err.tolist(), "nominal_step_heights_m": depths},
+            "height_scale": scale,
             "fit": {"residual_rms_m": residual, "noise_floor_m": problem.noise.sigma,
                     "objective_criterion_change": float(change), "pixels": int(n),
                     "window_camera_px": [r0, r0 + size, c0, c0 + size],
                     "conventions": "camera arrays row-major, row 0 at the top; SI units"}}
 
 
+def _camera_starts(cam: np.ndarray) -> list[np.ndarray]:
+    """The camera nuisance's start at full pixels (``cam``) and at point sampling."""
+    point = np.array(cam, float)
+    point[6] = 0.0
+    return [np.array(cam, float), point]
+
+
+def height_scale(steps_m: Sequence[float], errors_m: Sequence[float], certified_m: Sequence[float],
+                 source: str = "measurement", force: bool = False) -> tuple[float, float]:
+    """The instrument's height scale (measured per true height) and its uncertainty from fitted
+    steps and their certified heights.
+
+    Each mask whose step the fit determined (a finite uncertainty under 5 % of the step: a
+    mask absent from the window is not) gives ``step / certified``; the scale is their
+    inverse-variance mean. Raises :class:`DoeError` (unless ``force``) when one mask's ratio
+    strays from their median by more than three times its uncertainty combined with
+    :data:`STEP_TOLERANCE`, or when the scale lies beyond :data:`HEIGHT_SCALE_LIMIT` of 1: a
+    certified height given wrong.
+    """
+    steps, errs, cert = (np.asarray(v, float) for v in (steps_m, errors_m, certified_m))
+    ok = np.isfinite(errs) & (errs > 0) & (errs < 0.05 * steps)
+    if not ok.any():
+        raise DoeError(f"{source}: no step of the artefact was measured well enough to fix the height scale")
+    ratio, sd = steps[ok] / cert[ok], errs[ok] / cert[ok]
+    w = 1.0 / sd ** 2
+    value = float(np.sum(w * ratio) / w.sum())
+    # Against the median: one wrong height must not pull the common scale toward itself.
+    spread = np.abs(ratio - np.median(ratio)) / np.sqrt(sd ** 2 + STEP_TOLERANCE ** 2)
+    # The scatter between masks beyond their fitted errors also counts (a model imperfection).
+    err = float(max(1.0 / np.sqrt(w.sum()), np.std(ratio) / np.sqrt(ratio.size)))
+    masks = np.flatnonzero(ok)
+    if spread.max() > 3 and not force:
+        j = int(np.argmax(spread))
+        raise DoeError(f"{source}: the certified step heights disagree with the measurement: mask {masks[j]} "
+                       f"measures {steps[ok][j] * 1e9:.2f} nm against {cert[ok][j] * 1e9:.2f} nm certified "
+                       f"(ratio {ratio[j]:.4f}, the masks' median {np.median(ratio):.4f}); check --step-height-nm "
+                       "(or --force)")
+    if abs(value - 1) > HEIGHT_SCALE_LIMIT and not force:
+        raise DoeError(f"{source}: the measured steps are {value:.4f} x the certified heights, beyond the "
+                       f"{HEIGHT_SCALE_LIMIT:.0%} a profilometer's height scale departs from 1; "
+                       "check --step-height-nm (or --force)")
+    return value, err
+
+
 def read_instrument(path: str | Path) -> LateralTransfer:
     """The lateral transfer of a calibration file written by ``doe calibrate instrument``."""
+    return read_calibration(path)[0]
+
+
+def read_calibration(path: str | Path) -> tuple[LateralTransfer, float]:
+    """The lateral transfer and the height scale (1 when the file has none) of a calibration
+    file written by ``doe calibrate instrument``."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -152,6 +241,7 @@ def read_instrument(path: str | Path) -> LateralTransfer:
         if data.get("format") != FORMAT:
             raise ValueError(f"not an instrument calibration (format {data.get('format')!r})")
         values = [float(lat[k]) for k in ("blur_sigma_m", "fill_factor", "na", "wavelength_m")]
+        scale = float((data.get("height_scale") or {}).get("value", 1.0))
     except FileNotFoundError:
         raise DoeError(f"{path}: instrument calibration file not found") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -160,4 +250,17 @@ def read_instrument(path: str | Path) -> LateralTransfer:
     if not (0 <= sigma <= 5e-6 and 0 <= fill <= 1 and (na == 0 or 0.05 <= na <= 0.95) and 0.1e-6 <= lam <= 2e-6):
         raise DoeError(f"{path}: instrument calibration out of range (blur {sigma} m, fill factor {fill}, NA {na}, "
                        f"wavelength {lam} m)")
-    return LateralTransfer(sigma, fill, na, lam)
+    if not abs(scale - 1) <= HEIGHT_SCALE_LIMIT:
+        raise DoeError(f"{path}: instrument calibration's height scale {scale} lies beyond "
+                       f"{HEIGHT_SCALE_LIMIT:.0%} of 1")
+    return LateralTransfer(sigma, fill, na, lam), scale
+
+
+def apply_height_scale(measurement: Measurement, scale: float) -> Measurement:
+    """``measurement`` with its heights divided by the instrument's height scale (true heights)."""
+    from dataclasses import replace
+
+    if scale == 1.0:
+        return measurement
+    meta = {**measurement.metadata, "height_scale_applied": float(scale)}
+    return replace(measurement, height_m=measurement.height_m / scale, metadata=meta)

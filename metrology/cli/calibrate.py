@@ -103,6 +103,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="calibration .json to write")
     p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
                    default=None, help="nominal step per mask (default: the design's binary depths)")
+    p.add_argument("--step-height-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
+                   default=None, help="the artefact's certified step height per mask (e.g. 75,150,300,600): "
+                                      "also fixes the instrument's height scale, which compare and diagnose "
+                                      "then apply; a height that disagrees with the measurement is refused")
     p.add_argument("--wavelength-nm", type=Number(float, 100, 2000, unit="nm"), default=570.0,
                    help="the instrument's mean wavelength (570, white light)")
     p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
@@ -155,11 +159,14 @@ def run_instrument(args: argparse.Namespace) -> int:
     design = Design.load(args.design)
     cal = calibrate_instrument(design, read_measurement(measured), window_px=args.window_px,
                                depths_m=None if args.depths_nm is None else [v * 1e-9 for v in args.depths_nm],
-                               wavelength_m=args.wavelength_nm * 1e-9, source=str(args.measured), force=args.force)
+                               wavelength_m=args.wavelength_nm * 1e-9, source=str(args.measured), force=args.force,
+                               step_heights_m=None if args.step_height_nm is None
+                               else [v * 1e-9 for v in args.step_height_nm])
     cal["artefact"]["design"] = str(args.design)
     with output_run(Path(args.out).parent, "doe calibrate instrument"):
         write_json(args.out, cal)
-    print_json({"calibration": str(args.out), **cal["lateral_transfer"], **cal["fit"]})
+    print_json({"calibration": str(args.out), **cal["lateral_transfer"], **cal["fit"],
+                "height_scale": cal["height_scale"]["value"]})
     return 0
 
 

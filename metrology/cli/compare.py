@@ -44,7 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="compare even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
     p.add_argument("--instrument", metavar="FILE.json",
-                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed "
+                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed, "
+                        "and its height scale, divided out of the measured heights "
                         "in the camera-frame fit (default: its blur fitted)")
     p.set_defaults(func=run_compare)
 
@@ -57,15 +58,19 @@ def run_compare(args: argparse.Namespace) -> int:
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
-    transfer = None
+    transfer, scale = None, 1.0
     if args.instrument:
-        from metrology.calibration.instrument import read_instrument
+        from metrology.calibration.instrument import read_calibration
 
-        transfer = read_instrument(args.instrument)
+        transfer, scale = read_calibration(args.instrument)
     ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel)
+    if scale != 1.0:
+        from metrology.calibration.instrument import apply_height_scale
+
+        meas = apply_height_scale(meas, scale)
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design),
                               wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,

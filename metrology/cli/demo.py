@@ -29,6 +29,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         cfg.iterations = args.iterations
     if args.doe_px is not None:
         cfg.doe_px = args.doe_px
+    cfg.instrument = args.instrument
     with Progress(1, desc="demo", enabled=None) as bar:
         report = run_demo(args.out, cfg)
         bar.update(1, status="done")
@@ -64,4 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"DOE size of the --all elements (aperture = size x 5.4 um; default {ELEMENTS_PX}, --quick 48)")
     p.add_argument("--iterations", type=Number(int, 1, 10**6), default=None, help="optimizer iterations")
     p.add_argument("--doe-px", type=Number(int, 16, 4096, unit="px"), default=None, help="DOE size in pixels (aperture = size x 5.4 um)")
+    p.add_argument("--instrument", choices=("boxcar", "point", "optical"), default="boxcar",
+                   help="lateral transfer of the simulated profilometer: boxcar (Gaussian blur, whole pixel area "
+                        "integrated; default), point (blur, read at each pixel's centre) or optical (NA 0.4 "
+                        "objective, 60 %% pixel fill factor)")
     p.set_defaults(func=cmd_demo)

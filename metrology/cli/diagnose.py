@@ -58,7 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.add_argument("--instrument", metavar="FILE.json",
-                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed "
+                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed, "
+                        "and its height scale, divided out of the measured heights "
                         "(default: fitted with the placement)")
     p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
                    help="CPU seconds (both cores' together) the camera-frame selection may spend before it stops "
@@ -79,11 +80,11 @@ def run(args: argparse.Namespace) -> int:
     for path in args.effects_file:
         load_effects_file(path)
     candidates = parse_effects(args.effects, "psf" if args.measured_psf else "height")
-    args.transfer = None
+    args.transfer, args.height_scale = None, 1.0
     if getattr(args, "instrument", None):
-        from metrology.calibration.instrument import read_instrument
+        from metrology.calibration.instrument import read_calibration
 
-        args.transfer = read_instrument(args.instrument)
+        args.transfer, args.height_scale = read_calibration(args.instrument)
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     if args.measured and args.frame == "camera":
@@ -145,11 +146,14 @@ def _heights(design, path, args, candidates):
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
-    diag, inputs = diagnose_measurement(design, read_measurement(path), region_px=args.region_px,
+    from metrology.calibration.instrument import apply_height_scale
+
+    measurement = apply_height_scale(read_measurement(path), args.height_scale)
+    diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
                                         upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
                                         candidates=candidates, threshold=args.threshold, source=str(path),
                                         force=args.force)
-    return diag, {"measured": str(path), **inputs}
+    return diag, {"measured": str(path), "height_scale": args.height_scale, **inputs}
 
 
 def _camera(design, path, args, candidates):
@@ -157,11 +161,14 @@ def _camera(design, path, args, candidates):
     from metrology.formats.readers import read_measurement
 
     depths = [v * 1e-9 for v in args.depths_nm]
-    diag, inputs = diagnose_camera_measurement(design, read_measurement(path), depths_m=depths, candidates=candidates,
+    from metrology.calibration.instrument import apply_height_scale
+
+    measurement = apply_height_scale(read_measurement(path), args.height_scale)
+    diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,
                                                cpu_budget_s=args.cpu_budget_s)
-    return diag, {"measured": str(path), **inputs}
+    return diag, {"measured": str(path), "height_scale": args.height_scale, **inputs}
 
 
 def _psf(design, path, args, candidates):

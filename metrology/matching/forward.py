@@ -25,15 +25,18 @@ __all__ = ["crop_registration", "design_height_on_measurement", "error_map", "fi
 
 def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessParams, registration: Registration,
                            blur_m: float = 0.0, step_m: float = 0.25e-6, rows: slice | None = None,
-                           block_px: int = 48, pixel_subsamples: int = 1) -> np.ndarray:
+                           block_px: int = 48, pixel_subsamples: int = 1, fill_factor: float = 1.0,
+                           na: float = 0.0, wavelength_m: float = 0.57e-6) -> np.ndarray:
     """The process model's surface as the profilometer would report it.
 
     :func:`masks.process.simulate_surface` on the design region under the field (in blocks
     of design rows, so a large field never needs one huge fine grid), blurred by a
-    Gaussian of ``blur_m`` (the objective), then averaged over each measurement pixel's
-    footprint through ``registration`` at ``pixel_subsamples`` x ``pixel_subsamples``
-    points (bilinear on the fine grid; 1 = point-sampled at the pixel centre). Outside the
-    design the wafer is unetched (0).
+    Gaussian of ``blur_m`` (the objective) and, with ``na``, the objective's incoherent
+    circular-pupil transfer (:func:`metrology.matching.transfer.na_mtf`, by FFT on the fine
+    block), then averaged over each measurement pixel's footprint through ``registration`` at
+    ``pixel_subsamples`` x ``pixel_subsamples`` points over a centred square of side
+    ``sqrt(fill_factor)`` pixels (bilinear on the fine grid; 1 point = sampled at the pixel
+    centre). Outside the design the wafer is unetched (0).
 
     Parameters
     ----------
@@ -50,6 +53,10 @@ def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessPa
         Design rows per simulated block.
     pixel_subsamples : int
         Points per axis averaged over each camera pixel (a camera pixel integrates).
+    fill_factor : float
+        Area fraction of each pixel integrated (a centred square of side ``sqrt(fill_factor)``).
+    na, wavelength_m : float
+        The objective's numerical aperture (0 = no optical cut-off) and mean wavelength.
 
     Returns
     -------
@@ -65,13 +72,17 @@ def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessPa
     if not on.any():
         return out
     n_sub = max(int(pixel_subsamples), 1)
-    sub = (np.arange(n_sub) + 0.5) / n_sub - 0.5
+    side = float(np.sqrt(min(max(fill_factor, 0.0), 1.0)))
+    sub = ((np.arange(n_sub) + 0.5) / n_sub - 0.5) * side
     # Design-pixel reach of a footprint corner from its centre.
-    reach = 0.5 * float(np.abs(np.asarray(registration.matrix)).sum(axis=1).max()) if n_sub > 1 else 0.0
+    reach = 0.5 * side * float(np.abs(np.asarray(registration.matrix)).sum(axis=1).max()) if n_sub > 1 else 0.0
+    # The objective's point spread (an Airy pattern) reaches a few rings: 4 lambda / NA keeps all
+    # but a fraction of a percent of it.
+    optical_px = 4 * wavelength_m / na / pitch_m if na > 0 else 0.0
     r_lo, r_hi = int(np.floor(rr[on].min() + 0.5)), int(np.floor(rr[on].max() + 0.5)) + 1
-    c_lo = max(int(np.floor(cc[on].min() + 0.5 - reach)) - 1, 0)
-    c_hi = min(int(np.floor(cc[on].max() + 0.5 + reach)) + 2, nc)
-    margin = 1 + int(np.ceil(4 * blur_m / pitch_m + reach))
+    c_lo = max(int(np.floor(cc[on].min() + 0.5 - reach - optical_px)) - 1, 0)
+    c_hi = min(int(np.floor(cc[on].max() + 0.5 + reach + optical_px)) + 2, nc)
+    margin = 1 + int(np.ceil(4 * blur_m / pitch_m + reach + optical_px))
     for b0 in range(r_lo, r_hi, block_px):
         b1 = min(b0 + block_px, r_hi)
         sel = on & (rr >= b0 - 0.5) & (rr < b1 - 0.5)
@@ -83,6 +94,8 @@ def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessPa
         u = surf.upsample
         if blur_m > 0:
             fine = ndimage.gaussian_filter(fine, blur_m / surf.step_m, mode="nearest")
+        if na > 0:
+            fine = _objective(fine, surf.step_m, na, wavelength_m, int(np.ceil(optical_px * u)))
         r_sel, c_sel = np.nonzero(sel)
         total = np.zeros(r_sel.size)
         for a in sub:
@@ -93,6 +106,17 @@ def process_on_measurement(levels: np.ndarray, pitch_m: float, params: ProcessPa
                 total += ndimage.map_coordinates(fine, [fr, fc], order=1, mode="nearest")
         out[sel] = total / n_sub ** 2
     return out
+
+
+def _objective(fine, step_m, na, wavelength_m, pad):
+    """``fine`` seen through the objective's incoherent circular-pupil transfer (edge-padded by
+    ``pad`` fine cells so that nothing wraps into the block)."""
+    from metrology.matching.transfer import na_mtf
+
+    grid = np.pad(fine, pad, mode="edge")
+    nu = np.hypot(np.fft.fftfreq(grid.shape[0], step_m)[:, None], np.fft.rfftfreq(grid.shape[1], step_m)[None, :])
+    seen = np.fft.irfft2(np.fft.rfft2(grid) * na_mtf(nu, na, wavelength_m), s=grid.shape)
+    return seen[pad:pad + fine.shape[0], pad:pad + fine.shape[1]]
 
 
 def fitted_process(edge_fit: Any, depths_m: Sequence[float] | None = None, n_masks: int = 4) -> ProcessParams:
