@@ -33,6 +33,7 @@ import json
 import logging
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,8 +46,8 @@ if TYPE_CHECKING:
     from doedesign.design import Design
     from metrology.formats.measurement import Measurement
 
-__all__ = ["FORMAT", "HEIGHT_SCALE_LIMIT", "STEP_TOLERANCE", "apply_height_scale", "calibrate_instrument",
-           "height_scale", "read_calibration", "read_instrument"]
+__all__ = ["FORMAT", "HEIGHT_SCALE_LIMIT", "PIXEL_TOLERANCE", "STEP_TOLERANCE", "InstrumentCalibration",
+           "apply_calibration", "calibrate_instrument", "height_scale", "read_calibration", "read_instrument"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,22 @@ HEIGHT_SCALE_LIMIT = 0.05
 # How far one mask's scale may stray from the common one beyond its fitted uncertainty: a
 # certified step's own uncertainty (about 1 %).
 STEP_TOLERANCE = 0.01
+# A calibration holds for the objective and zoom it was made with: a measurement whose pixel
+# differs by more than this (relative) was taken with another, and the fill factor (a fraction
+# of the camera pixel) and the blur would not carry over.
+PIXEL_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class InstrumentCalibration:
+    """What compare and diagnose hold of a calibration file: the lateral transfer, the height
+    scale (measured per true height; 1 = not calibrated), the camera pixel it was made at (m;
+    None in files that do not say) and the file."""
+
+    transfer: LateralTransfer
+    height_scale: float = 1.0
+    pixel_m: float | None = None
+    path: str = ""
 
 
 def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
@@ -161,6 +178,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     na_err = float(np.asarray(errors.get(OBJECTIVE.name, [math.nan]))[0])
     lateral = instrument_report(t, cam_err[5], cam_err[6], na_err)
     lateral["source"] = f"calibrated on {source}"
+    lateral["camera_pixel_m"] = float(measurement.pixel_size_m)
     residual = float(np.sqrt(rss / n))
     steps = np.asarray(depths) * (1 + np.asarray(model[depth.name], float))
     steps_err = np.asarray(depths) * np.asarray(errors.get(depth.name), float)
@@ -228,12 +246,12 @@ def height_scale(steps_m: Sequence[float], errors_m: Sequence[float], certified_
 
 def read_instrument(path: str | Path) -> LateralTransfer:
     """The lateral transfer of a calibration file written by ``doe calibrate instrument``."""
-    return read_calibration(path)[0]
+    return read_calibration(path).transfer
 
 
-def read_calibration(path: str | Path) -> tuple[LateralTransfer, float]:
-    """The lateral transfer and the height scale (1 when the file has none) of a calibration
-    file written by ``doe calibrate instrument``."""
+def read_calibration(path: str | Path) -> InstrumentCalibration:
+    """A calibration file written by ``doe calibrate instrument`` (height scale 1 and no pixel
+    when the file has none)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -242,6 +260,8 @@ def read_calibration(path: str | Path) -> tuple[LateralTransfer, float]:
             raise ValueError(f"not an instrument calibration (format {data.get('format')!r})")
         values = [float(lat[k]) for k in ("blur_sigma_m", "fill_factor", "na", "wavelength_m")]
         scale = float((data.get("height_scale") or {}).get("value", 1.0))
+        pixel = lat.get("camera_pixel_m")
+        pixel = None if pixel is None else float(pixel)
     except FileNotFoundError:
         raise DoeError(f"{path}: instrument calibration file not found") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -253,14 +273,30 @@ def read_calibration(path: str | Path) -> tuple[LateralTransfer, float]:
     if not abs(scale - 1) <= HEIGHT_SCALE_LIMIT:
         raise DoeError(f"{path}: instrument calibration's height scale {scale} lies beyond "
                        f"{HEIGHT_SCALE_LIMIT:.0%} of 1")
-    return LateralTransfer(sigma, fill, na, lam), scale
+    if pixel is not None and not 1e-8 <= pixel <= 1e-3:
+        raise DoeError(f"{path}: instrument calibration's camera pixel {pixel} m is out of range")
+    return InstrumentCalibration(LateralTransfer(sigma, fill, na, lam), scale, pixel, str(path))
 
 
-def apply_height_scale(measurement: Measurement, scale: float) -> Measurement:
-    """``measurement`` with its heights divided by the instrument's height scale (true heights)."""
+def apply_calibration(measurement: Measurement, cal: InstrumentCalibration | None,
+                      source: str = "measurement") -> Measurement:
+    """``measurement`` in true heights (divided by the calibration's height scale), after
+    checking that it was taken at the calibration's camera pixel (the same objective and zoom).
+
+    Raises
+    ------
+    DoeError
+        The pixel sizes differ by more than :data:`PIXEL_TOLERANCE`.
+    """
     from dataclasses import replace
 
-    if scale == 1.0:
+    if cal is None:
         return measurement
-    meta = {**measurement.metadata, "height_scale_applied": float(scale)}
-    return replace(measurement, height_m=measurement.height_m / scale, metadata=meta)
+    if cal.pixel_m is not None and abs(measurement.pixel_size_m / cal.pixel_m - 1) > PIXEL_TOLERANCE:
+        raise DoeError(f"{source}: pixel {measurement.pixel_size_m * 1e6:.4g} um, but the instrument calibration "
+                       f"{cal.path} was made at {cal.pixel_m * 1e6:.4g} um (another objective or zoom: its fill "
+                       "factor and blur do not carry over); calibrate at this magnification")
+    if cal.height_scale == 1.0:
+        return measurement
+    meta = {**measurement.metadata, "height_scale_applied": cal.height_scale}
+    return replace(measurement, height_m=measurement.height_m / cal.height_scale, metadata=meta)

@@ -95,9 +95,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("instrument", help="the profilometer's lateral transfer from a measured artefact of known geometry",
                        description="Fit the profilometer's lateral transfer (pixel fill factor, Gaussian blur, the "
                                    "objective's NA when the data ask for it) with the placement on a measured step "
-                                   "or grating whose geometry a design file gives (cf. ISO 25178-600); the JSON "
+                                   "or grating whose geometry a design file gives (cf. ISO 25178-600), and with "
+                                   "the artefact's certified step heights the instrument's height scale; the JSON "
                                    "written is what 'doe compare --instrument' and 'doe diagnose --instrument' "
-                                   "hold fixed.")
+                                   "hold fixed (at the pixel size it was made at).")
     p.add_argument("measured", help="measured height map of the artefact (any supported profilometer file)")
     p.add_argument("--design", required=True, help="design file (.npz) of the artefact's geometry")
     p.add_argument("--out", required=True, help="calibration .json to write")

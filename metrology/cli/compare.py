@@ -58,19 +58,15 @@ def run_compare(args: argparse.Namespace) -> int:
     from metrology.formats.readers import read_measurement
     from metrology.matching.report import write_comparison
 
-    transfer, scale = None, 1.0
-    if args.instrument:
-        from metrology.calibration.instrument import read_calibration
+    from metrology.calibration.instrument import apply_calibration, read_calibration
 
-        transfer, scale = read_calibration(args.instrument)
+    cal = read_calibration(args.instrument) if args.instrument else None
+    transfer = cal.transfer if cal is not None else None
     ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel)
-    if scale != 1.0:
-        from metrology.calibration.instrument import apply_height_scale
-
-        meas = apply_height_scale(meas, scale)
+    meas = apply_calibration(meas, cal, str(args.measurement))
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design),
                               wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,

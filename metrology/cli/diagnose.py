@@ -80,11 +80,12 @@ def run(args: argparse.Namespace) -> int:
     for path in args.effects_file:
         load_effects_file(path)
     candidates = parse_effects(args.effects, "psf" if args.measured_psf else "height")
-    args.transfer, args.height_scale = None, 1.0
+    args.calibration = args.transfer = None
     if getattr(args, "instrument", None):
         from metrology.calibration.instrument import read_calibration
 
-        args.transfer, args.height_scale = read_calibration(args.instrument)
+        args.calibration = read_calibration(args.instrument)
+        args.transfer = args.calibration.transfer
     out = ensure_output_dir(args.out)
     design = Design.load(args.design)
     if args.measured and args.frame == "camera":
@@ -146,14 +147,14 @@ def _heights(design, path, args, candidates):
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
-    from metrology.calibration.instrument import apply_height_scale
+    from metrology.calibration.instrument import apply_calibration
 
-    measurement = apply_height_scale(read_measurement(path), args.height_scale)
+    measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
                                         upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
                                         candidates=candidates, threshold=args.threshold, source=str(path),
                                         force=args.force)
-    return diag, {"measured": str(path), "height_scale": args.height_scale, **inputs}
+    return diag, {"measured": str(path), **_held(args), **inputs}
 
 
 def _camera(design, path, args, candidates):
@@ -161,14 +162,20 @@ def _camera(design, path, args, candidates):
     from metrology.formats.readers import read_measurement
 
     depths = [v * 1e-9 for v in args.depths_nm]
-    from metrology.calibration.instrument import apply_height_scale
+    from metrology.calibration.instrument import apply_calibration
 
-    measurement = apply_height_scale(read_measurement(path), args.height_scale)
+    measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,
                                                cpu_budget_s=args.cpu_budget_s)
-    return diag, {"measured": str(path), "height_scale": args.height_scale, **inputs}
+    return diag, {"measured": str(path), **_held(args), **inputs}
+
+
+def _held(args):
+    """The calibration's height scale, when one was applied (the transfer is in the placement)."""
+    cal = args.calibration
+    return {} if cal is None else {"instrument_calibration": cal.path, "height_scale": cal.height_scale}
 
 
 def _psf(design, path, args, candidates):

@@ -46,11 +46,10 @@ def test_the_transfer_and_the_height_scale_are_recovered_within_their_uncertaint
     assert lateral["na"] == 0.0
     assert abs(scale["value"] - GAIN) < 3 * scale["uncertainty"] + 1e-4 and scale["uncertainty"] < 0.002
     assert scale["certified_step_heights_m"] == pytest.approx(filegen.DEPTHS_M)
-    # The file carries the scale to compare and diagnose: the measured heights over it are true.
-    from metrology.calibration.instrument import read_calibration
+    # The pixel the calibration holds for (the file's, as the next measurement's will read).
+    from metrology.formats.readers import read_measurement
 
-    transfer, read_scale = read_calibration(out)
-    assert read_scale == scale["value"] and transfer.sigma_m == lateral["blur_sigma_m"]
+    assert lateral["camera_pixel_m"] == read_measurement(artefact[1]).pixel_size_m
 
 
 @pytest.mark.slow
@@ -91,3 +90,20 @@ def test_the_height_scale_is_the_masks_common_ratio_and_a_stray_mask_is_named():
     assert height_scale(steps, err, cert, force=True)[0] > 1.01
     with pytest.raises(DoeError, match="beyond the 5%"):
         height_scale(0.93 * cert, err, cert)
+
+
+def test_compare_and_diagnose_take_true_heights_and_refuse_another_magnification(tmp_path):
+    from doedesign.errors import DoeError
+    from metrology.calibration.instrument import FORMAT, apply_calibration, read_calibration
+    from metrology.formats.measurement import Measurement
+
+    path = tmp_path / "instrument.json"
+    path.write_text(json.dumps({"format": FORMAT, "lateral_transfer": {
+        "blur_sigma_m": 0.3e-6, "fill_factor": 0.5, "na": 0.0, "wavelength_m": 0.57e-6, "camera_pixel_m": 1.0e-6},
+        "height_scale": {"value": 1.02}}))
+    cal = read_calibration(path)
+    assert cal.transfer.fill_factor == 0.5 and cal.height_scale == 1.02 and cal.pixel_m == 1.0e-6
+    measured = Measurement(np.full((4, 4), -102e-9), 1.004e-6)
+    assert np.allclose(apply_calibration(measured, cal).height_m, -100e-9)
+    with pytest.raises(DoeError, match="another objective or zoom"):
+        apply_calibration(Measurement(np.zeros((4, 4)), 1.1e-6), cal, "field.datx")
