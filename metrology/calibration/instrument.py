@@ -158,11 +158,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
             fitted, rss, errors = dg.fit_effects(problem, model, free)
             return problem, fitted, rss, errors
 
-        # From full pixels and from point sampling: the blur and the fill factor trade along a
-        # narrow valley (their second moments add), and a solver started at one end stops short
-        # of an optimum near the other (0.32 um and fill 0.26 for a 0.35 um point-sampling camera).
-        plain, m0, rss0, e0 = min((fit(False, {CAMERA.name: cam, depth.name: depth.start_values()})
-                                   for cam in _camera_starts(CAMERA.start_values())), key=lambda t: t[2])
+        plain, m0, rss0, e0 = fit(False, {CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
         optic = None
         rss1 = np.inf
         for init in objective_starts(m0, plain.transfer_of(m0)):
@@ -198,13 +194,6 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
                     "objective_criterion_change": float(change), "pixels": int(n),
                     "window_camera_px": [r0, r0 + size, c0, c0 + size],
                     "conventions": "camera arrays row-major, row 0 at the top; SI units"}}
-
-
-def _camera_starts(cam: np.ndarray) -> list[np.ndarray]:
-    """The camera nuisance's start at full pixels (``cam``) and at point sampling."""
-    point = np.array(cam, float)
-    point[6] = 0.0
-    return [np.array(cam, float), point]
 
 
 def height_scale(steps_m: Sequence[float], errors_m: Sequence[float], certified_m: Sequence[float],
