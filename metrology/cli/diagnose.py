@@ -158,12 +158,11 @@ def _heights(design, path, args, candidates):
 
 
 def _camera(design, path, args, candidates):
+    from metrology.calibration.instrument import apply_calibration
     from metrology.diagnosis.camera import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
     depths = [v * 1e-9 for v in args.depths_nm]
-    from metrology.calibration.instrument import apply_calibration
-
     measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
