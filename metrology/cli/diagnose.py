@@ -144,10 +144,9 @@ def load_effects_file(path: str | Path) -> None:
 
 
 def _heights(design, path, args, candidates):
+    from metrology.calibration.instrument import apply_calibration
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
-
-    from metrology.calibration.instrument import apply_calibration
 
     measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
