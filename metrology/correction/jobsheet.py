@@ -32,7 +32,7 @@ from doedesign.errors import DoeError
 
 from .systematic import DISAGREEMENT_CHI2, SIGNIFICANCE, Estimate
 
-__all__ = ["check_same_process", "job_entries", "loading_losses", "loading_warnings", "mask_label",
+__all__ = ["check_offsets", "check_same_process", "job_entries", "loading_losses", "loading_warnings", "mask_label",
            "mean_loading_loss", "warnings_for"]
 
 
@@ -122,6 +122,22 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
             "etch_mean_error_measured": float(mean_error),
             "corrections": done or ["none: nothing systematic and significant on this mask"]})
     return entries
+
+
+def check_offsets(masks: np.ndarray, pitch_m: float, jobs: Sequence[dict], min_feature_m: float | None,
+                  source: str) -> None:
+    """Refuse (one line naming ``source`` and the mask) a job whose drawn edge offset the mask
+    cannot take: an edge pushed past its neighbour or below ``min_feature_m`` (default
+    :data:`masks.corrected.MIN_FEATURE_M`)."""
+    from masks.corrected import MIN_FEATURE_M, offset_feasibility
+
+    limit = MIN_FEATURE_M if min_feature_m is None else float(min_feature_m)
+    for job in jobs:
+        why = offset_feasibility(masks[job["mask"]], pitch_m, job["drawn_edge_offset_um"] * 1e-6, limit)
+        if why:
+            raise DoeError(f"{source}: mask {job['mask']}: a drawn edge offset of {job['drawn_edge_offset_um']:+.3f} "
+                           f"um (taking out a linewidth bias of {job['linewidth_bias_um']:+.3f} um) cannot be "
+                           f"drawn: {why}")
 
 
 def warnings_for(estimates: Sequence[Estimate], fields: Sequence, jobs: Sequence[dict] = ()) -> list[str]:

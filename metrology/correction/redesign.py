@@ -50,6 +50,7 @@ from doedesign.errors import DoeError
 from doedesign.levels import design_levels
 from doedesign.progress import Progress
 
+from .jobsheet import check_offsets
 from .merit import change_percent, merit_evaluator, params_for_wafer, wafer_merit
 from .systematic import Estimate
 
@@ -272,16 +273,10 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
 
 def _check_offsets(new: Design, jobs: Sequence[dict], min_feature_m: float | None, source: str) -> None:
     """Refuse a re-design whose masks cannot be drawn with the job sheet's edge offsets."""
-    from masks.corrected import MIN_FEATURE_M, offset_feasibility
     from masks.decompose import levels_to_masks
 
     masks = levels_to_masks(new.levels, len(jobs))
-    limit = MIN_FEATURE_M if min_feature_m is None else float(min_feature_m)
-    for job in jobs:
-        why = offset_feasibility(masks[job["mask"]], new.pitch_m, job["drawn_edge_offset_um"] * 1e-6, limit)
-        if why:
-            raise DoeError(f"{source}: the re-design's mask {job['mask']} cannot take the job sheet's edge offset of "
-                           f"{job['drawn_edge_offset_um']:+.3f} um: {why}")
+    check_offsets(masks, new.pitch_m, jobs, min_feature_m, f"{source}: the re-design")
 
 
 def write_redesign(folder: str | Path, new: Design, report: dict, *, depths_m: Sequence[float],

@@ -18,7 +18,7 @@ from doedesign.fileio import atomic_path, ensure_output_dir, output_run, write_j
 from doedesign.levels import design_levels
 
 from .diagnoses import design_fingerprint, read_diagnosis
-from .jobsheet import check_same_process, job_entries, mask_label, warnings_for
+from .jobsheet import check_offsets, check_same_process, job_entries, mask_label, warnings_for
 from .merit import predict_merit
 from .page import job_page
 from .process_spec import spec_table, toml_text
@@ -74,7 +74,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     dict
         The job sheet written to ``job.json``.
     """
-    from masks.corrected import MIN_FEATURE_M, offset_feasibility, write_offset_element
+    from masks.corrected import write_offset_element
     from masks.decompose import levels_to_masks
     from masks.tolerance.spec import build_spec
 
@@ -88,19 +88,14 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     masks = levels_to_masks(design_levels(design, source=name), len(depths))
     estimates = combine_fields(fields)
     jobs = job_entries(estimates, masks, design.pitch_m, depths, layers)
-    min_feature = MIN_FEATURE_M if min_feature_m is None else float(min_feature_m)
-    for job in jobs:
-        why = offset_feasibility(masks[job["mask"]], design.pitch_m, job["drawn_edge_offset_um"] * 1e-6, min_feature)
-        if why:
-            raise DoeError(f"{name}: mask {job['mask']}: taking out a linewidth bias of {job['linewidth_bias_um']:+.3f} "
-                           f"um cannot be drawn: {why}")
+    check_offsets(masks, design.pitch_m, jobs, min_feature_m, name)
     warnings = warnings_for(estimates, fields, jobs)
     merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
     if redesign_iterations:
         redesign_jobs = jobs if redesign_for == "corrected" else None
         new_design, new_report = redesign(design, estimates, depths, iterations=redesign_iterations,
                                           robust_samples=redesign_samples, samples=samples, seed=seed, source=name,
-                                          merit=merit, jobs=redesign_jobs, min_feature_m=min_feature)
+                                          merit=merit, jobs=redesign_jobs, min_feature_m=min_feature_m)
         merit["redesigned_wafer"] = new_report["merit"]
     table, spec_notes = spec_table(estimates, jobs)
     header = [f"doe tolerance spec from doe correct of {name}: the sigmas are the spreads measured between "
