@@ -94,5 +94,5 @@ class TiledCameraProblem(dg.Problem):
     def breakdown(self, residual_map: np.ndarray) -> dict[str, dict]:
         return self.whole.breakdown(residual_map)
 
-    def instrument_signature(self, residual_map: np.ndarray, **kw) -> dict | None:
+    def instrument_signature(self, residual_map: np.ndarray, **kw: Any) -> dict | None:
         return self.whole.instrument_signature(residual_map, **kw)
