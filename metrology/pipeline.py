@@ -87,6 +87,9 @@ class DemoConfig:
     tolerance_samples: int = 8    # the closing tolerance run (default spec, local threads)
     diagnose_window_px: int = 128  # camera pixels per side diagnosed in the camera's frame
     next_wafer: bool = True       # the fab loop makes, measures and diagnoses the corrected next wafer
+    # The next wafer's check, diagnosed on a smaller window: the short loop that keeps the demo
+    # under two minutes (the corrected overlay is re-measured to a few nm on it).
+    next_wafer_window_px: int = 96
 
     @classmethod
     def quick(cls) -> DemoConfig:
@@ -196,8 +199,11 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: Pr
     return path, hidden
 
 
-def compare_step(measurement_path: Path, design: Design, design_path: Path, out: Path) -> tuple[dict, Comparison]:
-    """``doe compare`` on the measurement file into ``out/compare``; returns its report and the comparison."""
+def compare_step(measurement_path: Path, design: Design, design_path: Path, out: Path,
+                 full: bool = True) -> tuple[dict, Comparison]:
+    """``doe compare`` on the measurement file into ``out/compare``; returns its report and the
+    comparison. Without ``full``, no predicted-PSF comparison and no 3-D render (the next wafer's
+    check in the demo's short loop)."""
     from metrology.formats.readers import read_measurement
     from metrology.matching.compare import compare_measurement
     from metrology.matching.report import write_comparison
@@ -205,12 +211,12 @@ def compare_step(measurement_path: Path, design: Design, design_path: Path, out:
     measurement = read_measurement(measurement_path)
     comp = compare_measurement(measurement, design)
     report = write_comparison(measurement, design, out / "compare", measurement_source=str(measurement_path),
-                              design_source=str(design_path), comparison=comp)
+                              design_source=str(design_path), comparison=comp, psf=full, render=full)
     return report, comp
 
 
 def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out: Path, cfg: DemoConfig,
-                  comparison: Comparison) -> dict:
+                  comparison: Comparison, window_px: int | None = None) -> dict:
     """The diagnosis in the camera's frame into ``out/diagnose``: the model is rendered into the
     measured pixels, started from the comparison's camera-frame placement. Its inputs carry the
     design's fingerprint, as ``doe diagnose`` writes it, so that ``doe correct`` can read it."""
@@ -219,7 +225,8 @@ def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out
     from metrology.formats.readers import read_measurement
 
     diag, inputs = diagnose_camera_measurement(design, read_measurement(measurement_path),
-                                               window_px=cfg.diagnose_window_px, source=str(measurement_path),
+                                               window_px=window_px or cfg.diagnose_window_px,
+                                               source=str(measurement_path),
                                                comparison=comparison)
     return diag.save(out / "diagnose", {"design": str(design_path), "measured": str(measurement_path), **inputs,
                                         **design_fingerprint(design, design_path)})
@@ -287,8 +294,9 @@ def _fab_loop(timings: Timings, design: Design, design_path: Path, out: Path, cf
     params = next_wafer_params(hidden_process(cfg), sheet)
     meas, _ = timings.run("fab loop: next wafer made and measured", fabricate_and_measure, design, cfg, nxt, params,
                           seed=cfg.seed + 1)
-    _, comp = timings.run("fab loop: next wafer compared", compare_step, meas, design, design_path, nxt)
-    diag = timings.run("fab loop: next wafer diagnosed", diagnose_step, meas, design, design_path, nxt, cfg, comp)
+    _, comp = timings.run("fab loop: next wafer compared", compare_step, meas, design, design_path, nxt, full=False)
+    diag = timings.run("fab loop: next wafer diagnosed", diagnose_step, meas, design, design_path, nxt, cfg, comp,
+                       cfg.next_wafer_window_px)
     return loop_summary(sheet, diag)
 
 

@@ -153,7 +153,8 @@ def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[
     lower_better = DIRECTIONS.get(primary) == "lower"
     nominal = ev.metrics(ev.coded_psf(ev.height({})))
     out = {"primary_metric": primary, "direction": "lower" if lower_better else "higher",
-           "metric_unit": metric_unit(primary), "design": {"central": nominal, "samples": 0}}
+           "metric_unit": metric_unit(primary), "oversample": int(oversample),
+           "design": {"central": nominal, "samples": 0}}
     with Progress(2 * (samples + 1), desc="doe correct: merit") as bar:
         for key, corrected in (("measured_wafer", False), ("corrected_wafer", True)):
             spec = ToleranceSpec(params=params_for_wafer(estimates, jobs, nominal_depths_m, corrected),

@@ -43,7 +43,7 @@ CONVENTIONS = {
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
             layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
             min_feature_m: float | None = None, redesign_iterations: int | None = None,
-            redesign_samples: int = 0, redesign_for: str = "measured") -> dict:
+            redesign_samples: int = 0, redesign_for: str = "measured", merit_oversample: int = 2) -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -68,6 +68,9 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         iterations and process draws, into ``out/redesign/``; its merit is ``redesigned_wafer``.
     redesign_for : {"measured", "corrected"}
         The process the re-design is for: as measured (no knob turned) or as the job sheet leaves it.
+    merit_oversample : int
+        Process-model samples per design pixel of the predicted merits (``doe tolerance``'s
+        ``--oversample``, default 2; 1 is 4x faster and height-averages sub-pixel slivers).
 
     Returns
     -------
@@ -90,7 +93,8 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     jobs = job_entries(estimates, masks, design.pitch_m, depths, layers)
     check_offsets(masks, design.pitch_m, jobs, min_feature_m, name)
     warnings = warnings_for(estimates, fields, jobs)
-    merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name)
+    merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name,
+                          oversample=merit_oversample)
     if redesign_iterations:
         redesign_jobs = jobs if redesign_for == "corrected" else None
         new_design, new_report = redesign(design, estimates, depths, iterations=redesign_iterations,
