@@ -83,10 +83,7 @@ def test_job_sheet_masks_merit_and_spec(tmp_path):
     design, path = _design(tmp_path)
     out = tmp_path / "out"
     diags = _three_fields(tmp_path, design, path)
-    code = main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
-                 "--out", str(out), "--samples", "3"])
-    assert code == 0
-    sheet = json.loads((out / "job.json").read_text())
+    sheet = _correct(path, diags, out, samples=3)
     m = {e["mask"]: e for e in sheet["masks"]}
     assert [e["layer"] for e in sheet["masks"]] == [1, 2, 3, 4] and all(e["datatype"] == 0 for e in sheet["masks"])
     # The dials are the negative of the measured errors, relative to mask 0.
@@ -115,6 +112,13 @@ def test_job_sheet_masks_merit_and_spec(tmp_path):
     assert by["etch_depth_nm[mask 3]"].b == pytest.approx(0.002 * 600e-9)
     assert by["etch_depth_nm[mask 3]"].a == pytest.approx(0.0, abs=1e-15)  # taken out by the target
     assert tomllib.loads((out / "process_spec.toml").read_text())
+
+
+def _correct(path, diags, out, samples=0):
+    # doe correct through its command line; the job sheet it wrote.
+    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", str(samples)]) == 0
+    return json.loads((out / "job.json").read_text())
 
 
 def _fails(argv, capsys):
@@ -149,9 +153,7 @@ def test_fields_that_disagree_are_a_warning_in_the_job_sheet(tmp_path):
              _field(tmp_path, "b", design, path, 0.20e-6, 0.30e-6, 0.05, 0.03),
              _field(tmp_path, "c", design, path, -0.05e-6, 0.30e-6, 0.05, 0.03)]
     out = tmp_path / "out"
-    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
-                 "--out", str(out), "--samples", "0"]) == 0
-    sheet = json.loads((out / "job.json").read_text())
+    sheet = _correct(path, diags, out)
     # 0.25 +- 0.19 um: not significant; the scatter is named and reported as spread.
     assert any("dx_mask1_m" in w and "scatter beyond their fitted uncertainties" in w and "not corrected" in w
                for w in sheet["warnings"])
@@ -164,9 +166,7 @@ def test_fields_that_disagree_are_a_warning_in_the_job_sheet(tmp_path):
              _field(tmp_path, "g", design, path, 0.85e-6, 0.30e-6, 0.05, 0.03),
              _field(tmp_path, "h", design, path, 0.95e-6, 0.30e-6, 0.05, 0.03)]
     out = tmp_path / "out2"
-    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
-                 "--out", str(out), "--samples", "0"]) == 0
-    sheet = json.loads((out / "job.json").read_text())
+    sheet = _correct(path, diags, out)
     assert any("dx_mask1_m" in w and "disagree in sign" in w and "corrected by the mean" in w
                for w in sheet["warnings"])
     assert sheet["masks"][1]["align_offset_um"][0] == pytest.approx(-0.69)
@@ -204,9 +204,7 @@ def test_loading_is_compensated_in_the_mean_and_the_rest_is_a_warning(tmp_path):
         (folder / "report.json").write_text(json.dumps(rep))
         diags.append(folder)
     out = tmp_path / "out"
-    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
-                 "--out", str(out), "--samples", "0"]) == 0
-    sheet = json.loads((out / "job.json").read_text())
+    sheet = _correct(path, diags, out)
     assert "etch_loading.loading" in sheet["corrected"]
     masks = filegen.masks_of(design.levels)
     errors = [0.001, -0.001, 0.0, 0.05]  # means over the fields; only mask 3's is significant
