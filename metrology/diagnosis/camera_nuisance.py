@@ -139,7 +139,8 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     current = crit(plain, rss)
     # Only an instrument's residual (an odd profile shared by every mask's edges) asks for more of
     # the family: elsewhere the stage costs one short fit.
-    left = plain.instrument_signature(plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES)
+    left = plain.instrument_signature(plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES,
+                                      every_mask=False)
     if left is None or left["odd_share"] < STAGE_ODD_SHARE:
         log.info("instrument stage: blur and fill factor leave no instrument residual")
         return dict(state), model, {}

@@ -5,6 +5,12 @@ finite-difference Jacobians whose columns may be computed in forked workers
 (:mod:`metrology.diagnosis.forked`): SciPy's own differences take relative steps, which vanish
 at a parameter of exactly zero, where most effects start. Uncertainties are
 ``cov = s^2 (J^T J)^-1 A`` with ``A`` the noise's correlation area.
+
+A fit to convergence uses the ``dogbox`` method, a short screening fit ``trf``. Near a bound
+(a fill factor running to point sampling) ``trf``'s scaling by the distance to the bound makes
+it zig-zag: on a coherence-scanning interferometer's file its instrument fit stopped at the
+60-evaluation cap 1580 cost units (17 criterion units) above the optimum that ``dogbox``
+reached in 28 evaluations, with the objective's NA, fill factor and batwing at their true values.
 """
 
 from __future__ import annotations
@@ -78,8 +84,8 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
         f0 = last["r"] if not central and np.array_equal(last.get("x"), x) else None
         return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0)
 
-    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-6, ftol=1e-6,
-                        max_nfev=max_iter or 60)
+    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf" if max_iter else "dogbox",
+                        xtol=1e-6, ftol=1e-6, max_nfev=max_iter or 60)
     log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
     rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
     err = _errors(problem, res.fun, res.jac, scale)
