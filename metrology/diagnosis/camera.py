@@ -397,15 +397,12 @@ class CameraHeightProblem(dg.Problem):
         return edge_breakdown(residual_map, self.edge_m, self.cam_levels, self.pixel_m)
 
     def instrument_signature(self, residual_map: np.ndarray, **kw: Any) -> dict | None:
-        """Whether the residual is the instrument's (:func:`~metrology.diagnosis.breakdown.instrument_signature`,
-        ``kw`` its options)."""
+        """Whether the residual is the instrument's (:func:`.breakdown.instrument_signature`, ``kw``)."""
         return instrument_signature(residual_map, self.edge_m, self.base.etch_depth, self.keep, self.noise.sigma,
                                     self.noise.corr_area_px, **kw)
 
-    def placement_report(self, model: dict[str, np.ndarray],
-                         errors: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
-        """The refined placement and the instrument's lateral transfer, with uncertainties
-        (camera pixels, degrees; NaN for a parameter held fixed)."""
+    def placement_report(self, model: dict[str, np.ndarray], errors: dict[str, np.ndarray] | None = None) -> dict:
+        """The refined placement and the lateral transfer, with uncertainties (NaN where held)."""
         return placement_report(self, model, errors)
 
 
@@ -426,24 +423,21 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     placement : Placement
         Camera pixel -> design pixel (from :func:`metrology.matching.register.register`).
     window_px : int
-        The fit uses the camera window of this many pixels per side with the most design edges
-        (cropped, not resampled).
+        Side of the camera window with the most design edges that is fitted (cropped, not resampled).
     screen : (ProcessParams, float), optional
-        Process and objective blur whose residual the robust rule first screens for spikes
-        (e.g. the comparison's camera-frame fit). Default: the ideal process, whose residual
-        also flags real edge signal, so the fit reruns once those pixels are re-admitted.
+        Process and blur whose residual the robust rule first screens for spikes (e.g. the
+        comparison's camera-frame fit; default the ideal process). The fit reruns on re-admitted pixels.
     screen_window_px : int
-        A window larger than this screens the candidates on its busiest square of this size
-        (each model evaluation there costs a fraction); the close ones are refitted on the
-        whole window. A window larger than
-        :data:`~metrology.diagnosis.tiles.TILED_WINDOW_PX` is fitted on tiles spread over it
-        (:mod:`metrology.diagnosis.tiles`); its maps and final residual are the whole window's.
+        A larger window screens the candidates on its busiest square of this size and refits
+        the close ones on the whole window; one larger than :data:`~metrology.diagnosis.tiles.TILED_WINDOW_PX`
+        is fitted on tiles (:mod:`metrology.diagnosis.tiles`), its maps the whole window's.
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
         as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        once spent, no further round, revision or rerun on re-admitted pixels starts.
+        once spent, no further round, revision or rerun starts, and a rerun on re-admitted pixels
+        cut short leaves the previous pass.
 
     Returns
     -------
@@ -452,8 +446,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     """
     from masks.process import ProcessParams
 
-    # The fits' linear algebra is small (levelling, a few columns): BLAS threads would only spin
-    # beside the renders and the forked workers.
+    # Small linear algebra: BLAS threads would only spin beside the renders and forked workers.
     with threadpool_limits(limits=1, user_api="blas"):
         deadline = None if cpu_budget_s is None else dg.cpu_seconds() + float(cpu_budget_s)
         meas = np.asarray(measured_height_m, float)
@@ -504,6 +497,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                          first.noise.sigma)
                 if again.sigma < noise.sigma:
                     noise = again
+        done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         for _ in range(3):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
@@ -512,8 +506,14 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                     quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
                                     cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0))
-            if diag.stopped_early is not None:  # the budget is spent: no rerun
+            if diag.stopped_early is not None:
+                if done is not None:  # a rerun cut short: the last finished selection stands
+                    cut, (problem, fit, keep, diag) = diag.stopped_early, done
+                    diag.stopped_early = dict(cut, budget_cpu_s=cpu_budget_s, reason="time budget: the rerun on "
+                                              "re-admitted pixels was cut short; the previous pass stands",
+                                              final_over_floor=diag.final_residual_rms / diag.noise_floor)
                 break
+            done = (problem, fit, keep, diag)
             r = crop - problem.render(diag.model)
             new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
