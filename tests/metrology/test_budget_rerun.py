@@ -5,9 +5,10 @@ from dataclasses import replace
 
 import numpy as np
 
-import filegen
 import metrology.diagnosis.camera as cam
 from metrology.matching.instrument import Placement
+
+import filegen
 
 
 def test_a_rerun_cut_short_by_the_budget_leaves_the_finished_pass(monkeypatch):
