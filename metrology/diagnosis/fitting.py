@@ -93,8 +93,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     if not max_iter and res.status == 0:
         # trf zig-zags beside a bound: dogbox finishes from where it stopped (alone it stalls
         # where the Jacobian is nearly rank-deficient, which trf crosses).
-        inside = np.clip(res.x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-        more = least_squares(fun, inside, method="dogbox", max_nfev=MAX_EVALS - res.nfev, **opts)
+        more = least_squares(fun, _inside(res.x, lo, hi), method="dogbox", max_nfev=MAX_EVALS - res.nfev, **opts)
         res = more if more.cost <= res.cost else res
     log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
     rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
@@ -121,7 +120,7 @@ def _fit_setup(problem, model, free):
     lo = np.concatenate([e.bounds()[0] for e in effs]) / scale
     hi = np.concatenate([e.bounds()[1] for e in effs]) / scale
     x0 = np.concatenate([np.asarray(model[e.name], dtype=float) for e in effs]) / scale
-    x0 = np.clip(x0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    x0 = _inside(x0, lo, hi)
     splits = np.cumsum([e.n_params for e in effs])[:-1]
 
     def unpack(x):
@@ -134,6 +133,11 @@ def _fit_setup(problem, model, free):
         return problem.residual(unpack(x)) / problem.noise.sigma
 
     return effs, scale, lo, hi, x0, unpack, residual
+
+
+def _inside(x, lo, hi):
+    """``x`` moved strictly inside the bounds (a solver's start must not lie on one)."""
+    return np.clip(x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
 
 
 def _errors(problem, fun, jac, scale):

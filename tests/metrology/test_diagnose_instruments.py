@@ -229,9 +229,10 @@ def test_the_instrument_stage_accepts_a_shared_profile_whose_shallow_masks_scatt
     one_mask = depths[3] * g(edge_m[3]) + noise
     assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0, share=STAGE_SHARE,
                                 amplitudes=STAGE_AMPLITUDES) is None
-    # A coherence-scanning interferometer's null wafer left amplitudes 0.93, 0.16, 0.31, 0.51 (of its own shared fit)
-    # after the blur and fill factor: one shallow mask below the range. The stage asks only two
-    # masks to carry the profile (every_mask=False); one mask's profile still stays that mask's.
+    # A coherence-scanning interferometer's null wafer left amplitudes 0.93, 0.16, 0.31, 0.51 (of
+    # its own shared fit) after the blur and fill factor: one shallow mask below the range. The
+    # stage asks only two masks to carry the profile (every_mask=False); one mask's profile
+    # still stays that mask's.
     csi = sum(a * D * g(d) for a, D, d in zip([0.9, 0.08, 0.3, 0.5], depths, edge_m)) + noise
     kw = dict(share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES)
     assert instrument_signature(csi, edge_m, depths, keep, 0.5e-9, 1.0, **kw) is None
