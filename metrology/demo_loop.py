@@ -132,7 +132,7 @@ def loop_verdict(loop: dict) -> str:
         verdict = (f"{len(closed)} parameter(s) corrected; the corrected next wafer is predicted "
                    f"{md.fmt(abs(gain), 3)} % {'better' if gain > 0 else 'worse'} than wafer 1 against the design")
     else:
-        verdict = md.verdict(all(closed), f"the loop closed: every corrected parameter of the next wafer is below its "
+        verdict = md.verdict(all(closed), "the loop closed: every corrected parameter of the next wafer is below its "
                              "detection limit or at most 20 % of wafer 1's",
                              f"{closed.count(False)} corrected parameter(s) still there on the next wafer")
         verdict += (f"; predicted merit {md.fmt(w['measured_wafer']['change_percent'], 3)} % -> "

@@ -57,15 +57,15 @@ CAMERA = Effect(
     [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
      Parameter("rotation_rad", "rad", -0.01, 0.01, 2e-5), Parameter("scale_row", "1", -0.03, 0.03, 2e-4),
      Parameter("scale_col", "1", -0.03, 0.03, 2e-4),
-     Parameter("blur_sigma_m", "m", 0.0, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM),
-     Parameter("fill_factor", "1", 0.0, 1.0, 0.05, 1.0)],
+     Parameter("blur_sigma_m", "m", 0.0, MAX_BLUR_M, 0.05 * _UM, 0.4 * _UM, smooth=True),
+     Parameter("fill_factor", "1", 0.0, 1.0, 0.05, 1.0, smooth=True)],
     _no_op, "Placement of the camera field on the design and the instrument's lateral transfer (nuisance).",
     kind="artefact", order=-1)
 # The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
 # for it (chosen before any fabrication effect, :func:`instrument_stage`), never named.
 OBJECTIVE = Effect(
     "objective", "height", "surface",
-    [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4)],
+    [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4, smooth=True)],
     _no_op, "The objective's NA-limited optical transfer, cut-off 2 NA / lambda (nuisance).",
     kind="artefact", order=-1)
 # The placement alone: the camera nuisance of an instrument whose transfer a calibration holds.

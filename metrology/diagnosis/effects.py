@@ -80,6 +80,10 @@ class Parameter:
         Typical size; the fit works in units of ``scale`` (its ``x_scale``).
     null : float
         The value at which the effect vanishes (the ideal model).
+    smooth : bool
+        The residual is smooth in this parameter (a transfer's width, not an edge's position,
+        which area coverage makes kink where the edge crosses a grid line): a fit's Jacobian
+        takes forward differences in it, at half the evaluations of central ones.
     """
 
     name: str
@@ -88,6 +92,7 @@ class Parameter:
     upper: float
     scale: float
     null: float = 0.0
+    smooth: bool = False
 
     def __post_init__(self):
         if not (self.lower <= self.null <= self.upper) or not self.scale > 0:
@@ -176,7 +181,7 @@ class Effect:
         """
         if not self.per_channel:
             return self
-        params = [Parameter(f"{p.name}_{c}", p.unit, p.lower, p.upper, p.scale, p.null)
+        params = [Parameter(f"{p.name}_{c}", p.unit, p.lower, p.upper, p.scale, p.null, p.smooth)
                   for c in channels for p in self.params]
         start = None if self.start is None else tuple(self.start) * len(channels)
         return Effect(self.name, self.domain, self.stage, params, self.apply, self.description,
@@ -453,7 +458,8 @@ _BUILTIN_HEIGHT = [
            "Measurement artefact: the profilometer's finite lateral resolution (about 0.8 um at NA 0.4) "
            "smooths every step.", kind="artefact", order=20, start=(0.4 * _UM,), linear=True),
     Effect("batwing", "height", "surface",
-           [Parameter("amplitude", "1", -1.0, 1.0, 0.05), Parameter("sigma_m", "m", 0.1 * _UM, 3 * _UM, 0.2 * _UM, 0.1 * _UM)],
+           [Parameter("amplitude", "1", -1.0, 1.0, 0.05, smooth=True),
+            Parameter("sigma_m", "m", 0.1 * _UM, 3 * _UM, 0.2 * _UM, 0.1 * _UM, smooth=True)],
            _batwing,
            "Measurement artefact: a white-light interferometer overshoots at steps shorter than its coherence "
            "length, a signed edge spike proportional to the step height.", kind="artefact", order=10,

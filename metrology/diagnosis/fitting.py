@@ -47,7 +47,9 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     Central-difference Jacobians where the residual has kinks (``problem.kinks``: area-coverage
     edges make a height residual piecewise smooth, with kinks where an edge crosses a grid line,
     at zero shift or bias, where one-sided differences stall a fit to convergence); forward ones
-    where it is smooth in the parameters (a PSF stack), at half the evaluations.
+    where it is smooth in the parameters (a PSF stack), at half the evaluations, and in the
+    parameters marked ``smooth`` (the instrument's transfer: each of its columns costs a new
+    transfer and inverse FFTs, where a placement's costs a resampling).
 
     Parameters
     ----------
@@ -70,7 +72,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
         standard errors of the free effects' parameters (``cov = s^2 (J^T J)^-1 A``).
     """
     effs, scale, lo, hi, x0, unpack, residual = _fit_setup(problem, model, free)
-    central = problem.kinks if central is None else central
+    central = _central(effs, problem.kinks if central is None else central)
     sizes = []  # residual size of each solver evaluation
     last = {}  # the last evaluation, the base of a forward-difference Jacobian there
 
@@ -85,7 +87,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
             # The solver stops right after this Jacobian, which would only serve the errors.
             sizes.append(-1)
             return np.zeros((sizes[-2], x.size))
-        f0 = last["r"] if not central and np.array_equal(last.get("x"), x) else None
+        f0 = last["r"] if not central.all() and np.array_equal(last.get("x"), x) else None
         return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0)
 
     opts = dict(jac=jac, bounds=(lo, hi), xtol=1e-6, ftol=1e-6)
@@ -135,6 +137,13 @@ def _fit_setup(problem, model, free):
     return effs, scale, lo, hi, x0, unpack, residual
 
 
+def _central(effs, central):
+    """Per parameter, whether its Jacobian column takes central differences: where ``central``
+    asks for them and the parameter is not marked smooth."""
+    smooth = np.array([p.smooth for e in effs for p in e.params], bool)
+    return np.asarray(central, bool) & ~smooth
+
+
 def _inside(x, lo, hi):
     """``x`` moved strictly inside the bounds (a solver's start must not lie on one)."""
     return np.clip(x, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
@@ -160,15 +169,17 @@ def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None):
     """Finite differences with an absolute step (in units of each parameter's scale); SciPy's
     relative steps vanish at a parameter of exactly zero, where most effects start.
 
-    Central differences are one-sided against a bound; forward ones go backward against the
-    upper bound, from ``f0 = fun(x)`` (computed when not given). The columns are computed in
-    ``workers`` forked processes when more than one.
+    ``central``: per column, central differences (else forward ones). Central differences are
+    one-sided against a bound; forward ones go backward against the upper bound, from
+    ``f0 = fun(x)`` (computed when not given). The columns are computed in ``workers`` forked
+    processes when more than one.
     """
-    if not central and f0 is None:
+    central = np.broadcast_to(np.asarray(central, bool), x.shape)
+    if not central.all() and f0 is None:
         f0 = fun(x)
 
     def column(i):
-        if central:
+        if central[i]:
             up, down = x.copy(), x.copy()
             up[i] = min(x[i] + step, hi[i])
             down[i] = max(x[i] - step, lo[i])

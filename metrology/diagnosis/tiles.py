@@ -17,6 +17,8 @@ Arrays are row-major with row 0 at the top of the camera image.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from metrology.diagnosis import engine as dg
