@@ -5,7 +5,8 @@ instrument transfer function measured on a step or grating): a test structure wh
 is known (its design file, e.g. a grating or a step on the die; nominal depths from the
 design or given) is measured, registered in the camera's frame as any element is
 (:func:`metrology.matching.compare.compare_measurement`), and the instrument's lateral
-transfer (pixel fill factor, Gaussian blur, the objective's NA when it earns its parameter,
+transfer (pixel fill factor, Gaussian blur, and the objective's NA and an interferometer's
+batwing where they earn their parameters, as the diagnosis's instrument stage chooses them:
 :mod:`metrology.matching.transfer`) is fitted with the placement and the artefact's step
 heights (a certified step is known to a percent; its height is not the transfer). The result
 is a JSON file that ``doe compare --instrument`` and ``doe diagnose --instrument`` read and then
@@ -22,9 +23,12 @@ certified height given wrong is refused, not absorbed. Without certified heights
 
 File (strict JSON, SI units): ``format`` = :data:`FORMAT`, ``version``, ``lateral_transfer``
 (``blur_sigma_m``, ``fill_factor``, ``na`` (0 = no optical cut-off), ``wavelength_m`` and each
-one's uncertainty), ``artefact`` (design, measurement, fitted step heights), ``fit``
-(residual and noise floor, pixels), ``height_scale`` (``value``, ``uncertainty``,
-``certified_step_heights_m``; value 1 and no uncertainty when not calibrated). Camera arrays are row-major, row 0 at the top.
+one's uncertainty; ``batwing``: ``amplitude``, ``sigma_m`` and their uncertainties, null when
+the batwing did not earn its parameters; diagnose holds it, compare's model has none),
+``artefact`` (design, measurement, fitted step heights), ``fit`` (residual and noise floor at
+the fitted transfer, the family's members chosen and each combination's criterion change,
+pixels), ``height_scale`` (``value``, ``uncertainty``, ``certified_step_heights_m``; value 1 and
+no uncertainty when not calibrated). Camera arrays are row-major, row 0 at the top.
 """
 
 from __future__ import annotations
@@ -70,12 +74,14 @@ PIXEL_TOLERANCE = 0.01
 class InstrumentCalibration:
     """What compare and diagnose hold of a calibration file: the lateral transfer, the height
     scale (measured per true height; 1 = not calibrated), the camera pixel it was made at (m;
-    None in files that do not say) and the file."""
+    None in files that do not say), the file, and the batwing (amplitude, sigma_m) when it was
+    fitted (diagnose holds it; compare's model has no batwing)."""
 
     transfer: LateralTransfer
     height_scale: float = 1.0
     pixel_m: float | None = None
     path: str = ""
+    batwing: tuple[float, float] | None = None
 
 
 def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
@@ -119,7 +125,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from masks.process import ProcessParams
     from metrology.diagnosis import engine as dg
     from metrology.diagnosis.camera import CameraHeightProblem
-    from metrology.diagnosis.camera_nuisance import CAMERA, OBJECTIVE, instrument_report, objective_starts
+    from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, OBJECTIVE, earned_members, instrument_report,
+                                                     objective_starts)
     from metrology.diagnosis.effects import get_effect
     from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement, robust_valid
@@ -151,29 +158,57 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
                                                              wavelength_m=wavelength_m))
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), np.isfinite(crop))
 
-        def fit(objective, model):
-            problem = CameraHeightProblem(levels, design.pitch_m, crop, start, base, [depth], keep=keep,
-                                          noise=first.noise, instrument=first.instrument, objective=objective)
-            free = list(model)
-            fitted, rss, errors = dg.fit_effects(problem, model, free)
+        def make(objective, batwing, noise=first.noise):
+            return CameraHeightProblem(levels, design.pitch_m, crop, start, base, [depth], keep=keep, noise=noise,
+                                       instrument=first.instrument, objective=objective, batwing=batwing)
+
+        def fit(model, objective=False, batwing=False):
+            problem = make(objective, batwing)
+            fitted, rss, errors = dg.fit_effects(problem, model, list(model))
             return problem, fitted, rss, errors
 
-        plain, m0, rss0, e0 = fit(False, {CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
-        optic = None
-        rss1 = np.inf
-        for init in objective_starts(m0, plain.transfer_of(m0)):
-            trial = fit(True, init)
-            if trial[2] < rss1:
-                optic, m1, rss1, e1 = trial
-        n = plain.residual(m0).size
-        n_eff = max(n / plain.noise.corr_area_px, 2.0)
-        change = dg.bic_eff(rss1, n, n_eff, 12) - dg.bic_eff(rss0, n, n_eff, 11)
-        problem, model, rss, errors = (optic, m1, rss1, e1) if change < -threshold else (plain, m0, rss0, e0)
+        plain = fit({CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
+        m0 = plain[1]
+        n = plain[0].residual(m0).size
+        n_eff = max(n / plain[0].noise.corr_area_px, 2.0)
+
+        def crit(trial):
+            return dg.bic_eff(trial[2], n, n_eff, sum(len(v) for v in trial[1].values()))
+
+        # The members of the family the diagnosis's instrument stage tries, each fitted to
+        # convergence from the blur-and-fill fit (the objective from both of its starts).
+        fits = {(): (crit(plain), plain)}
+        for members in (("objective",), ("batwing",), ("objective", "batwing")):
+            starts = objective_starts(m0, plain[0].transfer_of(m0)) if "objective" in members else [m0]
+            if "batwing" in members:
+                starts = [{**s, BATWING: get_effect(BATWING).start_values()} for s in starts]
+            for s in starts:
+                trial = fit(s, objective="objective" in members, batwing="batwing" in members)
+                if members not in fits or crit(trial) < fits[members][0]:
+                    fits[members] = (crit(trial), trial)
+        current = fits[()][0]
+        changes = {"+".join(m): float(c - current) for m, (c, _) in fits.items() if m}
+        chosen = earned_members({m: c for m, (c, _) in fits.items() if m}, current, threshold)
+        problem, model, rss, errors = fits[chosen][1]
+        # The floor again at the fitted transfer: the first one, on the comparison's blur alone,
+        # holds what an objective or a batwing rings into the interiors (2-3x the noise on a
+        # CSI artefact), and its correlation area scaled every uncertainty up with it. It only
+        # ever lowers the floor, as in the diagnosis.
+        noise = problem.noise_at(model)
+        if noise.sigma < problem.noise.sigma:
+            problem = make(OBJECTIVE.name in model, BATWING in model, noise)
+            errors = dg.standard_errors(problem, model, list(model))
     t = problem.transfer_of(model)
     cam_err = np.asarray(errors.get(CAMERA.name), float)
     na_err = float(np.asarray(errors.get(OBJECTIVE.name, [math.nan]))[0])
     lateral = instrument_report(t, cam_err[5], cam_err[6], na_err)
     lateral["source"] = f"calibrated on {source}"
+    lateral["batwing"] = None
+    if BATWING in model:
+        bw, bw_err = (np.asarray(v, float) for v in (model[BATWING], errors.get(BATWING, [math.nan] * 2)))
+        lateral["batwing"] = {"amplitude": float(bw[0]), "amplitude_uncertainty": float(bw_err[0]),
+                              "sigma_m": float(bw[1]), "sigma_uncertainty_m": float(bw_err[1]),
+                              "model": "edge overshoot, a signed Gaussian-derivative band-pass beside the objective"}
     lateral["camera_pixel_m"] = float(measurement.pixel_size_m)
     residual = float(np.sqrt(rss / n))
     steps = np.asarray(depths) * (1 + np.asarray(model[depth.name], float))
@@ -191,7 +226,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
                          "step_heights_uncertainty_m": steps_err.tolist(), "nominal_step_heights_m": depths},
             "height_scale": scale,
             "fit": {"residual_rms_m": residual, "noise_floor_m": problem.noise.sigma,
-                    "objective_criterion_change": float(change), "pixels": int(n),
+                    "objective_criterion_change": changes["objective"], "criterion_changes": changes,
+                    "members": list(chosen), "pixels": int(n),
                     "window_camera_px": [r0, r0 + size, c0, c0 + size],
                     "conventions": "camera arrays row-major, row 0 at the top; SI units"}}
 
@@ -251,6 +287,8 @@ def read_calibration(path: str | Path) -> InstrumentCalibration:
         scale = float((data.get("height_scale") or {}).get("value", 1.0))
         pixel = lat.get("camera_pixel_m")
         pixel = None if pixel is None else float(pixel)
+        batwing = lat.get("batwing")
+        batwing = None if batwing is None else (float(batwing["amplitude"]), float(batwing["sigma_m"]))
     except FileNotFoundError:
         raise DoeError(f"{path}: instrument calibration file not found") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -264,7 +302,15 @@ def read_calibration(path: str | Path) -> InstrumentCalibration:
                        f"{HEIGHT_SCALE_LIMIT:.0%} of 1")
     if pixel is not None and not 1e-8 <= pixel <= 1e-3:
         raise DoeError(f"{path}: instrument calibration's camera pixel {pixel} m is out of range")
-    return InstrumentCalibration(LateralTransfer(sigma, fill, na, lam), scale, pixel, str(path))
+    if batwing is not None:
+        from metrology.diagnosis.camera_nuisance import BATWING
+        from metrology.diagnosis.effects import get_effect
+
+        lo, hi = get_effect(BATWING).bounds()
+        if not np.all((lo <= batwing) & (batwing <= hi)):
+            raise DoeError(f"{path}: instrument calibration's batwing (amplitude {batwing[0]}, sigma {batwing[1]} m) "
+                           f"is out of range (amplitude {lo[0]:g} to {hi[0]:g}, sigma {lo[1]:g} to {hi[1]:g} m)")
+    return InstrumentCalibration(LateralTransfer(sigma, fill, na, lam), scale, pixel, str(path), batwing)
 
 
 def apply_calibration(measurement: Measurement, cal: InstrumentCalibration | None,

@@ -166,7 +166,8 @@ def _camera(design, path, args, candidates):
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,
-                                               cpu_budget_s=args.cpu_budget_s)
+                                               cpu_budget_s=args.cpu_budget_s,
+                                               batwing=None if args.calibration is None else args.calibration.batwing)
     return diag, {"measured": str(path), **_held(args), **inputs}
 
 

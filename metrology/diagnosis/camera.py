@@ -6,8 +6,9 @@ model (design + process effects) is rendered into those pixels by
 (fitted: :mod:`metrology.diagnosis.camera_nuisance`) under the placement (rotation, per-axis
 scale, shift, mirror); piston and tilt are projected out. The placement and the transfer are
 nuisance parameters refitted with every model (started from the registration), so the
-fabrication effects are judged on what the instrument leaves. Spikes and invalid pixels are excluded by a robust rule on the residual of
-the model that explains the data; the loop runs again if the final model re-admits pixels.
+fabrication effects are judged on what the instrument leaves. Spikes and invalid pixels are
+excluded by a robust rule on the residual of the model that explains the data; the loop runs
+again if the final model re-admits pixels.
 
 Arrays are row-major with row 0 at the top of the camera image.
 """
@@ -96,18 +97,15 @@ class CameraHeightProblem(dg.Problem):
     cache_bytes : int
         Memory kept for rendered camera maps, as much for the masks' spectra, and a quarter of
         it for fine surfaces; the tiles of a field share one budget.
-    camera : sequence of float, optional
-        Placement refinement and blur (:data:`CAMERA`'s values) of the residual the noise floor
-        is estimated on (default: its start values).
     transfer : LateralTransfer, optional
         A calibrated lateral transfer, held fixed (only the placement is then fitted); default:
         the transfer is fitted (blur and fill factor, and the objective's NA with ``objective``),
         its parameters a model does not hold taken from :data:`DEFAULT_TRANSFER`.
     objective : bool
         Fit the objective's NA-limited transfer (:data:`OBJECTIVE`) as a nuisance too.
-    batwing : bool
-        Fit the batwing (the registered ``batwing`` effect) as a nuisance of the instrument,
-        not as a candidate.
+    batwing : bool or (float, float)
+        True: fit the batwing (the registered ``batwing`` effect) as a nuisance of the
+        instrument, not as a candidate; (amplitude, sigma_m): a calibration's, held.
     """
 
     units = "m"
@@ -119,8 +117,8 @@ class CameraHeightProblem(dg.Problem):
                  curvature: bool = False, keep: np.ndarray | None = None,
                  noise: NoiseEstimate | None = None, instrument: InstrumentModel | None = None,
                  centre_px: Sequence[float] | None = None, cache_bytes: int = RENDER_CACHE_BYTES,
-                 camera: Sequence[float] | None = None, transfer: LateralTransfer | None = None,
-                 objective: bool = False, batwing: bool = False) -> None:
+                 transfer: LateralTransfer | None = None,
+                 objective: bool = False, batwing: bool | Sequence[float] = False) -> None:
         from masks.decompose import levels_to_masks
 
         self.levels = np.asarray(levels)
@@ -132,7 +130,9 @@ class CameraHeightProblem(dg.Problem):
         kw = {} if step_m is None else {"step_m": step_m}
         self.instrument = instrument or InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
         self.base = base_params
-        self.effects = {e.name: e for e in effects if e.name not in SUBSUMED + (OBJECTIVE.name,)}
+        self.batwing = batwing if isinstance(batwing, bool) else tuple(float(v) for v in batwing)
+        self.held = {BATWING: np.array(self.batwing)} if not isinstance(batwing, bool) else {}
+        self.effects = {e.name: e for e in effects if e.name not in SUBSUMED + (OBJECTIVE.name, *self.held)}
         self.fixed_transfer = transfer
         self.transfer0 = transfer if transfer is not None else DEFAULT_TRANSFER
         self.objective = bool(objective) and transfer is None
@@ -140,8 +140,7 @@ class CameraHeightProblem(dg.Problem):
         self.nuisance = {CAMERA.name: self.effects[CAMERA.name]}
         if self.objective:
             self.effects[OBJECTIVE.name] = self.nuisance[OBJECTIVE.name] = OBJECTIVE
-        self.batwing = bool(batwing)
-        if self.batwing:
+        if self.batwing is True:
             self.effects[BATWING] = self.nuisance[BATWING] = get_effect(BATWING)
         self.curvature = curvature
         self.keep = np.isfinite(self.measured) if keep is None else np.asarray(keep, bool)
@@ -168,15 +167,14 @@ class CameraHeightProblem(dg.Problem):
         self.any_edge_m = np.min(np.abs(self.edge_m), axis=0)
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
         self._noise = noise
-        self._noise_camera = self.effects[CAMERA.name].start_values() if camera is None else camera
         self._maps = ArrayCache(cache_bytes, max_items=4)
 
     @property
     def noise(self) -> NoiseEstimate:
         """The measurement's noise floor: the one given, or estimated (on first use) on the
-        flat interiors of the residual against the base process at ``camera``."""
+        flat interiors of the residual against the base process, the nuisances at their starts."""
         if self._noise is None:
-            self._noise = self.noise_at({CAMERA.name: self._noise_camera})
+            self._noise = self.noise_at({CAMERA.name: self.effects[CAMERA.name].start_values()})
         return self._noise
 
     def noise_at(self, model: dict[str, np.ndarray]) -> NoiseEstimate:
@@ -202,7 +200,8 @@ class CameraHeightProblem(dg.Problem):
         if max(self.measured.shape) > BLOCKED_FIELD_PX:
             return self._render_blocked(model)
         cam = np.asarray(model.get(CAMERA.name, self.effects[CAMERA.name].start_values()), float)
-        chosen = sorted((self.effects[n] for n in model if n not in (CAMERA.name, OBJECTIVE.name)),
+        model = {**self.held, **model}
+        chosen = sorted((self.effects.get(n) or get_effect(n) for n in model if n not in (CAMERA.name, OBJECTIVE.name)),
                         key=lambda e: (("process", "surface").index(e.stage), e.order))
         params = self.base
         for e in chosen:
@@ -411,7 +410,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
                     screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None,
-                    cpu_budget_s: float | None = None) -> dg.Diagnosis:
+                    cpu_budget_s: float | None = None, batwing: Sequence[float] | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -434,6 +433,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
         as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
+    batwing : (float, float), optional
+        The calibration's batwing (amplitude, sigma_m), held with its transfer.
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
         once spent, no further round, revision or rerun starts, and a rerun on re-admitted pixels
@@ -461,8 +462,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         if transfer is not None:
             screen_blur = transfer
         # One render serves the noise floor and the robust rule (the screening model's).
+        held = {} if batwing is None else {"batwing": tuple(batwing)}
         first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
-                                    transfer=as_transfer(screen_blur))
+                                    transfer=as_transfer(screen_blur), **held)
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
         extras, prior, instrument_stage = {}, None, None
@@ -474,7 +476,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # process errors would leak into the interiors and raise it.
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
                                           noise=noise, instrument=first.instrument, transfer=transfer,
-                                          **extras)
+                                          **held, **extras)
             fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
             if size > screen_window_px:
                 fit.screening = problem.crop(screen_window_px)
@@ -530,8 +532,6 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
             diag.placement["instrument"]["criterion_change"] = instrument_stage
-            diag.placement["instrument"]["batwing"] = (np.asarray(diag.model[BATWING]).tolist() if BATWING in diag.model
-                                                       else None)
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag
@@ -541,8 +541,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
                                 candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
                                 window_px: int = 160, source: str = "measurement", force: bool = False,
                                 comparison: Comparison | None = None,
-                                transfer: LateralTransfer | None = None,
-                                cpu_budget_s: float | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
+                                transfer: LateralTransfer | None = None, cpu_budget_s: float | None = None,
+                                batwing: Sequence[float] | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -566,7 +566,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         design, if already made (its camera-frame placement starts the fit).
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
-    cpu_budget_s : float, optional
+    cpu_budget_s, batwing
         As for :func:`diagnose_camera`.
 
     Returns
@@ -593,7 +593,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
                            screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
-                           cpu_budget_s=cpu_budget_s)
+                           cpu_budget_s=cpu_budget_s, batwing=batwing)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

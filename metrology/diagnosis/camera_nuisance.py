@@ -21,7 +21,7 @@ from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 
 __all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "OBJECTIVE", "PLACED", "STAGE_WINDOW_PX", "choose_transfer",
-           "instrument_report", "objective_starts", "placement_report"]
+           "earned_members", "instrument_report", "objective_starts", "placement_report"]
 
 log = logging.getLogger(__name__)
 
@@ -160,19 +160,24 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
             if members not in fits or c < fits[members][0]:
                 fits[members] = (c, fitted)
     changes = {"+".join(m): c - current for m, (c, _) in fits.items()}
-    # The best combination that lowers the criterion by more than the threshold, against the
-    # blur and fill factor and against each of its parts (every member earns its parameters).
-    chosen = ()
-    for members, (c, _) in sorted(fits.items(), key=lambda kv: kv[1][0]):
-        parts = [fits[(m,)][0] for m in members] if len(members) > 1 else []
-        if c < current - threshold and all(c < p - threshold for p in parts):
-            chosen = members
-            break
+    chosen = earned_members({m: c for m, (c, _) in fits.items()}, current, threshold)
     if chosen:
         model = fits[chosen][1]
         state = {k: k in chosen for k in state}
     log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
     return state, model, {k: float(v) for k, v in changes.items()}
+
+
+def earned_members(criteria: dict[tuple[str, ...], float], current: float, threshold: float) -> tuple[str, ...]:
+    """The members of the lateral transfer's family that earn their parameters: of the tried
+    combinations (``criteria``: members -> information criterion), the best that lowers the
+    criterion of the blur and fill factor alone (``current``) by more than ``threshold``, and
+    that of each of its single members by as much; ``()`` when none does."""
+    for members, c in sorted(criteria.items(), key=lambda kv: kv[1]):
+        parts = [criteria[(m,)] for m in members] if len(members) > 1 else []
+        if c < current - threshold and all(c < p - threshold for p in parts):
+            return members
+    return ()
 
 
 def placement_report(problem: Any, model: dict[str, np.ndarray],
@@ -188,12 +193,16 @@ def placement_report(problem: Any, model: dict[str, np.ndarray],
     t = problem.transfer_of(model)
     px_per_design = problem.pitch_m / problem.pixel_m
     final = problem.placement.refined(cam[:5], problem.measured.shape, problem.centre_px)
+    batwing = model.get(BATWING, getattr(problem, "held", {}).get(BATWING))
+    instrument = instrument_report(t, err[5], err[6], na_err if OBJECTIVE.name in model else np.nan,
+                                   calibrated=problem.fixed_transfer is not None)
+    # Fitted with the placement, or held by a calibration; None where the family left it out.
+    instrument["batwing"] = None if batwing is None else np.asarray(batwing, float).tolist()
     return {"refinement": {name: float(v) for name, v in zip(PLACEMENT_PARAMS, cam[:5])},
             "shift_uncertainty_camera_px": [float(e * px_per_design) for e in err[:2]],
             "rotation_uncertainty_deg": float(np.degrees(err[2])),
             "scale_uncertainty": [float(e) for e in err[3:5]],
             "blur_sigma_um": t.sigma_m * 1e6, "blur_sigma_uncertainty_um": float(err[5] * 1e6),
-            "instrument": instrument_report(t, err[5], err[6], na_err if OBJECTIVE.name in model else np.nan,
-                                            calibrated=problem.fixed_transfer is not None),
+            "instrument": instrument,
             "matrix": final.matrix.tolist(), "offset": final.offset.tolist(),
             "convention": "camera pixel centre (row, col) -> design pixel [R, C] = matrix @ [row, col] + offset"}

@@ -155,6 +155,69 @@ def test_calibration_on_a_known_artefact_is_held_by_compare_and_diagnose(tmp_pat
                  "--out", str(tmp_path / "o"), "--instrument", str(cal)]) == 2
 
 
+# One coherence-scanning interferometer at one magnification (the tests' simulator, written apart
+# from the model): its objective, fill factor and batwing held for the artefact and the fields.
+CSI = dict(pixel_m=0.95e-6, header_pixel_m=0.95e-6, na=0.45, wavelength_m=0.58e-6, fill=0.7, batwing=0.1,
+           batwing_width_m=0.3e-6)
+
+
+def _csi_instrument(truth, seed, design_px=40, field_px=130):
+    from instruments import csi
+
+    rng = np.random.default_rng(seed)
+    levels = filegen.random_levels((design_px, design_px), rng)
+    height, inst = csi.measure(filegen.wafer_surface(levels, truth), filegen.FINE_PER_PX, levels.shape,
+                               (field_px, field_px), rng, **CSI)
+    return filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
+
+
+@pytest.mark.slow
+def test_a_csi_calibration_holds_its_objective_and_batwing_in_the_diagnosis(tmp_path):
+    # Before: the calibration's family had no batwing, and a 10 % batwing pushed the fitted NA
+    # 7-14 % (15 sigma) above the objective's. Now the artefact gives NA / lambda, the fill factor
+    # and the batwing, and the diagnosis of a field holds all three.
+    artefact = _csi_instrument({}, 31)
+    design, measured = artefact.write(tmp_path / "artefact")
+    cal = tmp_path / "instrument.json"
+    assert main(["calibrate", "instrument", str(measured), "--design", str(design), "--out", str(cal),
+                 "--window-px", "72"]) == 0
+    lateral = json.loads(cal.read_text())["lateral_transfer"]
+    # Only NA / lambda is measured; the file's wavelength is the tool's white-light default.
+    na_true = CSI["na"] * lateral["wavelength_m"] / CSI["wavelength_m"]
+    assert abs(lateral["na"] - na_true) < 3 * lateral["na_uncertainty"] + 0.01 * na_true
+    assert abs(lateral["fill_factor"] - CSI["fill"]) < 3 * lateral["fill_factor_uncertainty"] + 0.03
+    batwing = lateral["batwing"]
+    assert batwing is not None
+    assert abs(batwing["amplitude"] - CSI["batwing"]) < 3 * batwing["amplitude_uncertainty"] + 0.2 * CSI["batwing"]
+    assert abs(batwing["sigma_m"] - CSI["batwing_width_m"]) < 3 * batwing["sigma_uncertainty_m"] + 0.05e-6
+    overlay = {"mask": 2, "shift_m": 0.4e-6 * np.array([np.cos(0.7), np.sin(0.7)])}
+    report = _diagnose(_csi_instrument({"mask_overlay": overlay}, 5), tmp_path / "case",
+                       "--effects", "etch_depth,mask_overlay,linewidth_bias", "--instrument", str(cal))
+    inst = report["inputs"]["placement"]["instrument"]
+    assert inst["source"] == "calibration (held fixed)" and inst["na"] == lateral["na"]
+    assert inst["batwing"] == [batwing["amplitude"], batwing["sigma_m"]]
+    assert _fabrication(report) == ["mask_overlay"]
+    step = next(s for s in report["steps"] if s["effect"] == "mask_overlay")
+    fit = np.array([step["params"]["dx_mask2_m"], step["params"]["dy_mask2_m"]])
+    assert np.hypot(*(fit - overlay["shift_m"])) < 0.1 * np.hypot(*overlay["shift_m"])
+    assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
+
+
+def test_a_calibration_file_holds_its_batwing_and_refuses_one_out_of_range(tmp_path):
+    from doedesign.errors import DoeError
+    from metrology.calibration.instrument import FORMAT, read_calibration
+
+    lateral = {"blur_sigma_m": 0.1e-6, "fill_factor": 0.7, "na": 0.45, "wavelength_m": 0.57e-6}
+    path = tmp_path / "instrument.json"
+    for batwing, held in ((None, None), ({"amplitude": 0.1, "sigma_m": 0.3e-6}, (0.1, 0.3e-6))):
+        path.write_text(json.dumps({"format": FORMAT, "lateral_transfer": {**lateral, "batwing": batwing}}))
+        assert read_calibration(path).batwing == held
+    path.write_text(json.dumps({"format": FORMAT, "lateral_transfer": {**lateral, "batwing": {
+        "amplitude": 0.1, "sigma_m": 30e-6}}}))
+    with pytest.raises(DoeError, match="instrument.json: .*batwing .* out of range"):
+        read_calibration(path)
+
+
 def test_a_bad_calibration_file_is_one_line_and_status_2(tmp_path, capsys):
     case = filegen.make_case([], 3, design_px=24, field_px=48)
     design, measured = case.write(tmp_path)

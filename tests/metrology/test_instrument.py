@@ -182,3 +182,28 @@ def test_screening_crop_renders_the_whole_windows_pixels_under_the_same_nuisance
     c0 = int(np.rint((part.placement.offset - pl.offset) @ np.linalg.inv(pl.matrix).T)[1])
     assert part.measured.shape == (48, 48)
     np.testing.assert_allclose(part.render(model), whole.render(model)[r0:r0 + 48, c0:c0 + 48], rtol=0, atol=1e-12)
+
+
+def test_a_held_batwing_renders_as_a_fitted_one_and_is_no_candidate():
+    # A calibration's batwing (amplitude, sigma) is rendered with every model, crops included,
+    # exactly as the same values fitted as a nuisance; it is neither fitted nor screened.
+    from masks.process import ProcessParams
+    from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
+    from metrology.diagnosis.camera_nuisance import BATWING
+    from metrology.diagnosis.effects import effects_for
+
+    case = filegen.make_case([], 7, design_px=36, field_px=100)
+    inst = case.instrument
+    pl = Placement(np.array(inst["matrix"]), np.array(inst["offset"]))
+    values = (0.1, 0.3e-6)
+    args = (case.levels, filegen.PITCH_M, case.height_m, pl, ProcessParams.ideal(), effects_for("height"))
+    held = CameraHeightProblem(*args, batwing=values)
+    fitted = CameraHeightProblem(*args, batwing=True)
+    plain = CameraHeightProblem(*args)
+    cam = {CAMERA.name: np.array([0.1, -0.1, 1e-3, 0, 0, 0.3e-6, 0.8])}
+    assert BATWING not in held.effects and BATWING not in held.nuisance
+    np.testing.assert_allclose(held.render(cam), fitted.render({**cam, BATWING: np.array(values)}), rtol=0,
+                               atol=1e-15)
+    assert np.abs(held.render(cam) - plain.render(cam)).max() > 1e-9
+    np.testing.assert_allclose(held.crop(48).render(cam), fitted.crop(48).render({**cam, BATWING: np.array(values)}),
+                               rtol=0, atol=1e-15)
