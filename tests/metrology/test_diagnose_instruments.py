@@ -106,17 +106,24 @@ def test_csi_null_does_not_crash_and_names_no_fabrication(tmp_path):
     assert inst["blur_sigma_m"] >= 0 and 0 <= inst["fill_factor"] <= 1
 
 
-def _point_instrument(truth, seed, pixel_m=0.92e-6, design_px=40, field_px=130):
-    """A filegen design measured by the tests' own point-sampling camera (0.35 um blur) at a
-    fixed pixel: one instrument at one magnification, as a calibration and the fields it serves."""
-    from instruments import point
+def _measured(simulator, truth, seed, design_px=40, field_px=130, **instrument):
+    """A filegen design measured by one of the tests' own instruments (``instruments.<simulator>``)
+    with the parameters given held: one instrument at one magnification, as a calibration and
+    the fields it serves."""
+    import importlib
 
     rng = np.random.default_rng(seed)
     levels = filegen.random_levels((design_px, design_px), rng)
-    height, inst = point.measure(filegen.wafer_surface(levels, truth), filegen.FINE_PER_PX, levels.shape,
-                                 (field_px, field_px), rng, pixel_m=pixel_m, header_pixel_m=pixel_m,
-                                 blur_sigma_m=0.35e-6)
+    height, inst = importlib.import_module(f"instruments.{simulator}").measure(
+        filegen.wafer_surface(levels, truth), filegen.FINE_PER_PX, levels.shape, (field_px, field_px), rng,
+        **instrument)
     return filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
+
+
+def _point_instrument(truth, seed, pixel_m=0.92e-6, field_px=130):
+    """The point-sampling camera (0.35 um blur) at a fixed pixel."""
+    return _measured("point", truth, seed, field_px=field_px, pixel_m=pixel_m, header_pixel_m=pixel_m,
+                     blur_sigma_m=0.35e-6)
 
 
 @pytest.mark.slow
@@ -161,22 +168,12 @@ CSI = dict(pixel_m=0.95e-6, header_pixel_m=0.95e-6, na=0.45, wavelength_m=0.58e-
            batwing_width_m=0.3e-6)
 
 
-def _csi_instrument(truth, seed, design_px=40, field_px=130):
-    from instruments import csi
-
-    rng = np.random.default_rng(seed)
-    levels = filegen.random_levels((design_px, design_px), rng)
-    height, inst = csi.measure(filegen.wafer_surface(levels, truth), filegen.FINE_PER_PX, levels.shape,
-                               (field_px, field_px), rng, **CSI)
-    return filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
-
-
 @pytest.mark.slow
 def test_a_csi_calibration_holds_its_objective_and_batwing_in_the_diagnosis(tmp_path):
     # Before: the calibration's family had no batwing, and a 10 % batwing pushed the fitted NA
     # 7-14 % (15 sigma) above the objective's. Now the artefact gives NA / lambda, the fill factor
     # and the batwing, and the diagnosis of a field holds all three.
-    artefact = _csi_instrument({}, 31)
+    artefact = _measured("csi", {}, 31, **CSI)
     design, measured = artefact.write(tmp_path / "artefact")
     cal = tmp_path / "instrument.json"
     assert main(["calibrate", "instrument", str(measured), "--design", str(design), "--out", str(cal),
@@ -191,7 +188,7 @@ def test_a_csi_calibration_holds_its_objective_and_batwing_in_the_diagnosis(tmp_
     assert abs(batwing["amplitude"] - CSI["batwing"]) < 3 * batwing["amplitude_uncertainty"] + 0.2 * CSI["batwing"]
     assert abs(batwing["sigma_m"] - CSI["batwing_width_m"]) < 3 * batwing["sigma_uncertainty_m"] + 0.05e-6
     overlay = {"mask": 2, "shift_m": 0.4e-6 * np.array([np.cos(0.7), np.sin(0.7)])}
-    report = _diagnose(_csi_instrument({"mask_overlay": overlay}, 5), tmp_path / "case",
+    report = _diagnose(_measured("csi", {"mask_overlay": overlay}, 5, **CSI), tmp_path / "case",
                        "--effects", "etch_depth,mask_overlay,linewidth_bias", "--instrument", str(cal))
     inst = report["inputs"]["placement"]["instrument"]
     assert inst["source"] == "calibration (held fixed)" and inst["na"] == lateral["na"]
