@@ -16,6 +16,12 @@ names (measurement artefacts may be named), relative parameter errors (limits: 0
 overlay and etch depth, 0.2 for the rest), final residual over the noise floor (limit 1.3),
 wall and CPU seconds, and crashes, refusals and time-outs.
 
+With ``--calibrated`` every case is diagnosed as a metrologist with a calibrated instrument
+would: an artefact (a random 16-level field of the same pitch) is measured by the same
+instrument (its pixel and lateral transfer, :data:`TRANSFER_KEYS`; its mounting, noise and
+spikes drawn afresh), ``doe calibrate instrument`` fits it, and ``doe diagnose --instrument``
+holds the result (``calibration_cpu_s`` in the row).
+
 Resumable: each finished case is one JSON line of ``OUT/cases.jsonl``; a rerun skips those.
 ``OUT/summary.md`` and ``OUT/summary.json`` hold the table per instrument.
 
@@ -68,6 +74,30 @@ def planned_cases(n, seed=2024):
     return filegen.planned_cases(n, seed)
 
 
+# What an instrument's calibration carries over to the fields it measures: its pixel and its
+# lateral transfer (draw names of each simulator).
+TRANSFER_KEYS = {"point": ("pixel_m", "header_pixel_m", "blur_sigma_m"),
+                 "boxcar": ("pixel_m", "header_pixel_m", "blur_sigma_m"),
+                 "csi": ("pixel_m", "header_pixel_m", "na", "wavelength_m", "fill", "batwing", "batwing_width_m")}
+ARTEFACT_DESIGN_PX, ARTEFACT_FIELD_PX = 40, 130
+
+
+def calibrate(instrument, case, directory, time_limit_s=TIME_LIMIT_S):
+    """Measure an artefact with ``case``'s instrument (its :data:`TRANSFER_KEYS`) and run
+    ``doe calibrate instrument`` on it; return (calibration file or None, CPU s, stderr tail)."""
+    rng = np.random.default_rng([case.seed, 99])
+    levels = filegen.random_levels((ARTEFACT_DESIGN_PX, ARTEFACT_DESIGN_PX), rng)
+    held = {k: case.instrument[k] for k in TRANSFER_KEYS[instrument]}
+    height, inst = INSTRUMENTS[instrument].measure(filegen.wafer_surface(levels, {}), filegen.FINE_PER_PX,
+                                                   levels.shape, (ARTEFACT_FIELD_PX,) * 2, rng, **held)
+    design, measured = filegen.FileCase(levels=levels, truth={}, instrument=inst, height_m=height,
+                                        seed=case.seed).write(Path(directory))
+    out = Path(directory) / "instrument.json"
+    code, _, _, cpu, err = _run_doe(["calibrate", "instrument", str(measured), "--design", str(design),
+                                     "--out", str(out)], time_limit_s)
+    return (out if code == 0 else None), cpu, err
+
+
 def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None):
     """Draw the wafer and the instrument for one case and write its two files; return the case."""
     rng = np.random.default_rng(seed)
@@ -102,8 +132,19 @@ def diagnose(directory, extra=(), time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
     its processes (``RLIMIT_CPU``), the fairer limit on a shared machine. Either ends the run as
     a time-out."""
     out = Path(directory) / "diag"
-    cmd = [*_doe(), "diagnose", "--design", str(Path(directory) / "design.npz"),
-           "--measured", str(Path(directory) / "measured.datx"), "--out", str(out), *extra]
+    code, _, wall, cpu, err = _run_doe(["diagnose", "--design", str(Path(directory) / "design.npz"),
+                                        "--measured", str(Path(directory) / "measured.datx"), "--out", str(out),
+                                        *extra], time_limit_s, cpu_limit_s)
+    report = None
+    if code == 0 and (out / "report.json").exists():
+        report = json.loads((out / "report.json").read_text())
+    return code, report, wall, cpu, err
+
+
+def _run_doe(args, time_limit_s, cpu_limit_s=None):
+    """Run ``doe ARGS`` as a subprocess; return (exit status or None on time-out, None, wall s,
+    CPU s, last lines of stderr)."""
+    cmd = [*_doe(), *args]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     # Its own session, so that a time-out stops the diagnosis's worker processes too.
@@ -121,10 +162,7 @@ def diagnose(directory, extra=(), time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    report = None
-    if code == 0 and (out / "report.json").exists():
-        report = json.loads((out / "report.json").read_text())
-    return code, report, wall, cpu, "\n".join(err.strip().splitlines()[-3:])
+    return code, None, wall, cpu, "\n".join(err.strip().splitlines()[-3:])
 
 
 def score(names, truth, report):
@@ -150,8 +188,10 @@ def score(names, truth, report):
                           and ratio <= FINAL_LIMIT)}
 
 
-def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
-    """Make, diagnose and score one case; return its journal row."""
+def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None,
+             calibrated=False):
+    """Make, diagnose and score one case (``calibrated``: through a calibration of its
+    instrument, :func:`calibrate`); return its journal row."""
     directory = Path(work) / f"{instrument}_{seed}"
     if directory.exists():
         shutil.rmtree(directory)
@@ -160,6 +200,13 @@ def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=T
     inst = {k: v for k, v in case.instrument.items() if k != "spikes"}
     row = {"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth, "camera": inst,
            "make_cpu_s": time.process_time() - t}
+    cal = None
+    if calibrated:
+        cal, row["calibration_cpu_s"], err = calibrate(instrument, case, directory / "artefact", time_limit_s)
+        if cal is None:
+            row.update(outcome="crash", exit_status=None, wall_s=0.0, cpu_s=0.0, stderr_tail=f"calibration failed: {err}")
+            return json_ready(row)
+        extra = (*extra, "--instrument", str(cal))
     code, report, wall, cpu, err = diagnose(directory, extra, time_limit_s, cpu_limit_s)
     outcome = ("timeout" if code is None else "ok" if report is not None else "refused" if code == 2 else "crash")
     row.update(outcome=outcome, exit_status=code, wall_s=wall, cpu_s=cpu, stderr_tail=None if code == 0 else err)
@@ -204,6 +251,9 @@ def summary(rows, instruments):
             "median_cpu_s": float(np.median([r["cpu_s"] for r in mine])) if mine else None,
             "total_cpu_s": float(sum(r["cpu_s"] for r in mine)),
         })
+        cal = [r["calibration_cpu_s"] for r in mine if r.get("calibration_cpu_s") is not None]
+        if cal:
+            table[-1]["median_calibration_cpu_s"] = float(np.median(cal))
     return table
 
 
@@ -211,6 +261,7 @@ def summary_markdown(table, rows, info=None):
     cols = ["instrument", "cases", "all_right", "ran", "crashed", "refused", "timed_out", "hidden_named", "hidden",
             "false_names", "largest_overlay_or_depth_error", "largest_parameter_error", "within_final_limit",
             "median_final_over_floor", "largest_final_over_floor", "median_wall_s", "median_cpu_s"]
+    cols += ["median_calibration_cpu_s"] if all("median_calibration_cpu_s" in t for t in table) else []
 
     def fmt(v):
         return "" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v)
@@ -235,7 +286,7 @@ def summary_markdown(table, rows, info=None):
 
 
 def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS), extra=(), keep=False,
-        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None):
+        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None, calibrated=False):
     """Run (or resume) the cases; return ``benchmarks.run`` rows (one per instrument and figure).
 
     ``quick``: one null case per instrument. ``out`` (a folder) keeps ``cases.jsonl`` and the
@@ -255,7 +306,8 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     seen = {(r["instrument"], r["seed"]) for r in done}
     planned = planned_cases(n)
     # Case by case, every instrument in turn: a run stopped early still compares the instruments.
-    todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s) for names, seed in planned
+    todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s, calibrated)
+            for names, seed in planned
             for i in instruments if (i, seed) not in seen]
     if workers > 1:
         from concurrent.futures import ProcessPoolExecutor
@@ -281,7 +333,7 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     info = machine()
     write_json(out / "summary.json", {"machine": info, "design_px": DESIGN_PX, "field_px": field_px(),
                                       "time_limit_s": time_limit_s, "cpu_limit_s": cpu_limit_s,
-                                      "extra_options": list(extra),
+                                      "extra_options": list(extra), "calibrated": calibrated,
                                       "instruments": table, "cases": rows})
     with atomic_path(out / "summary.md") as path:
         path.write_text(summary_markdown(table, rows, info))
@@ -310,6 +362,8 @@ def main(argv=None):
     parser.add_argument("--keep", action="store_true", help="keep every case's files (failures are kept)")
     parser.add_argument("--diagnose-option", action="append", default=[],
                         help="extra option passed to doe diagnose (repeatable, e.g. --diagnose-option=--window-px=96)")
+    parser.add_argument("--calibrated", action="store_true",
+                        help="diagnose through a calibration of each case's instrument on an artefact it measured")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     names = [s.strip() for s in args.instruments.split(",") if s.strip()]
@@ -317,7 +371,7 @@ def main(argv=None):
     if unknown:
         parser.error(f"unknown instruments {sorted(unknown)}; choose from {list(INSTRUMENTS)}")
     run(n=args.n, workers=args.workers, out=args.out, instruments=names, extra=args.diagnose_option,
-        keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit)
+        keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit, calibrated=args.calibrated)
     log.info("summary: %s", Path(args.out, "summary.md"))
     return 0
 

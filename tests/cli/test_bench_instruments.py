@@ -38,3 +38,16 @@ def test_score_counts_names_errors_and_the_floor():
     assert got["final_over_floor"] == pytest.approx(1.2) and not got["all_right"]
     report["steps"].pop(1)
     assert bench.score(["mask_overlay"], truth, report)["all_right"]
+
+
+@pytest.mark.parametrize("name", list(bench.INSTRUMENTS))
+def test_a_calibration_artefact_is_measured_with_the_cases_pixel_and_transfer(name):
+    # What --calibrated carries from a case's instrument to its artefact: draws the simulator
+    # takes back as they were (an unknown name would be refused with a KeyError).
+    fine, shape = 2, (bench.ARTEFACT_DESIGN_PX,) * 2
+    surface = np.zeros((shape[0] * fine, shape[1] * fine))
+    _, case = bench.INSTRUMENTS[name].measure(surface, fine, shape, (40, 40), np.random.default_rng(1))
+    held = {k: case[k] for k in bench.TRANSFER_KEYS[name]}
+    _, artefact = bench.INSTRUMENTS[name].measure(surface, fine, shape, (40, 40), np.random.default_rng(2), **held)
+    assert {k: artefact[k] for k in held} == held
+    assert artefact["rotation_deg"] != case["rotation_deg"]   # mounted afresh
