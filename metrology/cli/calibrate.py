@@ -94,7 +94,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("instrument", help="the profilometer's lateral transfer from a measured artefact of known geometry",
                        description="Fit the profilometer's lateral transfer (pixel fill factor, Gaussian blur, the "
-                                   "objective's NA when the data ask for it) with the placement on a measured step "
+                                   "objective's NA and an interferometer's batwing when the data ask for them) with "
+                                   "the placement on a measured step "
                                    "or grating whose geometry a design file gives (cf. ISO 25178-600), and with "
                                    "the artefact's certified step heights the instrument's height scale; the JSON "
                                    "written is what 'doe compare --instrument' and 'doe diagnose --instrument' "

@@ -58,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
     p.add_argument("--instrument", metavar="FILE.json",
-                   help="the profilometer's calibrated lateral transfer ('doe calibrate instrument'), held fixed, "
+                   help="the profilometer's calibrated lateral transfer and batwing ('doe calibrate instrument'), held fixed, "
                         "and its height scale, divided out of the measured heights "
                         "(default: fitted with the placement)")
     p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
