@@ -125,8 +125,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from masks.process import ProcessParams
     from metrology.diagnosis import engine as dg
     from metrology.diagnosis.camera import CameraHeightProblem
-    from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, OBJECTIVE, earned_members, instrument_report,
-                                                     objective_starts)
+    from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, MEMBERS, OBJECTIVE, earned_members,
+                                                     instrument_report, member_starts)
     from metrology.diagnosis.effects import get_effect
     from metrology.matching.compare import compare_measurement
     from metrology.matching.instrument import Placement, robust_valid
@@ -178,14 +178,12 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         # The members of the family the diagnosis's instrument stage tries, each fitted to
         # convergence from the blur-and-fill fit (the objective from both of its starts).
         fits = {(): (crit(plain), plain)}
-        for members in (("objective",), ("batwing",), ("objective", "batwing")):
-            starts = objective_starts(m0, plain[0].transfer_of(m0)) if "objective" in members else [m0]
-            if "batwing" in members:
-                starts = [{**s, BATWING: get_effect(BATWING).start_values()} for s in starts]
-            for s in starts:
+        for members in MEMBERS:
+            for s in member_starts(members, m0, plain[0].transfer_of(m0)):
                 trial = fit(s, objective="objective" in members, batwing="batwing" in members)
-                if members not in fits or crit(trial) < fits[members][0]:
-                    fits[members] = (crit(trial), trial)
+                c = crit(trial)
+                if members not in fits or c < fits[members][0]:
+                    fits[members] = (c, trial)
         current = fits[()][0]
         changes = {"+".join(m): float(c - current) for m, (c, _) in fits.items() if m}
         chosen = earned_members({m: c for m, (c, _) in fits.items() if m}, current, threshold)

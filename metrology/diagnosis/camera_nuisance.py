@@ -16,12 +16,13 @@ from typing import Any
 import numpy as np
 
 from metrology.diagnosis import engine as dg
-from metrology.diagnosis.effects import Effect, Parameter
+from metrology.diagnosis.effects import Effect, Parameter, get_effect
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 
-__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "OBJECTIVE", "PLACED", "STAGE_WINDOW_PX", "choose_transfer",
-           "earned_members", "instrument_report", "objective_starts", "placement_report"]
+__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "OBJECTIVE", "PLACED", "STAGE_WINDOW_PX",
+           "choose_transfer", "earned_members", "instrument_report", "member_starts", "objective_starts",
+           "placement_report"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,8 @@ STAGE_AMPLITUDES = (0.25, 4.0)
 STAGE_SHARE = 0.3
 # The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
 BATWING = "batwing"
+# The combinations of the family's members beyond blur and fill factor that are tried.
+MEMBERS = (("objective",), ("batwing",), ("objective", "batwing"))
 
 
 
@@ -149,12 +152,9 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     # trade against each other (a CSI's batwing sits beside its objective's transfer), so the
     # objective alone runs to the widest aperture where both together find the real one.
     fits = {}
-    for members in (("objective",), ("batwing",), ("objective", "batwing")):
+    for members in MEMBERS:
         problem = make(**{k: k in members for k in state})
-        starts = objective_starts(model, transfer) if "objective" in members else [model]
-        if "batwing" in members:
-            starts = [{**start, BATWING: problem.effects[BATWING].start_values()} for start in starts]
-        for start in starts:
+        for start in member_starts(members, model, transfer):
             fitted, rss, _ = dg.fit_effects(problem, start, list(problem.nuisance), max_iter=12, central=False)
             c = crit(problem, rss)
             if members not in fits or c < fits[members][0]:
@@ -166,6 +166,17 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         state = {k: k in chosen for k in state}
     log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
     return state, model, {k: float(v) for k, v in changes.items()}
+
+
+def member_starts(members: tuple[str, ...], model: dict[str, np.ndarray],
+                  transfer: LateralTransfer) -> list[dict[str, np.ndarray]]:
+    """Starts of a fit with the family's ``members`` (of :data:`MEMBERS`) from a fit of the blur
+    and fill factor alone (``model``, whose lateral transfer is ``transfer``): the objective's
+    two (:func:`objective_starts`), the batwing at its start values."""
+    starts = objective_starts(model, transfer) if "objective" in members else [model]
+    if "batwing" in members:
+        starts = [{**start, BATWING: get_effect(BATWING).start_values()} for start in starts]
+    return starts
 
 
 def earned_members(criteria: dict[tuple[str, ...], float], current: float, threshold: float) -> tuple[str, ...]:
