@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 from doedesign.errors import DoeError
 
 __all__ = ["DEFAULT_DEPTHS_M", "DEFAULT_ETCH_ORDER", "binary_depths_m", "check_etch_order",
-           "levels_to_masks", "masks_to_height", "masks_to_levels"]
+           "levels_to_masks", "mask_bit", "masks_to_height", "masks_to_levels"]
 
 # Nominal etch depths of the four masks (m): 1, 2, 4 and 8 steps of ~75 nm (fused silica,
 # 550 nm, 16 levels). Real runs should pass 2**j * level_step_m(...).
@@ -74,8 +74,17 @@ def levels_to_masks(levels: np.ndarray, n_masks: int = 4) -> np.ndarray:
         if lo < 0 or hi >= 2 ** n_masks:
             raise DoeError(f"levels must lie in 0..{2 ** n_masks - 1} for {n_masks} masks, "
                            f"found {lo}..{hi}")
-    bits = (1 << np.arange(n_masks)).reshape((n_masks,) + (1,) * levels.ndim)
-    return (levels[None] & bits) != 0
+    return np.stack([mask_bit(levels, j) for j in range(n_masks)])
+
+
+def mask_bit(levels: np.ndarray, j: int) -> np.ndarray:
+    """Mask ``j`` of :func:`levels_to_masks` (True where bit ``j`` of the level is set), unchecked.
+
+    For callers that checked the levels already and need one mask: it works in the levels'
+    own integer type, with no int64 temporaries (a process render takes one per mask and sample).
+    """
+    levels = np.asarray(levels)
+    return ((levels >> int(j)) & 1) != 0
 
 
 def masks_to_levels(masks: np.ndarray) -> np.ndarray:

@@ -54,7 +54,7 @@ from doedesign.engine.backend import Array, Backend
 from doedesign.errors import DoeError
 
 from . import litho
-from .decompose import levels_to_masks
+from .decompose import mask_bit
 from .effects import EFFECTS
 from .process_params import ProcessParams, finite_float
 
@@ -287,7 +287,7 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be):
     of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``."""
     xp = be.xp
     step = pitch_m / u
-    mask = levels_to_masks(_window(levels, window), params.n_masks)[j]
+    mask = mask_bit(_window(levels, window), j)
     # Rotation centre in fine-pixel indices of the window.
     centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
                    (centre_design[1] - window[2] + 0.5) * u - 0.5)
@@ -321,7 +321,7 @@ def _depth_map(levels, window, params, j, pitch_m, u, be):
     sigma_px = params.loading_radius / pitch_m
     reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
     wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
-    wide_mask = levels_to_masks(_window(levels, wide), params.n_masks)[j].astype(np.float32)
+    wide_mask = mask_bit(_window(levels, wide), j).astype(np.float32)
     rows = window[1] - window[0]
     cols = window[3] - window[2]
     # Fine pixel a of the window sits at design coordinate (a + 0.5) / u - 0.5 from the window

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from doedesign.errors import DoeError
-from masks.decompose import (DEFAULT_DEPTHS_M, binary_depths_m, check_etch_order, levels_to_masks,
+from masks.decompose import (DEFAULT_DEPTHS_M, binary_depths_m, check_etch_order, levels_to_masks, mask_bit,
                              masks_to_height, masks_to_levels)
 
 
@@ -29,6 +29,17 @@ def test_mask_bits_and_wrong_depths():
     h = masks_to_height(m, (70e-9, 150e-9, 310e-9, 600e-9))
     np.testing.assert_allclose(h[0], [-380e-9, -750e-9])
     assert binary_depths_m(74.74e-9)[3] == pytest.approx(8 * 74.74e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.uint16, np.int64])
+def test_one_mask_is_that_bit_in_any_integer_type(dtype):
+    """The process render's one-mask form: mask j is set where level // 2**j is odd."""
+    levels = np.arange(16, dtype=dtype).reshape(4, 4)
+    for j in range(4):
+        one = mask_bit(levels, j)
+        assert one.dtype == bool and one.shape == levels.shape
+        assert np.array_equal(one, (np.arange(16).reshape(4, 4) // 2 ** j) % 2 == 1)
+        assert np.array_equal(one, levels_to_masks(levels)[j])
 
 
 @pytest.mark.parametrize("levels, msg", [(np.array([[1.0, 2.0]]), "integer"),
