@@ -37,6 +37,11 @@ __all__ = ["MAXMIN_ALGORITHMS", "PlaneLoss", "maximize_min", "maxmin_stage", "pl
 log = logging.getLogger(__name__)
 
 MAXMIN_ALGORITHMS = ("LD_MMA", "LD_CCSAQ")
+# Tolerance of the CCSA methods' inner dual solve (nlopt's default 1e-14). The dual has one
+# variable per constraint and each of its evaluations is a pass over all n heights; at 1e-14 it
+# took 80 % of the router's time (4.8 of 5.0 s for 4,004 heights, 150 evaluations); at 1e-8 the
+# router took 1.1 s and reached the same weakest energy (0.2703).
+DUAL_FTOL_REL = 1e-8
 
 
 def plane_weights(target: Target, weights: ArrayLike | None = None) -> np.ndarray:
@@ -141,6 +146,7 @@ def maximize_min(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
     opt.set_upper_bounds(np.r_[hi, 1.0 / w.min()])
     opt.set_maxeval(int(max_iter))
     opt.set_xtol_rel(xtol_rel)
+    opt.set_param("dual_ftol_rel", DUAL_FTOL_REL)
     if max_time_s:
         opt.set_maxtime(float(max_time_s))
     best = {"value": -np.inf, "x": np.clip(x0, lo, hi)}
