@@ -196,8 +196,11 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
         parts[4:4] = extra
     stopped = rep.get("stopped_early")
     if isinstance(stopped, dict):
+        remedy = (" More CPU time (`doe diagnose --cpu-budget-s`) or a calibrated instrument (`doe calibrate "
+                  "instrument`, then `--instrument`) lets the selection finish."
+                  if str(stopped.get("reason", "")).startswith("time budget") else "")
         parts.insert(4, f"- Stopped early: {stopped.get('reason')} (final residual "
-                        f"{md.fmt(stopped.get('final_over_floor'), 3)} x the noise floor).")
+                        f"{md.fmt(stopped.get('final_over_floor'), 3)} x the noise floor).{remedy}")
     inst = ((rep.get("inputs") or {}).get("placement") or {}).get("instrument")
     if isinstance(inst, dict):
         parts.insert(4, "- Instrument's lateral transfer ({}): blur {} um, fill factor {}, NA {}.".format(
@@ -219,7 +222,9 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
                                      f"residual before ({unit})", f"residual after ({unit})",
                                      "criterion change (BIC, lower is better)")))
     else:
-        parts.append("No effect lowered the criterion: the measurement agrees with the ideal model.\n")
+        parts.append("No effect is named, yet a structured residual remains: the measurement does not agree with the "
+                     "ideal model (the summary says why nothing was named).\n" if rep.get("unexplained") else
+                     "No effect lowered the criterion: the measurement agrees with the ideal model.\n")
     # What each named fabrication effect's parameters refer to (an etch gradient's and a mask
     # rotation's reference point is the design's centre, not the camera field's).
     fab = [s for s in rep.get("steps") or [] if not s.get("measurement_artefact") and s.get("description")]

@@ -142,6 +142,21 @@ def test_compare_and_diagnose_pages_read_as_reports(tmp_path):
     assert not page_problems(text, tmp_path), page_problems(text, tmp_path)
 
 
+def test_an_empty_diagnosis_claims_agreement_only_when_the_residual_is_noise(tmp_path):
+    """Nothing named at 17x the floor (a budget stop, partial matches dropped) is no agreement."""
+    base = {"steps": [], "initial_residual_rms": 62e-9, "final_residual_rms": 62e-9, "noise_floor": 3.7e-9,
+            "inputs": {"measured": "m.datx", "design": "d.npz"}}
+    stuck = {**base, "unexplained": True, "partial_matches": [{"effect": "linewidth_bias"}],
+             "unexplained_where": {"summary": "at the edges of mask 3"},
+             "stopped_early": {"reason": "time budget: no further candidates were tried", "final_over_floor": 17.0}}
+    text = "\n".join(pages.diagnose_sections(stuck, tmp_path))
+    assert "agrees with the ideal model" not in text and "does not agree with the ideal model" in text
+    assert "--cpu-budget-s" in text and "doe calibrate instrument" in text
+    quiet = {**base, "unexplained": False, "final_residual_rms": 3.6e-9}
+    text = "\n".join(pages.diagnose_sections(quiet, tmp_path))
+    assert "agrees with the ideal model" in text and "--cpu-budget-s" not in text
+
+
 def test_tolerance_page_reads_as_a_report(tmp_path):
     from masks.tolerance.analysis import nominal_depths, tolerance_analysis
     from masks.tolerance.spec import build_spec
