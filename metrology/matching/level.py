@@ -21,7 +21,7 @@ from doedesign.errors import DoeError
 
 __all__ = ["DEFAULT_SPIKE_THRESHOLD_M", "HIST_BIN_M", "LevelResult", "MIN_CLUSTER_SEPARATION_M",
            "classify_by_histogram", "fit_plane", "level_joint", "level_on_top", "plane_image",
-           "remove_spikes", "top_level_mask"]
+           "remove_spikes", "step_plane", "top_level_mask"]
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,30 @@ def fit_plane(height_m: np.ndarray, mask: np.ndarray, max_points: int = 400_000)
     return coef
 
 
+def step_plane(height_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The tilt as the median height step between valid neighbours along each axis.
+
+    On a stepped surface most neighbours share a terrace, so the median step is the tilt
+    whatever the pattern. A least-squares plane through all pixels leans toward wherever the
+    deep levels lie: on a demo field holding little level 0 it tilted 0.7 um across the field,
+    so the topmost cluster mixed levels 0 and 1 and the registration read 0.48 for 1.00.
+    Falls back to :func:`fit_plane` where no two valid pixels touch.
+
+    Returns
+    -------
+    ndarray (3,)
+        ``(offset_m, slope_x, slope_y)`` as :func:`fit_plane`.
+    """
+    h = np.where(np.asarray(valid, bool), height_m, np.nan)
+    steps_x, steps_y = np.diff(h, axis=1), np.diff(h, axis=0)
+    steps_x, steps_y = steps_x[np.isfinite(steps_x)], steps_y[np.isfinite(steps_y)]
+    if steps_x.size == 0 or steps_y.size == 0:
+        return fit_plane(height_m, valid)
+    plane = np.array([0.0, float(np.median(steps_x)), float(np.median(steps_y))])
+    plane[0] = float(np.nanmedian(h - plane_image(plane, h.shape)))
+    return plane
+
+
 def plane_image(plane: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The plane ``(offset, slope_x, slope_y)`` evaluated on an array of ``shape``."""
     rc, cc = (shape[0] - 1) / 2, (shape[1] - 1) / 2
@@ -180,8 +204,8 @@ def top_level_mask(residual_m: np.ndarray, valid: np.ndarray, window_m: float | 
 def level_on_top(height_m: np.ndarray, valid: np.ndarray | None = None, iterations: int = 4) -> LevelResult:
     """Level on a plane fitted to the unetched (level-0) pixels, found from the histogram.
 
-    Starts from a plane through all pixels (biased by the pattern, but close enough to
-    separate the terraces), then refits on the topmost cluster until it settles.
+    Starts from the tilt of :func:`step_plane` (the median step between neighbours, which the
+    pattern does not bias), then refits on the topmost cluster until it settles.
 
     Returns
     -------
@@ -189,7 +213,7 @@ def level_on_top(height_m: np.ndarray, valid: np.ndarray | None = None, iteratio
     """
     h = np.asarray(height_m, dtype=float)
     valid = np.isfinite(h) if valid is None else (np.asarray(valid, bool) & np.isfinite(h))
-    plane = fit_plane(h, valid)
+    plane = step_plane(h, valid)
     ref = valid
     for _ in range(int(iterations)):
         residual = h - plane_image(plane, h.shape)
