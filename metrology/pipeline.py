@@ -221,7 +221,7 @@ def diagnose_step(measurement_path: Path, design: Design, design_path: Path, out
     measured pixels, started from the comparison's camera-frame placement. Its inputs carry the
     design's fingerprint, as ``doe diagnose`` writes it, so that ``doe correct`` can read it."""
     from metrology.correction.diagnoses import design_fingerprint
-    from metrology.diagnosis.camera import diagnose_camera_measurement
+    from metrology.diagnosis.camera_measurement import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
     diag, inputs = diagnose_camera_measurement(design, read_measurement(measurement_path),

@@ -158,7 +158,7 @@ def _heights(design, path, args, candidates):
 
 def _camera(design, path, args, candidates):
     from metrology.calibration.instrument import apply_calibration
-    from metrology.diagnosis.camera import diagnose_camera_measurement
+    from metrology.diagnosis.camera_measurement import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
     depths = [v * 1e-9 for v in args.depths_nm]

@@ -41,13 +41,9 @@ from metrology.matching.transfer import LateralTransfer, as_transfer
 from metrology.matching.window import busiest_camera_window
 
 if TYPE_CHECKING:
-    from doedesign.design import Design
     from masks.process_params import ProcessParams
-    from metrology.formats.measurement import Measurement
-    from metrology.matching.compare import Comparison
 
-__all__ = ["CAMERA", "SCREEN_WINDOW_PX", "SUBSUMED", "CameraHeightProblem", "diagnose_camera",
-           "diagnose_camera_measurement"]
+__all__ = ["CAMERA", "SCREEN_WINDOW_PX", "SUBSUMED", "CameraHeightProblem", "diagnose_camera"]
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +57,18 @@ RENDER_CACHE_BYTES = 640 * 2 ** 20
 # RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
+# Share of the window's pixels the robust rule must re-admit or newly exclude under the final
+# model for the selection to run again on them: a handful of pixels (3 of 25,000 on a CSI
+# field) cannot change what a criterion over thousands of effective samples chose, and a rerun
+# costs a whole selection.
+RERUN_SHARE = 0.005
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
+
+
+class _Restage(Exception):
+    """The instrument stage, run again after the first fabrication effect, chose more of the
+    family: the selection restarts through it (the stage's result is the argument)."""
 
 
 class CameraHeightProblem(dg.Problem):
@@ -457,6 +463,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
         base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
         effects = effects_for("height", candidates)
+        effects_by_name = {e.name: e for e in effects}
         finite = np.isfinite(crop)
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
         if transfer is not None:
@@ -482,32 +489,59 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 fit.screening = problem.crop(screen_window_px)
             return problem, fit
 
-        if transfer is None:
+        def stage(named=None):
+            # The instrument stage (:func:`choose_transfer`) on the busiest square, then the floor
+            # again through the instrument it chose, when it chose more than blur and fill: an
+            # objective's long spread or a batwing rings into the interiors and raised the first
+            # estimate. It only ever lowers the floor: a higher one is process error leaking into
+            # the interiors (an unknown depth law raised it by half).
             stage_px = min(size, STAGE_WINDOW_PX)
-            extras, prior, instrument_stage = choose_transfer(
+            chosen, fitted, changes = choose_transfer(
                 lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
-                threshold)
-            # The floor again through the instrument just fitted, when the stage chose more than
-            # blur and fill: an objective's long spread or a batwing rings into the interiors and
-            # raised the first estimate. It only ever lowers the floor: a higher one is process
-            # error leaking into the interiors (an unknown depth law raised it by half).
-            if any(extras.values()):
-                seen = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
-                                           keep=keep, instrument=first.instrument, **extras)
-                again = seen.noise_at(prior)
-                log.info("noise floor %.3g m after the instrument stage (%.3g m before)", again.sigma,
-                         first.noise.sigma)
-                if again.sigma < noise.sigma:
-                    noise = again
+                threshold, named)
+            floor = noise
+            if any(chosen.values()):
+                seen = (make(keep, **chosen)[0] if named else
+                        CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
+                                            keep=keep, instrument=first.instrument, **chosen))
+                again = seen.noise_at(fitted)
+                log.info("noise floor %.3g m after the instrument stage (%.3g m before)", again.sigma, noise.sigma)
+                floor = min(noise, again, key=lambda e: e.sigma)
+            return chosen, fitted, changes, floor
+
+        if transfer is None:
+            extras, prior, instrument_stage, noise = stage()
         done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
-        for _ in range(3):
+        restaged = [transfer is not None]
+
+        def restage(model):
+            # The stage ran before any fabrication effect, and a large one (a 0.4 um bias, one
+            # mask's overlay) hides the instrument's own edge profile. After the first one is
+            # named, the stage runs again with it in the model; if it now chooses the objective
+            # or the batwing, the selection starts afresh through them.
+            fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
+            if restaged[0] or not fab or all(extras.values()):
+                return
+            restaged[0] = True
+            again = stage({CAMERA.name: model[CAMERA.name], **fab})
+            if any(again[0][k] and not extras[k] for k in extras):
+                log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
+                raise _Restage(again)
+
+        for _ in range(4):
             problem, fit = make(keep, **extras)
             # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
             # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
             # parameters after the residual has reached it.
-            diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
-                                    quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
-                                    cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0))
+            try:
+                diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
+                                        quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
+                                        cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0),
+                                        after_step=restage)
+            except _Restage as again:
+                extras, prior, instrument_stage, noise = again.args[0]
+                diag = None
+                continue
             if diag.stopped_early is not None:
                 if done is not None:  # a rerun cut short: the last finished selection stands
                     cut, (problem, fit, keep, diag) = diag.stopped_early, done
@@ -519,7 +553,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             r = crop - problem.render(diag.model)
             new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
-            if np.array_equal(new_keep, keep):
+            if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
                 break
             keep = new_keep
         diag.map_step_m = problem.pixel_m
@@ -535,66 +569,3 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag
-
-
-def diagnose_camera_measurement(design: Design, measurement: Measurement, depths_m: Sequence[float] | None = None,
-                                candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
-                                window_px: int = 160, source: str = "measurement", force: bool = False,
-                                comparison: Comparison | None = None,
-                                transfer: LateralTransfer | None = None, cpu_budget_s: float | None = None,
-                                batwing: Sequence[float] | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
-    """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
-    and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
-
-    Parameters
-    ----------
-    design : Design
-    measurement : Measurement
-        As read by :func:`metrology.formats.readers.read_measurement`.
-    depths_m : sequence of float, optional
-        Nominal etch depths per mask (the ideal model).
-    candidates : list of str, optional
-    threshold : float
-    window_px : int
-        Camera pixels per side of the window diagnosed.
-    source : str
-        Name of the measurement in error messages (its file).
-    force : bool
-        Diagnose even when the measurement matches the design poorly.
-    comparison : Comparison, optional
-        :func:`~metrology.matching.compare.compare_measurement` of the same measurement and
-        design, if already made (its camera-frame placement starts the fit).
-    transfer : LateralTransfer, optional
-        The instrument's calibrated lateral transfer, held fixed (default: fitted).
-    cpu_budget_s, batwing
-        As for :func:`diagnose_camera`.
-
-    Returns
-    -------
-    (Diagnosis, dict)
-        The diagnosis and its inputs (frame, window, refined placement with uncertainties,
-        excluded pixels, registration correlation, nominal depths, match).
-    """
-    from doedesign.levels import design_levels
-    from masks.process import ProcessParams
-    from metrology.matching.compare import compare_measurement
-
-    if window_px < 16:
-        raise DoeError(f"--window-px must be at least 16, got {window_px}")
-    comp = comparison
-    if comp is None:
-        try:
-            comp = compare_measurement(measurement, design, force=force, transfer=transfer)
-        except DoeError as exc:
-            raise DoeError(f"{source}: {exc}") from None
-    depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
-    # The comparison's placement was refined in the camera's frame (same measurement model).
-    fit = comp.instrument_fit
-    diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
-                           depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
-                           screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
-                           cpu_budget_s=cpu_budget_s, batwing=batwing)
-    return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
-                  "excluded_pixels": diag.excluded_pixels,
-                  "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,
-                  "match": comp.match}

@@ -107,6 +107,7 @@ def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) ->
 
 
 def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
+                    held: dict[str, np.ndarray] | None = None,
                     ) -> tuple[dict[str, bool], dict[str, np.ndarray], dict[str, float]]:
     """The instrument's family members beyond blur and fill factor that the data ask for, chosen
     before any fabrication effect: the nuisances (placement, blur, fill factor) are fitted alone;
@@ -121,6 +122,12 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     make : callable
         ``make(objective=bool, batwing=bool) -> Problem``.
     threshold : float
+    held : dict, optional
+        Fabrication effects a first selection named (name -> values): in every model of the
+        stage and refitted with the nuisances (its ``camera`` entry, if any, starts the
+        placement and transfer). A large fabrication effect (a 0.4 um bias, an
+        overlay of one mask) hides the instrument's own edge profile from a stage that runs
+        before any; with it in the model, the profile shows.
 
     Returns
     -------
@@ -130,21 +137,26 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         ``"batwing"``, ``"objective+batwing"``).
     """
     state = {"objective": False, "batwing": False}
+    held = dict(held or {})
+    camera = held.pop(CAMERA.name, CAMERA.start_values())
     plain = make(**state)
-    model, rss, _ = dg.fit_effects(plain, {CAMERA.name: CAMERA.start_values()}, [CAMERA.name], max_iter=12,
+    model, rss, _ = dg.fit_effects(plain, {CAMERA.name: camera, **held}, [CAMERA.name, *held], max_iter=12,
                                    central=False)
     n = plain.residual(model).size
     n_eff = max(n / plain.noise.corr_area_px, 2.0)
 
     def crit(problem, rss):
-        return dg.bic_eff(rss, n, n_eff, sum(e.n_params for e in problem.nuisance.values()))
+        return dg.bic_eff(rss, n, n_eff, sum(e.n_params for e in problem.nuisance.values()))  # held: in all alike
 
     current = crit(plain, rss)
     # Only an instrument's residual (an odd profile shared by every mask's edges) asks for more of
-    # the family: elsewhere the stage costs one short fit.
-    left = plain.instrument_signature(plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES,
-                                      every_mask=False)
-    if left is None or left["odd_share"] < STAGE_ODD_SHARE:
+    # the family: elsewhere the stage costs one short fit. With named effects held, the members
+    # are always tried (once per diagnosis): what a large effect's fit leaves on the edges mixes
+    # with the instrument's profile (an overlay's fit under the wrong transfer), and the
+    # criterion, not the profile's shape, decides.
+    left = None if held else plain.instrument_signature(
+        plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES, every_mask=False)
+    if not held and (left is None or left["odd_share"] < STAGE_ODD_SHARE):
         log.info("instrument stage: blur and fill factor leave no instrument residual")
         return dict(state), model, {}
     transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
@@ -155,7 +167,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     for members in MEMBERS:
         problem = make(**{k: k in members for k in state})
         for start in member_starts(members, model, transfer):
-            fitted, rss, _ = dg.fit_effects(problem, start, list(problem.nuisance), max_iter=12, central=False)
+            fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
             c = crit(problem, rss)
             if members not in fits or c < fits[members][0]:
                 fits[members] = (c, fitted)

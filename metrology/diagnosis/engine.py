@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import resource
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -317,7 +317,8 @@ def _past(deadline):
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
-                  prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None) -> Diagnosis:
+                  prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None,
+                  after_step: Callable[[dict[str, np.ndarray]], None] | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
@@ -352,6 +353,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         CPU seconds (:func:`cpu_seconds`, workers included) the selection may spend: past them
         no further round of candidates and no further revision starts, and the diagnosis says
         so (``stopped_early``). Default: no budget (the criterion alone stops).
+    after_step : callable, optional
+        Called with the model (nuisances included) after each named step; a caller that learns
+        from it that the problem itself must change (the camera's instrument stage) raises, and
+        selects afresh on the new problem.
 
     Returns
     -------
@@ -464,6 +469,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             ambiguous_with=ambiguous))
         maps.append(problem.residual_map(model))
         r, crit = r_new, new_crit
+        if after_step is not None:
+            after_step(model)
     if steps:
         model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
                                       deadline)
