@@ -438,7 +438,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         is fitted on tiles (:mod:`metrology.diagnosis.tiles`), its maps the whole window's.
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
-        as a nuisance, the objective's NA included when the data ask for it (:func:`choose_transfer`).
+        as a nuisance, the objective's NA and the batwing included when the data ask for it
+        (:func:`choose_transfer`: before any fabrication effect, and again with the first one
+        named, the selection restarting when the family grows).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
     cpu_budget_s : float, optional
@@ -512,17 +514,18 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         if transfer is None:
             extras, prior, instrument_stage, noise = stage()
         done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
-        restaged = [transfer is not None]
+        restaged = transfer is not None
 
         def restage(model):
+            nonlocal restaged
             # The stage ran before any fabrication effect, and a large one (a 0.4 um bias, one
             # mask's overlay) hides the instrument's own edge profile. After the first one is
             # named, the stage runs again with it in the model; if it now chooses the objective
             # or the batwing, the selection starts afresh through them.
             fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
-            if restaged[0] or not fab or all(extras.values()):
+            if restaged or not fab or all(extras.values()):
                 return
-            restaged[0] = True
+            restaged = True
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
             if any(again[0][k] and not extras[k] for k in extras):
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
