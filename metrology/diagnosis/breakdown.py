@@ -8,7 +8,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["INSTRUMENT_SHARE", "MASK_AMPLITUDES", "binned", "edge_breakdown", "instrument_signature", "radial_psd", "structure_groups"]
+__all__ = ["INSTRUMENT_SHARE", "MASK_AMPLITUDES", "binned", "edge_breakdown", "instrument_signature", "radial_psd",
+           "shared_profile_gain", "structure_groups"]
 
 # Share of the edge-bound structure a profile common to every mask must hold for the residual to
 # be the instrument's.
@@ -124,7 +125,58 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
         measured), ``odd_share`` (the profile's power in its part odd about the edge), the shared profile per unit step (``profile_per_m_step`` at ``distance_m``)
         and the rms it explains; or None.
     """
-    edges = np.linspace(-3e-6, 3e-6, 25)
+    eq = _edge_equations(residual_map, edge_m, depths_m, keep)
+    if eq is None:
+        return None
+    gram, rhs, fold, nb, nm, r = eq
+    n_col = nm * nb
+    edges = _PROFILE_EDGES_M
+    gain_mask, _ = _explained(gram, rhs)
+    gain_shared, profile = _explained(fold.T @ gram @ fold, fold.T @ rhs)
+    scale = sigma * np.sqrt(max(corr_area_px, 1.0))
+    if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + n_col or gain_shared < share * gain_mask:
+        return None
+    low, high = amplitudes
+    amplitudes = []
+    for j in range(nm):
+        blk = slice(j * nb, (j + 1) * nb)
+        norm2 = float(profile @ gram[blk, blk] @ profile)
+        amplitudes.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
+    measured = [a for a in amplitudes if np.isfinite(a)]
+    inside = sum(low <= a <= high for a in measured)
+    if inside < 2 or (every_mask and inside < len(measured)):
+        return None
+    odd = 0.5 * (profile - profile[::-1])  # the bins are symmetric about the edge
+    return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,
+            "odd_share": float(np.sum(odd ** 2) / max(np.sum(profile ** 2), 1e-300)),
+            "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
+            "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}
+
+
+# Bins of the signed distance to a mask's edge (m) of the instrument's edge profile.
+_PROFILE_EDGES_M = np.linspace(-3e-6, 3e-6, 25)
+
+
+def shared_profile_gain(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
+                        keep: np.ndarray) -> tuple[float, float]:
+    """RSS of a residual and how much of it one binned edge profile shared by every mask
+    (``r = sum_j D_j g(d_j)``, see :func:`instrument_signature`) removes: the most any change
+    of the lateral transfer can remove at the edges (all it does there is such a profile), so
+    a bound on what the instrument's family could still earn. ``(rss, 0)`` where too few pixels."""
+    ok = keep & np.isfinite(residual_map)
+    rss = float(np.sum(residual_map[ok] ** 2))
+    eq = _edge_equations(residual_map, edge_m, depths_m, keep)
+    if eq is None:
+        return rss, 0.0
+    gram, rhs, fold = eq[:3]
+    return rss, _explained(fold.T @ gram @ fold, fold.T @ rhs)[0]
+
+
+def _edge_equations(residual_map, edge_m, depths_m, keep):
+    """Normal equations of the per-mask edge profiles (one column per mask and distance bin,
+    scaled by the mask's depth) on the residual, the fold that sums them into one shared
+    profile, the bin and mask counts and the residual's values; None where too few pixels."""
+    edges = _PROFILE_EDGES_M
     ok = keep & np.isfinite(residual_map)
     r = residual_map[ok]
     nb, nm = len(edges) - 1, len(edge_m)
@@ -153,30 +205,13 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     rhs *= depth_of
     # The shared model's columns are the sums of the masks' columns of the same bin.
     fold = np.tile(np.eye(nb), (nm, 1))
+    return gram, rhs, fold, nb, nm, r
 
-    def explained(g, b):
-        used = np.diag(g) > 0
-        coef = np.zeros(b.size)
-        coef[used] = np.linalg.lstsq(g[np.ix_(used, used)], b[used], rcond=None)[0]
-        return float(b @ coef), coef
 
-    gain_mask, _ = explained(gram, rhs)
-    gain_shared, profile = explained(fold.T @ gram @ fold, fold.T @ rhs)
-    scale = sigma * np.sqrt(max(corr_area_px, 1.0))
-    if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + n_col or gain_shared < share * gain_mask:
-        return None
-    low, high = amplitudes
-    amplitudes = []
-    for j in range(nm):
-        blk = slice(j * nb, (j + 1) * nb)
-        norm2 = float(profile @ gram[blk, blk] @ profile)
-        amplitudes.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
-    measured = [a for a in amplitudes if np.isfinite(a)]
-    inside = sum(low <= a <= high for a in measured)
-    if inside < 2 or (every_mask and inside < len(measured)):
-        return None
-    odd = 0.5 * (profile - profile[::-1])  # the bins are symmetric about the edge
-    return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,
-            "odd_share": float(np.sum(odd ** 2) / max(np.sum(profile ** 2), 1e-300)),
-            "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
-            "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}
+def _explained(g, b):
+    """RSS reduction and coefficients of the least squares with normal equations ``g x = b``
+    (columns that no pixel reaches left out)."""
+    used = np.diag(g) > 0
+    coef = np.zeros(b.size)
+    coef[used] = np.linalg.lstsq(g[np.ix_(used, used)], b[used], rcond=None)[0]
+    return float(b @ coef), coef

@@ -318,7 +318,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
                   prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None,
-                  after_step: Callable[[dict[str, np.ndarray]], None] | None = None) -> Diagnosis:
+                  after_step: Callable[[dict[str, np.ndarray], list[Step]], None] | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
@@ -347,16 +347,16 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         score stays that step's). The close candidates are refitted in full either way.
     prior : dict, optional
         A model of the same data from an earlier pass (e.g. before the robust rule re-admitted
-        pixels): the nuisances and each candidate start from its values instead of the null
-        ones. The selection itself is made afresh.
+        pixels, or the instrument stage's joint fit): the nuisances and each candidate start
+        from its values instead of the null ones. The selection itself is made afresh.
     cpu_budget_s : float, optional
         CPU seconds (:func:`cpu_seconds`, workers included) the selection may spend: past them
         no further round of candidates and no further revision starts, and the diagnosis says
         so (``stopped_early``). Default: no budget (the criterion alone stops).
     after_step : callable, optional
-        Called with the model (nuisances included) after each named step; a caller that learns
-        from it that the problem itself must change (the camera's instrument stage) raises, and
-        selects afresh on the new problem.
+        Called with the model (nuisances included) and the steps so far after each named step;
+        a caller that learns from it that the problem itself must change (the camera's
+        instrument stage) raises, and selects afresh on the new problem.
 
     Returns
     -------
@@ -470,7 +470,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         maps.append(problem.residual_map(model))
         r, crit = r_new, new_crit
         if after_step is not None:
-            after_step(model)
+            after_step(model, steps)
     if steps:
         model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
                                       deadline)

@@ -264,6 +264,27 @@ def test_a_residual_shared_by_every_mask_edge_is_the_instrument_one_masks_is_not
     assert instrument_signature(noise, edge_m, depths, keep, 0.5e-9, 1.0) is None
 
 
+def test_the_shared_edge_profile_gain_holds_the_instruments_part_and_little_of_the_noise():
+    # The instrument stage runs again after the named effects only where one edge profile
+    # shared by every mask would pay for a parameter: its RSS gain must take the instrument's
+    # part and leave white noise its chi-square share (at most 24 bins: 24 sigma^2 on average).
+    from metrology.diagnosis.breakdown import shared_profile_gain
+
+    rng = np.random.default_rng(6)
+    shape, depths = (120, 120), [75e-9, 150e-9, 300e-9, 600e-9]
+    edge_m = _stripes(shape, [7, 11, 17, 23])
+    keep = np.ones(shape, bool)
+    sigma = 0.5e-9
+    noise = sigma * rng.standard_normal(shape)
+    part = sum(D * 0.03 * (d / 0.6e-6) * np.exp(-0.5 * (d / 0.6e-6) ** 2) for D, d in zip(depths, edge_m))
+    rss, gain = shared_profile_gain(part + noise, edge_m, depths, keep)
+    assert rss == pytest.approx(np.sum((part + noise) ** 2))
+    assert gain == pytest.approx(np.sum(part ** 2), rel=0.05)
+    gains = [shared_profile_gain(sigma * rng.standard_normal(shape), edge_m, depths, keep)[1] / sigma ** 2
+             for _ in range(20)]
+    assert 0 < np.mean(gains) < 24 and max(gains) < 24 + 6 * np.sqrt(48)
+
+
 def test_the_instrument_stage_accepts_a_shared_profile_whose_shallow_masks_scatter():
     # After the blur and fill factor were fitted (mostly to the deepest mask's edges), what they
     # leave is shared by the masks but with scattered amplitudes on the shallow ones: the final
@@ -327,3 +348,4 @@ def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
     # The floor read through the objective: the noise the instrument added, not its ringing.
     assert report["noise_floor"] < 1.5 * 0.95e-9
     assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
+

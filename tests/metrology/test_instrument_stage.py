@@ -1,0 +1,91 @@
+"""The instrument stage's choice of the lateral transfer's members (objective, batwing): the
+whole family is fitted first, and the objective alone (which it nests: the batwing can act as
+nothing) only when it could still earn its parameters. The shortcut must choose what fitting
+every combination chooses."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from metrology.diagnosis import camera_nuisance as cn
+from metrology.diagnosis import engine as dg
+from metrology.diagnosis.effects import get_effect
+from metrology.matching.transfer import LateralTransfer
+
+N, CORR_AREA = 10_000, 4.0  # samples and correlation area: n_eff 2500, ln(n_eff) 7.8 per parameter
+
+
+class _Problem:
+    """Just what :func:`choose_transfer` reads of a camera problem with these members."""
+
+    def __init__(self, members):
+        self.members = tuple(m for m in ("objective", "batwing") if m in members)
+        self.nuisance = {cn.CAMERA.name: cn.CAMERA}
+        if "objective" in members:
+            self.nuisance[cn.OBJECTIVE.name] = cn.OBJECTIVE
+        if "batwing" in members:
+            self.nuisance[cn.BATWING] = get_effect(cn.BATWING)
+        self.noise = SimpleNamespace(corr_area_px=CORR_AREA)
+
+    def residual(self, model):
+        return np.zeros(N)
+
+    def transfer_of(self, model):
+        return LateralTransfer(0.4e-6, 1.0, 0.0, 0.55e-6)
+
+
+def _choose(monkeypatch, rss_of):
+    """Run the stage with each combination's RSS given; return its choice and the combinations fitted."""
+    fitted = []
+
+    def fit(problem, start, free, **kw):
+        fitted.append(problem.members)
+        return dict(start), rss_of[problem.members], {}
+
+    monkeypatch.setattr(dg, "fit_effects", fit)
+    held = {"mask_overlay": np.zeros(3)}  # named effects held: the members are always tried
+    chosen, _, changes = cn.choose_transfer(lambda objective, batwing: _Problem(
+        [m for m, on in (("objective", objective), ("batwing", batwing)) if on]), 10.0, held)
+    return tuple(m for m in ("objective", "batwing") if chosen[m]), fitted, changes
+
+
+def _exhaustive(rss_of, threshold=10.0):
+    """The choice from every combination's criterion (the rule before the shortcut)."""
+    n_eff = N / CORR_AREA
+    crit = {m: dg.bic_eff(rss, N, n_eff, 7 + cn.member_params(m)) for m, rss in rss_of.items()}
+    return cn.earned_members({m: c for m, c in crit.items() if m}, crit[()], threshold)
+
+
+def test_a_family_that_adds_nothing_costs_the_whole_only(monkeypatch):
+    # Each member barely lowers the RSS: the whole's gain is less than one parameter's penalty.
+    rss = {(): 1.0, ("objective",): 0.9995, ("batwing",): 0.9996, ("objective", "batwing"): 0.9993}
+    chosen, fitted, changes = _choose(monkeypatch, rss)
+    assert chosen == () == _exhaustive(rss)
+    # The whole from the objective's two starts and the batwing alone, not the objective alone.
+    assert set(fitted) == {(), ("objective", "batwing"), ("batwing",)}
+    assert sorted(changes) == ["batwing", "objective+batwing"]
+
+
+def test_a_member_that_earns_is_found_beside_the_whole(monkeypatch):
+    # The objective alone earns; the batwing adds nothing beside it.
+    rss = {(): 1.0, ("objective",): 0.95, ("batwing",): 0.999, ("objective", "batwing"): 0.9499}
+    chosen, fitted, _ = _choose(monkeypatch, rss)
+    assert chosen == ("objective",) == _exhaustive(rss)
+    assert {("objective",), ("batwing",)} <= set(fitted)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_shortcut_chooses_what_every_combination_chooses(monkeypatch, seed):
+    # The objective alone nested in the whole (its RSS at least the whole's); the batwing alone
+    # not (no aperture is no objective). Gains from nothing to many parameters' worth.
+    rng = np.random.default_rng(seed)
+    gain = rng.choice([1e-4, 1e-3, 5e-3, 2e-2])
+    whole = 1.0 - gain * rng.random()
+    rss = {(): 1.0, ("objective", "batwing"): whole, ("objective",): whole + (1.0 - whole) * rng.random(),
+           ("batwing",): 1.0 - gain * rng.random()}
+    chosen, fitted, _ = _choose(monkeypatch, rss)
+    assert chosen == _exhaustive(rss)
+    assert ("batwing",) in fitted
+    if ("objective",) not in fitted:  # skipped only where it could not have earned
+        assert _exhaustive({(): 1.0, ("objective",): rss[("objective",)]}) == ()
