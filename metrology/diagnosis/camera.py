@@ -66,13 +66,14 @@ RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
 RESTAGE_SHARE = 0.5
+# A restart's CPU time over the pass's before it (stage, nuisance fit, first step: 4-6x on CSI files).
+RESTAGE_COST = 5.0
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
 
 class _Restage(Exception):
-    """The instrument stage, run again with the fabrication effects named, chose more of the
-    family: the selection restarts through it (the stage's result is the argument)."""
+    """The stage, run again with the effects named, chose more of the family (its result: the argument)."""
 
 
 class CameraHeightProblem(dg.Problem):
@@ -410,11 +411,6 @@ class CameraHeightProblem(dg.Problem):
         return instrument_signature(residual_map, self.edge_m, self.base.etch_depth, self.keep, self.noise.sigma,
                                     self.noise.corr_area_px, **kw)
 
-    def shared_profile_gain(self, residual_map: np.ndarray) -> tuple[float, float]:
-        """RSS of the residual and what one edge profile shared by every mask removes of it
-        (:func:`.breakdown.shared_profile_gain`)."""
-        return shared_profile_gain(residual_map, self.edge_m, self.base.etch_depth, self.keep)
-
     def placement_report(self, model: dict[str, np.ndarray], errors: dict[str, np.ndarray] | None = None) -> dict:
         """The refined placement and the lateral transfer, with uncertainties (NaN where held)."""
         return placement_report(self, model, errors)
@@ -466,7 +462,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
 
     # Small linear algebra: BLAS threads would only spin beside the renders and forked workers.
     with threadpool_limits(limits=1, user_api="blas"):
-        deadline = None if cpu_budget_s is None else dg.cpu_seconds() + float(cpu_budget_s)
+        cpu0 = dg.cpu_seconds()
+        deadline = None if cpu_budget_s is None else cpu0 + float(cpu_budget_s)
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)
@@ -524,30 +521,35 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             extras, prior, instrument_stage, noise = stage()
         done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
+        skipped_restage = []  # the budget left when the stage was not run again for want of it
 
         def restage(model, steps):
             nonlocal restaged
             # The stage ran before any fabrication effect, and a large one (a 0.4 um bias, one
-            # mask's overlay) hides the instrument's own edge profile. Once the effects named
-            # hold most of what the stage saw, the stage runs again with them in the model; if
-            # it now chooses the objective or the batwing, the selection starts afresh through
-            # them. Effects that hold less cannot have hidden the profile from it.
+            # mask's overlay) hides the instrument's edge profile. Once the effects named hold
+            # most of what the stage saw, it runs again with them in the model; if it now chooses
+            # the objective or the batwing, the selection starts afresh through them.
             fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
-            if restaged or not fab or all(extras.values()):
+            if (restaged or not fab or all(extras.values())
+                    or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
                 return
-            if steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2:
-                return
-            # Nor where what they leave holds no edge profile shared by every mask that would pay
-            # for one parameter of the family (what a lateral transfer leaves at the edges is
-            # such a profile). A screen, not a bound: the family's joint refit earns more than the
-            # profile fitted alone (-1082 against -472 on a CSI overlay).
-            rss, gain = problem.shared_profile_gain(fit.residual_map(model))
+            # Nor where what they leave holds no edge profile shared by every mask (what a lateral
+            # transfer leaves at edges) that would pay for one parameter: a screen, not a bound (the
+            # family's joint refit earned -1082 where the profile alone made -472 on a CSI overlay).
+            rss, gain = shared_profile_gain(fit.residual_map(model), problem.edge_m, problem.base.etch_depth,
+                                            problem.keep)
             n_eff = max(np.count_nonzero(problem.keep) / problem.noise.corr_area_px, 2.0)
             bound = n_eff * np.log(max(rss - gain, 1e-300) / rss) + np.log(n_eff)
             log.info("after %s: a shared edge profile would change the criterion by %.1f", sorted(fab), bound)
             if bound >= -threshold:
                 return
             restaged = True
+            # A budget that cannot pay a restart goes on with the family it has (a cut one names nothing).
+            now = dg.cpu_seconds()
+            if deadline is not None and deadline - now < RESTAGE_COST * (now - cpu0):
+                log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
+                skipped_restage.append(round(deadline - now, 1))
+                return
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
             if any(again[0][k] and not extras[k] for k in extras):
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
@@ -591,6 +593,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
             diag.placement["instrument"]["criterion_change"] = instrument_stage
+        if skipped_restage:
+            diag.placement["instrument"]["stage_not_rerun_budget_left_cpu_s"] = skipped_restage[0]
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag

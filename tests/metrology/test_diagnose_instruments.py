@@ -322,12 +322,8 @@ def test_the_instrument_stage_accepts_a_shared_profile_whose_shallow_masks_scatt
     assert instrument_signature(one_mask, edge_m, depths, keep, 0.5e-9, 1.0, every_mask=False, **kw) is None
 
 
-@pytest.mark.slow
-def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
-    # A 0.4 um bias hid the CSI's own edge profile from the instrument stage, which runs before
-    # any fabrication effect: blur and fill factor stood in for the objective, whose long spread
-    # then came back as a false etch depth of 1-2 % (benchmarks, CSI seed 278259765). The stage
-    # now runs again with the bias in the model and chooses the objective.
+def _csi_bias():
+    """A 0.4 um linewidth bias measured by the tests' coherence-scanning interferometer."""
     from instruments import csi
 
     rng = np.random.default_rng(7)
@@ -337,8 +333,16 @@ def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
                                np.random.default_rng(8), pixel_m=1.03e-6, header_pixel_m=1.035e-6, rotation_deg=0.4,
                                na=0.32, wavelength_m=0.589e-6, fill=0.6, batwing=0.06, batwing_width_m=0.28e-6,
                                noise_m=0.95e-9)
-    case = filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=7)
-    report = _diagnose(case, tmp_path, "--window-px", "96", "--cpu-budget-s", "1000",
+    return filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=7)
+
+
+@pytest.mark.slow
+def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
+    # A 0.4 um bias hid the CSI's own edge profile from the instrument stage, which runs before
+    # any fabrication effect: blur and fill factor stood in for the objective, whose long spread
+    # then came back as a false etch depth of 1-2 % (benchmarks, CSI seed 278259765). The stage
+    # now runs again with the bias in the model and chooses the objective.
+    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "1000",
                        "--effects", "linewidth_bias,etch_depth,etch_loading,batwing")
     assert _fabrication(report) == ["linewidth_bias"]
     step = next(s for s in report["steps"] if s["effect"] == "linewidth_bias")
@@ -349,3 +353,13 @@ def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
     assert report["noise_floor"] < 1.5 * 0.95e-9
     assert report["final_residual_rms"] <= 1.3 * report["noise_floor"]
 
+
+@pytest.mark.slow
+def test_a_budget_that_cannot_pay_a_restart_keeps_what_the_first_pass_named(tmp_path):
+    # The stage would run again after the bias (it hid the objective) and restart the selection,
+    # but 40 CPU s cannot pay for that: a restart cut short by the budget named nothing (80x the
+    # floor). The pass goes on with blur and fill factor and says the stage was not run again.
+    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "40",
+                       "--effects", "linewidth_bias,etch_depth,etch_loading,batwing")
+    assert "linewidth_bias" in _fabrication(report)
+    assert report["inputs"]["placement"]["instrument"]["stage_not_rerun_budget_left_cpu_s"] > 0
