@@ -357,9 +357,13 @@ def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
 @pytest.mark.slow
 def test_a_budget_that_cannot_pay_a_restart_keeps_what_the_first_pass_named(tmp_path):
     # The stage would run again after the bias (it hid the objective) and restart the selection,
-    # but 40 CPU s cannot pay for that: a restart cut short by the budget named nothing (80x the
-    # floor). The pass goes on with blur and fill factor and says the stage was not run again.
+    # but 40 CPU s cannot pay for that: a restart cut short by the budget named nothing and
+    # judged nothing (80x the floor). The pass goes on with blur and fill factor and says the stage
+    # was not run again. How far it gets within the budget depends on the machine's load: on an
+    # idle one it names the bias (and a false etch depth: the objective it lacks) at 1.1x the
+    # floor; under load the budget ends it at 26x and the bias is kept as a partial match.
     report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "40",
                        "--effects", "linewidth_bias,etch_depth,etch_loading,batwing")
-    assert "linewidth_bias" in _fabrication(report)
+    judged = _fabrication(report) + [p["effect"] for p in report["partial_matches"]]
+    assert "linewidth_bias" in judged
     assert report["inputs"]["placement"]["instrument"]["stage_not_rerun_budget_left_cpu_s"] > 0
