@@ -13,7 +13,9 @@ with the fork context it forks its workers on demand while its own feeder and ma
 run. That lost a task about twice in 90 diagnoses (the parent waiting for a result, the worker
 waiting for a task). Here every worker is forked before any task is handed out, the parent
 hands out the next index to whichever worker answers (dynamic balance, as the pool had), and a
-worker that dies is an error naming it, not a wait.
+worker that dies is an error naming it, not a wait. The other hang seen (once in 30 CSI
+diagnoses) was in ``fork()`` itself, in scipy.fft's thread pool's fork handler: no FFT of the
+diagnosis starts that pool (:mod:`metrology.matching.instrument`, registration).
 """
 
 from __future__ import annotations

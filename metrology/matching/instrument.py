@@ -66,9 +66,10 @@ MAX_BLUR_M = 1.5e-6
 # Fine cells between any pixel read and a cell the FFT's circular convolution wrapped around:
 # the spline prefilter's decay (0.268^24 ~ 2e-14) plus the cubic spline's support.
 _WRAP_GUARD = 26
-# FFT threads for camera maps of at least FFT_THREADS_MIN_PX samples.
-FFT_WORKERS = 2
-FFT_THREADS_MIN_PX = 2 ** 22
+# No FFT here starts scipy.fft's thread pool (``workers`` > 1): once started, the pool shuts down
+# and restarts around every fork (pthread_atfork), and a fork soon after a restart can lose the
+# shutdown's wake-up, leaving the process in fork() for ever (pocketfft's prefork handler joining a
+# pool thread that waits for work: once in 30 CSI diagnoses, each of which forks hundreds of times).
 # Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
 # all four masks of one model on a whole 512 px field (210 MB each in float64).
 ETCH_CACHE_BYTES = 1024 * 2 ** 20
@@ -357,7 +358,7 @@ class InstrumentModel:
             product *= factor
         # A view: the spline sampler reads strided arrays as they are (a copy cost ~0.4 s a map
         # on a whole 512 px field).
-        return sfft.irfft2(product, s=shape, workers=self._fft_workers(product.size * 2))[h:h + rows, h:h + cols]
+        return sfft.irfft2(product, s=shape)[h:h + rows, h:h + cols]
 
     def fourier_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Angular frequencies (radians per fine cell) of :meth:`spectrum`'s rows and columns."""
@@ -393,7 +394,7 @@ class InstrumentModel:
         buf[h + rows:, h:h + cols] = buf[h + rows - 1, h:h + cols]
         buf[:, :h] = buf[:, h:h + 1]
         buf[:, h + cols:] = buf[:, h + cols - 1:h + cols]
-        return sfft.rfft2(buf, workers=self._fft_workers(buf.size))
+        return sfft.rfft2(buf)
 
     def _padding(self):
         """Pad (fine cells of edge values around the window) and FFT shape.
@@ -406,12 +407,6 @@ class InstrumentModel:
         h = _WRAP_GUARD
         rows, cols = self._fine_shape()
         return h, (sfft.next_fast_len(rows + 2 * h, real=True), sfft.next_fast_len(cols + 2 * h, real=True))
-
-    @staticmethod
-    def _fft_workers(size):
-        # Both cores on a large window (a whole 512 px field); one on a small one, whose many
-        # maps are cheaper without the threads' overhead.
-        return FFT_WORKERS if size >= FFT_THREADS_MIN_PX else 1
 
     def _reach(self, transfer):
         """Fine cells the lateral transfer reaches from a pixel centre: the footprint kernel's
@@ -439,7 +434,7 @@ class InstrumentModel:
             # kernel flipped, centred at index 0 (offset d at index d mod the shape).
             offsets = np.arange(-k, k + 1)
             wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
-            spectrum = sfft.rfft2(wrapped, workers=self._fft_workers(wrapped.size), overwrite_x=True)
+            spectrum = sfft.rfft2(wrapped, overwrite_x=True)
             wr, wc = self.fourier_grid()
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]

@@ -316,12 +316,12 @@ def _normalized_xcorr(image, template, valid):
     t = np.where(valid, template - template[valid].mean(), 0.0)
     t_norm = np.sqrt(np.sum(t * t))
     shape = (sfft.next_fast_len(H + h - 1), sfft.next_fast_len(W + w - 1))
-    f_img = sfft.rfft2(image, shape, workers=-1)
-    f_img2 = sfft.rfft2(image * image, shape, workers=-1)
+    f_img = sfft.rfft2(image, shape)
+    f_img2 = sfft.rfft2(image * image, shape)
 
     def corr(f_a, b):
         # Cross-correlation sum_k a[i + k] b[k] via the flipped kernel.
-        full = sfft.irfft2(f_a * sfft.rfft2(b[::-1, ::-1], shape, workers=-1), shape, workers=-1)
+        full = sfft.irfft2(f_a * sfft.rfft2(b[::-1, ::-1], shape), shape)
         return full[h - 1:H, w - 1:W]
 
     num = corr(f_img, t)

@@ -93,3 +93,35 @@ def test_an_early_close_stops_the_workers(no_new_children):
     gen = forked_map(lambda i: time.sleep(0.05 * (i > 0)) or i, range(40), workers=2)
     assert next(gen) == 0
     gen.close()
+
+
+def test_registration_and_camera_maps_never_start_scipys_fft_thread_pool():
+    # scipy.fft's thread pool, once started, shuts down and restarts around every fork; a fork soon
+    # after a restart can hang for ever in pocketfft's prefork handler (a CSI diagnosis did, once in
+    # 30). The FFTs every diagnosis runs before and between its forks (registration, camera maps of
+    # a field large enough that they were threaded) start no thread in a fresh process.
+    import subprocess
+    import sys
+
+    code = """
+import os
+import numpy as np
+from masks.process import ProcessParams
+from metrology.matching.instrument import InstrumentModel, Placement
+from metrology.matching.register import _normalized_xcorr
+
+before = len(os.listdir("/proc/self/task"))
+rng = np.random.default_rng(0)
+image = rng.standard_normal((600, 600))
+_normalized_xcorr(image, image[100:400, 100:400], np.ones((300, 300), bool))
+model = InstrumentModel(rng.integers(0, 16, (60, 60)), 5.4e-6, (256, 256), Placement(np.eye(2) * 0.19, np.array([5.0, 5.0])))
+fine = model.fine_surface(ProcessParams.ideal())
+assert fine.size >= 2 ** 22, fine.shape
+model.camera_map(fine, 0.4e-6)
+print(before, len(os.listdir("/proc/self/task")))
+"""
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("no /proc task list here")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    before, after = map(int, out.stdout.split())
+    assert after == before
