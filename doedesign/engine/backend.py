@@ -84,23 +84,26 @@ class Backend:
         matrices, labels, indices) must be this backend's arrays too (:meth:`asarray`)."""
         return self._ndimage
 
-    # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads.
+    # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads. One by
+    # default: scipy.fft's thread pool, once started, restarts around every fork, and a fork soon
+    # after a restart can hang in its fork handler; the diagnosis forks hundreds of times, in the
+    # same process as a design or a PSF prediction (``doe demo``, a test run).
     def _threads(self, workers: int) -> dict:
         return {"workers": workers} if self.is_numpy else {}
 
-    def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
+    def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = 1) -> Array:
         return self._fft.fft(x, n=n, axis=axis, **self._threads(workers))
 
-    def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = -1) -> Array:
+    def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = 1) -> Array:
         return self._fft.ifft(x, n=n, axis=axis, **self._threads(workers))
 
-    def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
+    def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
         return self._fft.fftn(x, s=s, axes=axes, **self._threads(workers))
 
-    def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
+    def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
         return self._fft.ifftn(x, s=s, axes=axes, **self._threads(workers))
 
-    def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = -1) -> Array:
+    def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
         return self._fft.rfftn(x, s=s, axes=axes, **self._threads(workers))
 
 def numpy_backend() -> Backend:

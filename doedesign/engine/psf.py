@@ -321,7 +321,7 @@ class PSFEngine:
             self._kernel_cache[key] = value
 
 
-    def _view_psf(self, view, height_m, wavelength, depth, precision="double", fft_workers=-1):
+    def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
         """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.engine.lags.paired_lags`.
 
         ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
@@ -337,7 +337,7 @@ class PSFEngine:
             energy = self._energy[view]  # a phase does not change it
             if precision == "single":
                 t = self.xp.astype(t, self.xp.complex64)
-            lags = paired_lags(t, self.backend, fft_workers) + (energy,)
+            lags = paired_lags(t, self.backend) + (energy,)
             if view == "uncoded" and self._opd[float(depth)] is None:
                 self._lag_cache[key] = lags
         s, d, n_fft, energy = lags
@@ -397,7 +397,7 @@ class PSFEngine:
                             dtype=self.xp.float64)
         tasks = [(di, wi) for di in range(self.depths_m.size) for wi in range(self.wavelengths_m.size)]
 
-        def channel(task, fft_workers=-1 if threads <= 1 else 1):
+        def channel(task):
             # Views innermost: both use the same wavelength's kernels while they are cached.
             di, wi = task
             depth, wl = self.depths_m[di], self.wavelengths_m[wi]
@@ -405,10 +405,10 @@ class PSFEngine:
                 if view == "uncoded":
                     key = (float(depth), float(wl), self.precision)
                     if key not in self._uncoded_cache:
-                        self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
+                        self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)
                     out[vi, di, wi, ...] = self._uncoded_cache[key]
                 else:
-                    out[vi, di, wi, ...] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
+                    out[vi, di, wi, ...] = self._view_psf(view, h, wl, depth, self.precision)
             return len(views)
 
         # The first channel alone: it fills the lag cache the others may share. Threads are
@@ -416,7 +416,7 @@ class PSFEngine:
         blas = threadpool_limits(limits=1, user_api="blas") if threads > 1 else contextlib.nullcontext()
         with blas, ThreadPoolExecutor(max(1, threads)) as pool:
             mapper = pool.map if threads > 1 else map
-            for n in itertools.chain([channel(tasks[0], -1)], mapper(channel, tasks[1:])):
+            for n in itertools.chain([channel(tasks[0])], mapper(channel, tasks[1:])):
                 if progress is not None:
                     progress.update(n)
         return out

@@ -98,8 +98,9 @@ def test_an_early_close_stops_the_workers(no_new_children):
 def test_registration_and_camera_maps_never_start_scipys_fft_thread_pool():
     # scipy.fft's thread pool, once started, shuts down and restarts around every fork; a fork soon
     # after a restart can hang for ever in pocketfft's prefork handler (a CSI diagnosis did, once in
-    # 30). The FFTs every diagnosis runs before and between its forks (registration, camera maps of
-    # a field large enough that they were threaded) start no thread in a fresh process.
+    # 30; a test worker in CI did, after PSF tests). The FFTs a process may run before the diagnosis
+    # forks (registration, camera maps of a large field, the PSF engine's transforms and lags) start
+    # no thread in a fresh process.
     import subprocess
     import sys
 
@@ -118,6 +119,11 @@ model = InstrumentModel(rng.integers(0, 16, (60, 60)), 5.4e-6, (256, 256), Place
 fine = model.fine_surface(ProcessParams.ideal())
 assert fine.size >= 2 ** 22, fine.shape
 model.camera_map(fine, 0.4e-6)
+from doedesign.engine.backend import numpy_backend
+from doedesign.engine.lags import paired_lags
+backend = numpy_backend()
+x = rng.standard_normal((512, 512))
+backend.fftn(x), backend.rfftn(x), backend.fft(x), paired_lags(x, backend)
 print(before, len(os.listdir("/proc/self/task")))
 """
     if not os.path.isdir("/proc/self/task"):
