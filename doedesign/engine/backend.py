@@ -85,9 +85,11 @@ class Backend:
         return self._ndimage
 
     # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads. One by
-    # default: scipy.fft's thread pool, once started, restarts around every fork, and a fork soon
-    # after a restart can hang in its fork handler; the diagnosis forks hundreds of times, in the
-    # same process as a design or a PSF prediction (``doe demo``, a test run).
+    # default: scipy.fft's thread pool, once started, shuts down and restarts around every fork
+    # (pthread_atfork), and a fork soon after a restart can lose the shutdown's wake-up and wait in
+    # fork() for ever (pocketfft's prefork handler joining an idle pool thread: a CSI diagnosis
+    # once in 30, a CI test worker after PSF tests). The diagnosis forks hundreds of times, in
+    # the same process as a design or a PSF prediction (``doe demo``, a test run).
     def _threads(self, workers: int) -> dict:
         return {"workers": workers} if self.is_numpy else {}
 

@@ -66,10 +66,8 @@ MAX_BLUR_M = 1.5e-6
 # Fine cells between any pixel read and a cell the FFT's circular convolution wrapped around:
 # the spline prefilter's decay (0.268^24 ~ 2e-14) plus the cubic spline's support.
 _WRAP_GUARD = 26
-# No FFT here starts scipy.fft's thread pool (``workers`` > 1): once started, the pool shuts down
-# and restarts around every fork (pthread_atfork), and a fork soon after a restart can lose the
-# shutdown's wake-up, leaving the process in fork() for ever (pocketfft's prefork handler joining a
-# pool thread that waits for work: once in 30 CSI diagnoses, each of which forks hundreds of times).
+# No FFT here starts scipy.fft's thread pool (``workers`` > 1): it can hang the diagnosis's forks
+# (the reason, measured: :class:`doedesign.engine.backend.Backend`'s FFTs).
 # Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
 # all four masks of one model on a whole 512 px field (210 MB each in float64).
 ETCH_CACHE_BYTES = 1024 * 2 ** 20
