@@ -82,6 +82,10 @@ def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], level
     return out
 
 
+# Bins of the signed distance to a mask's edge (m) of the instrument's edge profile.
+_PROFILE_EDGES_M = np.linspace(-3e-6, 3e-6, 25)
+
+
 def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
                          keep: np.ndarray, sigma: float, corr_area_px: float,
                          share: float = INSTRUMENT_SHARE,
@@ -153,23 +157,18 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
             "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}
 
 
-# Bins of the signed distance to a mask's edge (m) of the instrument's edge profile.
-_PROFILE_EDGES_M = np.linspace(-3e-6, 3e-6, 25)
-
-
 def shared_profile_gain(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
                         keep: np.ndarray) -> tuple[float, float]:
     """RSS of a residual and how much of it one binned edge profile shared by every mask
-    (``r = sum_j D_j g(d_j)``, see :func:`instrument_signature`) removes: the most any change
-    of the lateral transfer can remove at the edges (all it does there is such a profile), so
-    a bound on what the instrument's family could still earn. ``(rss, 0)`` where too few pixels."""
-    ok = keep & np.isfinite(residual_map)
-    rss = float(np.sum(residual_map[ok] ** 2))
+    (``r = sum_j D_j g(d_j)``, see :func:`instrument_signature`) removes. What a wrong lateral
+    transfer leaves at straight edges is such a profile, so this screens whether the instrument's
+    family has anything left to earn; not a bound (the family's joint refit, which moves the
+    placement and the named effects too, can earn more). ``(rss, 0)`` where too few pixels."""
     eq = _edge_equations(residual_map, edge_m, depths_m, keep)
     if eq is None:
-        return rss, 0.0
-    gram, rhs, fold = eq[:3]
-    return rss, _explained(fold.T @ gram @ fold, fold.T @ rhs)[0]
+        return float(np.sum(residual_map[keep & np.isfinite(residual_map)] ** 2)), 0.0
+    gram, rhs, fold, _, _, r = eq
+    return float(np.sum(r ** 2)), _explained(fold.T @ gram @ fold, fold.T @ rhs)[0]
 
 
 def _edge_equations(residual_map, edge_m, depths_m, keep):

@@ -521,10 +521,10 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             extras, prior, instrument_stage, noise = stage()
         done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
-        skipped_restage = []  # the budget left when the stage was not run again for want of it
+        skipped_restage = None  # the budget left when the stage was not run again for want of it
 
         def restage(model, steps):
-            nonlocal restaged
+            nonlocal restaged, skipped_restage
             # The stage ran before any fabrication effect, and a large one (a 0.4 um bias, one
             # mask's overlay) hides the instrument's edge profile. Once the effects named hold
             # most of what the stage saw, it runs again with them in the model; if it now chooses
@@ -548,7 +548,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             now = dg.cpu_seconds()
             if deadline is not None and deadline - now < RESTAGE_COST * (now - cpu0):
                 log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
-                skipped_restage.append(round(deadline - now, 1))
+                skipped_restage = round(deadline - now, 1)
                 return
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
             if any(again[0][k] and not extras[k] for k in extras):
@@ -593,8 +593,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
             diag.placement["instrument"]["criterion_change"] = instrument_stage
-        if skipped_restage:
-            diag.placement["instrument"]["stage_not_rerun_budget_left_cpu_s"] = skipped_restage[0]
+        if skipped_restage is not None:
+            diag.placement["instrument"]["stage_not_rerun_budget_left_cpu_s"] = skipped_restage
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         return diag
