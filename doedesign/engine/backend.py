@@ -6,8 +6,8 @@ only what the standard defines (plus the FFTs below), so the same code runs on N
 and on ``array_api_strict``, a namespace that refuses everything outside the standard (the tests
 run the engine on it, so a NumPy-only call fails on a CPU machine before it fails on a GPU).
 
-A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`` with its
-thread count on NumPy (faster than NumPy's own), ``cupyx.scipy.fft`` on CuPy (cuFFT plans
+A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`` on NumPy
+(faster than NumPy's own), split over short-lived threads (:mod:`.threaded_fft`), ``cupyx.scipy.fft`` on CuPy (cuFFT plans
 cached), the standard's ``xp.fft`` elsewhere. Written here because no library does this choice:
 ``array_api_compat`` gives the namespace but not the fastest FFT of each library. The same holds
 for the image filters the process model needs (:attr:`Backend.ndimage`): ``scipy.ndimage`` on
@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DoeError
+from . import threaded_fft
 
 __all__ = ["DEVICES", "Array", "Backend", "gpu_unavailable_reason", "numpy_backend", "select_backend", "strict_backend"]
 
@@ -56,6 +57,8 @@ class Backend:
     device: str
     _fft: Any = None
     _ndimage: Any = None
+    #: Threads of a CPU FFT (:mod:`.threaded_fft`); one elsewhere.
+    fft_threads: int = 1
 
     @property
     def is_numpy(self) -> bool:
@@ -84,29 +87,29 @@ class Backend:
         matrices, labels, indices) must be this backend's arrays too (:meth:`asarray`)."""
         return self._ndimage
 
-    # FFTs: scipy.fft's signatures, ``workers`` used only where the library has threads. One by
-    # default: scipy.fft's thread pool, once started, shuts down and restarts around every fork
-    # (pthread_atfork), and a fork soon after a restart can lose the shutdown's wake-up and wait in
-    # fork() for ever (pocketfft's prefork handler joining an idle pool thread: a CSI diagnosis
-    # once in 30, a CI test worker after PSF tests). The diagnosis forks hundreds of times, in
-    # the same process as a design or a PSF prediction (``doe demo``, a test run).
-    def _threads(self, workers: int) -> dict:
-        return {"workers": workers} if self.is_numpy else {}
+    # FFTs: scipy.fft's signatures. On NumPy, :mod:`.threaded_fft` with ``workers`` threads
+    # (default :attr:`fft_threads`), never scipy.fft's own thread pool (not fork-safe: see there);
+    # the other libraries schedule their own work.
+    def _transform(self, name: str, x: Array, workers: int | None, **shape) -> Array:
+        if self.is_numpy:
+            return getattr(threaded_fft, name)(x, threads=self.fft_threads if workers is None else workers, **shape)
+        return getattr(self._fft, name)(x, **shape)
 
-    def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = 1) -> Array:
-        return self._fft.fft(x, n=n, axis=axis, **self._threads(workers))
+    def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int | None = None) -> Array:
+        return self._transform("fft", x, workers, n=n, axis=axis)
 
-    def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int = 1) -> Array:
-        return self._fft.ifft(x, n=n, axis=axis, **self._threads(workers))
+    def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int | None = None) -> Array:
+        return self._transform("ifft", x, workers, n=n, axis=axis)
 
-    def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
-        return self._fft.fftn(x, s=s, axes=axes, **self._threads(workers))
+    def fftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int | None = None) -> Array:
+        return self._transform("fftn", x, workers, s=s, axes=axes)
 
-    def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
-        return self._fft.ifftn(x, s=s, axes=axes, **self._threads(workers))
+    def ifftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int | None = None) -> Array:
+        return self._transform("ifftn", x, workers, s=s, axes=axes)
 
-    def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int = 1) -> Array:
-        return self._fft.rfftn(x, s=s, axes=axes, **self._threads(workers))
+    def rfftn(self, x: Array, s: tuple | None = None, axes: tuple | None = None, workers: int | None = None) -> Array:
+        return self._transform("rfftn", x, workers, s=s, axes=axes)
+
 
 def numpy_backend() -> Backend:
     """The CPU backend: NumPy arrays (through ``array_api_compat``'s NumPy namespace, which
@@ -114,7 +117,7 @@ def numpy_backend() -> Backend:
     import array_api_compat.numpy as xnp
     import scipy.fft
 
-    return Backend("numpy", xnp, "cpu", scipy.fft, _ndimage())
+    return Backend("numpy", xnp, "cpu", scipy.fft, _ndimage(), threaded_fft.cpu_threads())
 
 
 def strict_backend() -> Backend:

@@ -85,11 +85,11 @@ def _flipped_rows(r, a: int, ly: int, xp):
     return xp.concat([r[0:1, ...], xp.flip(r[ly - a + 1:ly, ...], axis=0)], axis=0)
 
 
-def paired_lags(t: Array, backend: Backend, workers: int = 1) -> tuple[Array, Array, int]:
+def paired_lags(t: Array, backend: Backend, workers: int | None = None) -> tuple[Array, Array, int]:
     """Autocorrelation of ``t`` (times its FFT size) for kx >= 0, paired over +-ky.
 
     ``backend`` is the :class:`~doedesign.engine.backend.Backend` that holds ``t``; ``workers``
-    the FFTs' thread count on the CPU (default one: see :class:`~doedesign.engine.backend.Backend`).
+    the FFTs' thread count on the CPU (default the backend's :attr:`~doedesign.engine.backend.Backend.fft_threads`).
 
     Returns ``(S, D, n_fft)``, ``S`` and ``D`` shaped (2, a, b) each as (real, imaginary) planes, with
     ``S[ky] = C[ky] + C[-ky]`` and ``D[ky] = C[ky] - C[-ky]`` for ky = 0..a-1. Because
