@@ -3,7 +3,8 @@
 # cases on CuPy) and the GPU benchmark rows beside the same engine on that machine's CPU.
 # Usage: benchmarks/gpu_check.sh [OUT_DIR] [bench_gpu options]   (rows in OUT_DIR/gpu_rows.json, log in
 # OUT_DIR/gpu_check.log). Options after OUT_DIR go to benchmarks/bench_gpu.py, e.g. the tolerance row alone
-# on fewer samples (about 2 minutes): benchmarks/gpu_check.sh OUT --rows tolerance --tolerance-samples 200
+# on fewer samples (about 2 minutes): benchmarks/gpu_check.sh OUT --rows tolerance --tolerance-samples 200;
+# the paper setting (about 80 s): benchmarks/gpu_check.sh OUT --rows paper
 # Missing Python packages may be given as wheels in .whl/ (installed to /tmp/site, no network needed);
 # the project itself runs from this checkout (PYTHONPATH), so nothing is built.
 set -euo pipefail

@@ -168,6 +168,7 @@ class PSFEngine:
         self._cache_lock = threading.Lock()  # psf(threads > 1) fills the kernel cache from threads
         self._lag_cache = {} if lag_cache is None else lag_cache
         self._work = {}
+        self._free = None  # (host mask, its backend copy) of value_and_grad_free
 
     # -- geometry -----------------------------------------------------------------------------
     def _aperture_mask(self, aperture):
@@ -321,7 +322,7 @@ class PSFEngine:
             self._kernel_cache[key] = value
 
 
-    def _view_psf(self, view, height_m, wavelength, depth, precision="double"):
+    def _view_psf(self, view, height_m, wavelength, depth, precision="double", fft_workers=None):
         """Pixel-integrated PSF of one view; in the folded form of :func:`~doedesign.engine.lags.paired_lags`.
 
         ``I = Re(Z K_x^T)`` with ``Z = Re K_y S + i Im K_y D`` (lags kx >= 0, Hermitian fold in
@@ -337,7 +338,7 @@ class PSFEngine:
             energy = self._energy[view]  # a phase does not change it
             if precision == "single":
                 t = self.xp.astype(t, self.xp.complex64)
-            lags = paired_lags(t, self.backend) + (energy,)
+            lags = paired_lags(t, self.backend, fft_workers) + (energy,)
             if view == "uncoded" and self._opd[float(depth)] is None:
                 self._lag_cache[key] = lags
         s, d, n_fft, energy = lags
@@ -397,6 +398,9 @@ class PSFEngine:
                             dtype=self.xp.float64)
         tasks = [(di, wi) for di in range(self.depths_m.size) for wi in range(self.wavelengths_m.size)]
 
+        # Wavelengths side by side take one FFT thread each; one at a time, the backend's threads.
+        fft_workers = 1 if threads > 1 else None
+
         def channel(task):
             # Views innermost: both use the same wavelength's kernels while they are cached.
             di, wi = task
@@ -405,10 +409,10 @@ class PSFEngine:
                 if view == "uncoded":
                     key = (float(depth), float(wl), self.precision)
                     if key not in self._uncoded_cache:
-                        self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision)
+                        self._uncoded_cache[key] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
                     out[vi, di, wi, ...] = self._uncoded_cache[key]
                 else:
-                    out[vi, di, wi, ...] = self._view_psf(view, h, wl, depth, self.precision)
+                    out[vi, di, wi, ...] = self._view_psf(view, h, wl, depth, self.precision, fft_workers)
             return len(views)
 
         # The first channel alone: it fills the lag cache the others may share. Threads are
@@ -422,7 +426,7 @@ class PSFEngine:
         return out
 
     def value_and_grad(self, height_m: ArrayLike, loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
-                       full_window: bool = False) -> tuple[float, np.ndarray]:
+                       full_window: bool = False, host: bool = True) -> tuple[float, np.ndarray]:
         """Loss of the coded PSF and its exact (adjoint) gradient with respect to the heights.
 
         A loss with a ``reads`` attribute (:class:`doedesign.optimizer.losses.PixelReads`, as
@@ -438,6 +442,8 @@ class PSFEngine:
             ``(loss, dloss_dpsf)`` with the derivative shaped like ``psf``.
         full_window : bool
             Compute the whole window even when the loss reads only a few pixels.
+        host : bool
+            Return the gradient as a NumPy array (else as an array of the engine's backend).
 
         Returns
         -------
@@ -447,7 +453,8 @@ class PSFEngine:
         h = self._check_height(height_m)
         reads = getattr(loss_fn, "reads", None)
         if reads is not None and not full_window:
-            return self._value_and_grad_reads(h, loss_fn, reads)
+            value, grad = self._value_and_grad_reads(h, loss_fn, reads)
+            return value, self.backend.to_host(grad) if host else grad
         nd, nw = self.depths_m.size, self.wavelengths_m.size
         xp = self.xp
         psf = np.empty((nd, nw) + self.camera.window_shape)
@@ -470,10 +477,31 @@ class PSFEngine:
             d_half = scale * (kern_y.T @ xp.astype(self.backend.asarray(dpsf[di, wi]), xp.complex128) @ kern_x)
             d_half[1:, ...] *= 0.5
             grad_pupil += self._phase_per_m(wl) * phase_gradient(t, d_half, self.backend)
-        return float(loss), self._height_gradient(grad_pupil)
+        grad = self._height_gradient(grad_pupil)
+        return float(loss), self.backend.to_host(grad) if host else grad
+
+    def value_and_grad_free(self, x: ArrayLike, free: np.ndarray, loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
+                            full_window: bool = False) -> tuple[float, Array]:
+        """:meth:`value_and_grad` of the map that holds ``x`` on ``free`` and zero elsewhere, with
+        the gradient on ``free`` only, as a vector of the engine's backend.
+
+        For a design loop whose free heights live on the host (nlopt's): only that vector goes to
+        the device and only its gradient comes back; the map is assembled, and the gradient
+        gathered, where the engine computes. ``free`` is a boolean mask shaped like the map (kept
+        on the device for as long as the same mask is passed); ``x`` a host or backend vector.
+        """
+        xp = self.xp
+        if self._free is None or self._free[0] is not free:
+            self._free = (free, self.backend.asarray(np.asarray(free, dtype=bool)))
+        mask = self._free[1]
+        h = xp.zeros(self.shape, dtype=xp.float64)
+        h[mask] = xp.astype(self.backend.asarray(x), xp.float64)
+        value, grad = self.value_and_grad(h, loss_fn, full_window, host=False)
+        return value, grad[mask]
 
     def _height_gradient(self, grad_pupil):
-        """d loss / d height on the design grid from d loss / d height on the coded view's samples."""
+        """d loss / d height on the design grid (a backend array) from d loss / d height on the coded
+        view's samples."""
         xp = self.xp
         (r0, r1, c0, c1), _ = self._views["coded"]
         grad = xp.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q), dtype=xp.float64)
@@ -481,7 +509,7 @@ class PSFEngine:
         if self.q > 1:
             grad = xp.sum(xp.reshape(grad, (self.grid_shape[0], self.q, self.grid_shape[1], self.q)), axis=(1, 3))
         oy, ox = self._offset
-        return self.backend.to_host(grad[oy:oy + self.shape[0], ox:ox + self.shape[1]])
+        return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
 
     def _read_axes(self, wavelength, rows, cols, energy):
         """Cached :class:`~doedesign.engine.reads.ReadAxis` pair for the coded view."""

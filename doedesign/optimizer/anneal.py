@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from array_api_compat import array_namespace, is_array_api_obj
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -22,15 +23,17 @@ ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
 
 def level_penalty(height_m: ArrayLike, step_m: float,
                   support: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient."""
-    h = np.asarray(height_m, dtype=float)
-    # On the support only, one sine and one cosine: sin 2x = 2 sin x cos x. It runs once per
-    # annealing evaluation over the whole map, on the host beside nlopt.
-    x = (np.pi / step_m) * (h if support is None else h[support])
-    n = max(x.size, 1)
-    sin = np.sin(x)
-    value = float(np.vdot(sin, sin)) / n
-    g = np.cos(x)
+    """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient.
+
+    Computed where ``height_m`` lives (NumPy, or a GPU array beside the design's PSF engine)."""
+    h = height_m if is_array_api_obj(height_m) else np.asarray(height_m, dtype=float)
+    xp = array_namespace(h)
+    # On the support only, one sine and one cosine: sin 2x = 2 sin x cos x.
+    x = (np.pi / step_m) * xp.astype(h if support is None else h[support], xp.float64)
+    n = max(int(x.size), 1)
+    sin = xp.sin(x)
+    value = float(xp.sum(sin * sin)) / n
+    g = xp.cos(x)
     g *= sin
     g *= 2 * np.pi / step_m / n
     if support is None:

@@ -89,10 +89,12 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
     n = x0.size
     requested, algorithm = algorithm, choose_algorithm(algorithm, n)
     opt = nlopt.opt(getattr(nlopt, algorithm), n)
-    lo = np.broadcast_to(np.asarray(lower, float), shape).ravel()
-    hi = np.broadcast_to(np.asarray(upper, float), shape).ravel()
-    opt.set_lower_bounds(lo)
-    opt.set_upper_bounds(hi)
+    # One bound for every variable stays a number: nlopt fills its own arrays, and no host array
+    # of millions of equal values is built and copied in.
+    lo, hi = (np.asarray(b, float) for b in (lower, upper))
+    lo, hi = (b if b.ndim == 0 else np.broadcast_to(b, shape).ravel() for b in (lo, hi))
+    opt.set_lower_bounds(float(lo) if lo.ndim == 0 else lo)
+    opt.set_upper_bounds(float(hi) if hi.ndim == 0 else hi)
     opt.set_maxeval(int(max_iter))
     if algorithm == "LD_LBFGS" and n >= LBFGS_SHORT_MEMORY_FROM:
         opt.set_vector_storage(LBFGS_VECTOR_STORAGE)
@@ -124,9 +126,10 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
                 raise DoeError(f"{desc}: the loss became {value}")
             history.append(float(value))
             if value < best["value"]:
-                best["value"], best["x"] = float(value), x.copy()
+                best["value"] = float(value)
+                np.copyto(best["x"], x)
             if grad.size:
-                grad[:] = scale * np.asarray(g, dtype=float).ravel()
+                np.multiply(np.asarray(g, dtype=float).reshape(-1), scale, out=grad)
             bar.update(1, status=f"loss {value:.5g}")
             if callback is not None and callback(len(history), float(value), x.reshape(shape)):
                 opt.force_stop()

@@ -201,16 +201,24 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
             state["target"] = reweight_target(state["target"], psf, settings.reweight_alpha)
             state["loss"] = make_loss(state["target"], loss)
 
-    # Only the pixels the coded view sees are free; the others stay at 0 (unetched). A penalty
-    # on the free heights alone (the annealing's) is added on that vector, not on the map.
+    # Only the pixels the coded view sees are free; the others stay at 0 (unetched). The plain
+    # loss is evaluated from the free heights alone (only they cross to a GPU, only their
+    # gradient comes back); a penalty on them (the annealing's) is added where they live.
+    plain = not perturbations and not settings.fab_weight
+
     def on_support(fun, penalty=None):
         def wrapped(x):
-            value, grad = fun(full(x))
-            grad = grad[support]
+            if plain and fun is objective:
+                x = engine.backend.asarray(x)
+                value, grad = engine.value_and_grad_free(x, support, state["loss"], full_window=full_window)
+            else:
+                value, grad = fun(full(x))
+                grad = grad[support]
             if penalty is not None:
                 v, g = penalty(x)
-                value, grad = value + v, grad + g
-            return value, grad
+                value += v
+                grad += g
+            return value, engine.backend.to_host(grad)
         return wrapped
 
     def full(x):
