@@ -98,6 +98,18 @@ class Backend:
     def fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int | None = None) -> Array:
         return self._transform("fft", x, workers, n=n, axis=axis)
 
+    def power_fft(self, x: Array, n: int | None = None, axis: int = -1, workers: int | None = None) -> Array:
+        """``|fft(x, n, axis)|^2`` as ``re^2 + im^2``, a real array."""
+        if self.is_numpy:
+            return threaded_fft.power_fft(x, n, axis, self.fft_threads if workers is None else workers)
+        spec = self._fft.fft(x, n=n, axis=axis)
+        # In place where the library gives views of the real and imaginary parts.
+        power, im = self.xp.real(spec), self.xp.imag(spec)
+        power *= power
+        im *= im
+        power += im
+        return power
+
     def ifft(self, x: Array, n: int | None = None, axis: int = -1, workers: int | None = None) -> Array:
         return self._transform("ifft", x, workers, n=n, axis=axis)
 

@@ -100,14 +100,8 @@ def paired_lags(t: Array, backend: Backend, workers: int | None = None) -> tuple
     a, b = t.shape
     ly, lx = fft_shape(t)
     spec = backend.fft(t, n=lx, axis=1, workers=workers)
-    spec = backend.fft(spec, n=ly, axis=0, workers=workers)
-    # |spec|^2 in place where the library gives views of the real and imaginary parts.
-    power = xp.real(spec)
-    power *= power
-    im = xp.imag(spec)
-    im *= im
-    power += im
-    del spec, im
+    power = backend.power_fft(spec, n=ly, axis=0, workers=workers)
+    del spec
     # C[k] = conj(R[k]) / N: the conjugate is taken below by the sign of the imaginary planes.
     r = backend.rfftn(power, axes=(0, 1), workers=workers)
     del power

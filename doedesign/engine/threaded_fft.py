@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.fft as sfft
 
-__all__ = ["BLOCK_LINES", "MIN_SPLIT_ELEMENTS", "cpu_threads", "fft", "fftn", "ifft", "ifftn", "rfftn"]
+__all__ = ["BLOCK_LINES", "MIN_SPLIT_ELEMENTS", "cpu_threads", "fft", "fftn", "ifft", "ifftn", "power_fft", "rfftn"]
 
 #: Below this many elements a transform runs in the calling thread: starting threads would cost
 #: more than the share of the work they take.
@@ -43,16 +43,26 @@ def cpu_threads() -> int:
     return max(1, n)
 
 
-def _along(kind: str, x: np.ndarray, n: int | None, axis: int, threads: int, in_place: bool = False) -> np.ndarray:
+def _power(z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``|z|^2`` as ``re^2 + im^2`` (into ``out``)."""
+    out = np.square(z.real, out=out)
+    out += np.square(z.imag)
+    return out
+
+
+def _along(kind: str, x: np.ndarray, n: int | None, axis: int, threads: int, in_place: bool = False,
+           power: bool = False) -> np.ndarray:
     """``scipy.fft.<kind>(x, n, axis)`` with the lines split over ``threads`` threads; with
     ``in_place`` (a complex transform that keeps the length) the result overwrites ``x``, which
-    saves a fresh array: its pages cost as much as a pass of the transform."""
+    saves a fresh array: its pages cost as much as a pass of the transform. With ``power``, the
+    transform's ``|.|^2`` (taken block by block while the block is in the cache)."""
     x = np.asarray(x)
     axis = axis % x.ndim
     others = [a for a in range(x.ndim) if a != axis]
     transform = getattr(sfft, kind)
     if threads <= 1 or x.size < MIN_SPLIT_ELEMENTS or not others:
-        return transform(x, n=n, axis=axis, workers=1)
+        out = transform(x, n=n, axis=axis, workers=1)
+        return _power(out) if power else out
     split = max(others, key=lambda a: x.shape[a])
     k = min(threads, x.shape[split])
     length = x.shape[axis] if n is None else n
@@ -60,22 +70,21 @@ def _along(kind: str, x: np.ndarray, n: int | None, axis: int, threads: int, in_
     shape[axis] = length // 2 + 1 if kind == "rfft" else length
     # scipy.fft's result type: single stays single, everything else becomes double.
     dtype = np.result_type(x.dtype, np.complex64)
-    in_place = in_place and kind != "rfft" and length == x.shape[axis] and x.dtype == dtype and x.flags.writeable
-    out = x if in_place else np.empty(shape, dtype=dtype)
-    # Blocks of lines, dealt out in turn. Where a block of the result is contiguous (the lines
-    # split by rows), NumPy's pocketfft writes it in place; elsewhere SciPy's transforms the
-    # block (it vectorizes across neighbouring lines) and the result, still in the cache, is
-    # copied into place.
+    in_place = (in_place and not power and kind != "rfft" and length == x.shape[axis] and x.dtype == dtype
+                and x.flags.writeable)
+    out = x if in_place else np.empty(shape, dtype=np.empty(0, dtype).real.dtype if power else dtype)
+    # Blocks of lines, dealt out in turn: SciPy transforms a block (vectorized across its lines)
+    # and the result, still in the cache, is copied into place. (NumPy's FFT could write in place
+    # through ``out``, but is as fast in double precision and half as fast in single.)
     starts = range(0, x.shape[split], BLOCK_LINES)
-    direct = split == 0 and not in_place
 
     def part(i):
         for start in starts[i::k]:
             index = [slice(None)] * x.ndim
             index[split] = slice(start, start + BLOCK_LINES)
             index = tuple(index)
-            if direct:
-                getattr(np.fft, kind)(x[index], n=n, axis=axis, out=out[index])
+            if power:
+                _power(transform(x[index], n=n, axis=axis, workers=1), out[index])
             else:
                 out[index] = transform(x[index], n=n, axis=axis, workers=1)
 
@@ -95,6 +104,11 @@ def _axes(x: np.ndarray, s: Sequence[int] | None, axes: Sequence[int] | None) ->
 
 def fft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int = 1) -> np.ndarray:
     return _along("fft", x, n, axis, threads)
+
+
+def power_fft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int = 1) -> np.ndarray:
+    """``|fft(x, n, axis)|^2``, real: the complex transform is never held whole."""
+    return _along("fft", x, n, axis, threads, power=True)
 
 
 def ifft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int = 1) -> np.ndarray:

@@ -33,6 +33,7 @@ def test_every_transform_equals_scipy(threads):
     _close(tf.ifftn(Z, None, (0, 1), threads), sfft.ifftn(Z, axes=(0, 1)))
     _close(tf.rfftn(R3, None, (0, 1), threads), sfft.rfftn(R3, axes=(0, 1)))
     _close(tf.rfftn(R3[..., 0], (320, 480), None, threads), sfft.rfftn(R3[..., 0], (320, 480)))
+    _close(tf.power_fft(Z, 700, 0, threads), np.abs(sfft.fft(Z, 700, axis=0)) ** 2)
     # Every thread ended with its call: a fork now finds none.
     assert threading.active_count() == before
 
