@@ -533,6 +533,12 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             if (restaged or not fab or all(extras.values())
                     or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
                 return
+            # A budget that cannot pay a restart keeps its family (asked first: the screen costs a field's residual).
+            now = dg.cpu_seconds()
+            if deadline is not None and deadline - now < RESTAGE_COST * (now - cpu0):
+                log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
+                restaged, skipped_restage = True, round(deadline - now, 1)
+                return
             # Nor where what they leave holds no edge profile shared by every mask (what a lateral
             # transfer leaves at edges) that would pay for one parameter: a screen, not a bound (the
             # family's joint refit earned -1082 where the profile alone made -472 on a CSI overlay).
@@ -544,12 +550,6 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             if bound >= -threshold:
                 return
             restaged = True
-            # A budget that cannot pay a restart goes on with the family it has (a cut one names nothing).
-            now = dg.cpu_seconds()
-            if deadline is not None and deadline - now < RESTAGE_COST * (now - cpu0):
-                log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
-                skipped_restage = round(deadline - now, 1)
-                return
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
             if any(again[0][k] and not extras[k] for k in extras):
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
