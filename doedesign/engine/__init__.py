@@ -3,12 +3,15 @@ gradient of a loss on it.
 
 Public:
 
-- :class:`PSFEngine` (``.psf``, ``.value_and_grad``) and :func:`compute_psf` (one call);
+- :class:`PSFEngine` (``.psf``, ``.value_and_grad``, ``.value_and_grad_free`` for a design loop's
+  free heights) and :func:`compute_psf` (one call);
 - :class:`PSFResult`, the PSF file (``.save`` / ``.load``), :data:`VIEWS`;
 - :func:`parse_wavelengths_nm`, the CLI's wavelength lists.
 
 Inside: ``psf`` (the engine), ``lags`` (pupil autocorrelation lags and the pixel kernels),
-``reads`` (reading a few pixels and their adjoint), ``result`` (the result and its file).
+``reads`` (reading a few pixels and their adjoint), ``result`` (the result and its file),
+``backend`` (NumPy, CuPy or array_api_strict arrays and their FFTs), ``threaded_fft`` (CPU FFTs
+split over threads that end with the call).
 """
 
 from .psf import MAX_WAVELENGTHS, VIEWS, PSFEngine, PSFResult, compute_psf, parse_wavelengths_nm
