@@ -480,7 +480,8 @@ class PSFEngine:
         grad = self._height_gradient(grad_pupil)
         return float(loss), self.backend.to_host(grad) if host else grad
 
-    def value_and_grad_free(self, x: ArrayLike, free: np.ndarray, loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
+    def value_and_grad_free(self, x: ArrayLike, free: np.ndarray,
+                            loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
                             full_window: bool = False) -> tuple[float, Array]:
         """:meth:`value_and_grad` of the map that holds ``x`` on ``free`` and zero elsewhere, with
         the gradient on ``free`` only, as a vector of the engine's backend.
