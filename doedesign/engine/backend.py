@@ -8,8 +8,9 @@ run the engine on it, so a NumPy-only call fails on a CPU machine before it fail
 
 A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`` on NumPy
 (faster than NumPy's own), split over short-lived threads (:mod:`.threaded_fft`);
-``cupyx.scipy.fft`` on CuPy (cuFFT plans cached); the standard's ``xp.fft`` elsewhere. Written here because no library does this choice:
-``array_api_compat`` gives the namespace but not the fastest FFT of each library. The same holds
+``cupyx.scipy.fft`` on CuPy (cuFFT plans cached); the standard's ``xp.fft`` elsewhere. Written
+here because no library does this choice: ``array_api_compat`` gives the namespace but not the
+fastest FFT of each library. The same holds
 for the image filters the process model needs (:attr:`Backend.ndimage`): ``scipy.ndimage`` on
 NumPy, ``cupyx.scipy.ndimage`` on CuPy, and on ``array_api_strict`` SciPy's through host copies
 (the standard has no filters; the copies keep the arrays around them strict).
