@@ -10,10 +10,10 @@ A :class:`Backend` holds the namespace and the FFTs of its library: ``scipy.fft`
 (faster than NumPy's own), split over short-lived threads (:mod:`.threaded_fft`);
 ``cupyx.scipy.fft`` on CuPy (cuFFT plans cached); the standard's ``xp.fft`` elsewhere. Written
 here because no library does this choice: ``array_api_compat`` gives the namespace but not the
-fastest FFT of each library. The same holds
-for the image filters the process model needs (:attr:`Backend.ndimage`): ``scipy.ndimage`` on
-NumPy, ``cupyx.scipy.ndimage`` on CuPy, and on ``array_api_strict`` SciPy's through host copies
-(the standard has no filters; the copies keep the arrays around them strict).
+fastest FFT of each library. The same holds for the image filters the process model needs
+(:attr:`Backend.ndimage`): ``scipy.ndimage`` on NumPy, ``cupyx.scipy.ndimage`` on CuPy, and on
+``array_api_strict`` SciPy's through host copies (the standard has no filters; the copies keep
+the arrays around them strict).
 
 The device is chosen once per run (``--device cpu|gpu|auto``): ``auto`` takes the GPU when CuPy
 imports and a real allocation on the device succeeds, else the CPU, with one log line saying why.
