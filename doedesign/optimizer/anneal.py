@@ -38,7 +38,7 @@ def level_penalty(height_m: ArrayLike, step_m: float,
     g *= 2 * np.pi / step_m / n
     if support is None:
         return value, g
-    grad = np.zeros(h.shape)
+    grad = xp.zeros(h.shape, dtype=xp.float64)
     grad[support] = g
     return value, grad
 

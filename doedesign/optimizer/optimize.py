@@ -206,13 +206,13 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     # gradient comes back); a penalty on them (the annealing's) is added where they live.
     plain = not perturbations and not settings.fab_weight
 
-    def on_support(fun, penalty=None):
+    def on_support(penalty=None):
         def wrapped(x):
-            if plain and fun is objective:
+            if plain:
                 x = engine.backend.asarray(x)
                 value, grad = engine.value_and_grad_free(x, support, state["loss"], full_window=full_window)
             else:
-                value, grad = fun(full(x))
+                value, grad = objective(full(x))
                 grad = grad[support]
             if penalty is not None:
                 v, g = penalty(x)
@@ -229,8 +229,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     def stage_callback(i, value, x):
         return callback(i, value, full(x)) if callback is not None else False
 
-    def run_stage(fun, h_start, max_iter, max_time, desc, penalty=None):
-        x, hist = minimize(on_support(fun, penalty), h_start[support], lower, upper, settings.algorithm, max_iter,
+    def run_stage(h_start, max_iter, max_time, desc, penalty=None):
+        x, hist = minimize(on_support(penalty), h_start[support], lower, upper, settings.algorithm, max_iter,
                            settings.ftol_rel, max_time, stage_callback, desc=desc)
         return full(x), hist
 
@@ -240,16 +240,16 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
             return first if kind == settings.init else np.where(support, start_height(kind), 0.0)
 
         h0, report["multistart"], report["multistart_best"] = multistart(
-            starts, start, lambda h, n, t, desc: run_stage(objective, h, n, t, desc),
+            starts, start, run_stage,
             lambda h: metrics(h)["energy_on_target"], settings.start_iter or max(settings.max_iter // 4, 3),
             settings.max_time_s)
     if settings.objective == "maxmin":
         h_cont, hist_cont = maxmin_stage(engine, target, weights, h0, support, lower, upper, settings)
     else:
-        h_cont, hist_cont = run_stage(objective, h0, settings.max_iter, settings.max_time_s, "design")
+        h_cont, hist_cont = run_stage(h0, settings.max_iter, settings.max_time_s, "design")
     for r in range(int(settings.reweight_rounds)):
         reweight(h_cont)
-        h_cont, hist = run_stage(objective, h_cont, settings.reweight_iter or settings.max_iter,
+        h_cont, hist = run_stage(h_cont, settings.reweight_iter or settings.max_iter,
                                  settings.max_time_s, f"reweight {r + 1}")
         hist_cont = hist_cont + hist
     if settings.height_range == "wrap":
@@ -261,7 +261,7 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     levels, h_final = q.levels, q.height_m
     if settings.quantize:
         scale = max(report["continuous"]["loss"], 1e-6)
-        h, history["anneal"] = anneal(lambda h, n, t, desc, p: run_stage(objective, h, n, t, desc, p), h_cont,
+        h, history["anneal"] = anneal(run_stage, h_cont,
                                       step, scale, settings.anneal_iter,
                                       settings.max_time_s, before_stage=reweight)
         q = quantize(h, step, settings.n_levels)

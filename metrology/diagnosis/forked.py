@@ -15,7 +15,7 @@ waiting for a task). Here every worker is forked before any task is handed out, 
 hands out the next index to whichever worker answers (dynamic balance, as the pool had), and a
 worker that dies is an error naming it, not a wait. The other hang seen (once in 30 CSI
 diagnoses) was in ``fork()`` itself, in scipy.fft's thread pool's fork handler: no FFT of the
-process starts that pool (:class:`doedesign.engine.backend.Backend`'s FFTs).
+process starts that pool (:mod:`doedesign.engine.threaded_fft`).
 """
 
 from __future__ import annotations
