@@ -22,7 +22,8 @@ import numpy as np
 
 from doedesign.engine.backend import Array, Backend, select_backend
 
-__all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "interpolate_separable",
+__all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "grown_mask",
+           "interpolate_separable",
            "inverse_motion", "move", "upsample_mask"]
 
 # Trench-foot distance maps kept between calls (one per mask of a model; on a whole 512 px
@@ -96,6 +97,68 @@ def grow(coverage: Array, bias_px: float, backend: Backend | None = None) -> Arr
             _elementwise_at(be, "maximum", outer, (...,), out)
             out = outer
     return out
+
+
+def grown_mask(mask: Array, upsample: int, bias_px: float, backend: Backend | None = None) -> Array:
+    """``grow(upsample_mask(mask, upsample), bias_px)``, the same numbers, built from the design
+    pixels.
+
+    An upsampled mask is constant on each design pixel's block of fine pixels, so a growth that
+    reaches less than half a block only changes the fine rows (columns) next to a block's edge,
+    and only to the value of the neighbouring design pixel (or that value times the fractional
+    part). Each axis's pass is then a choice among five design-resolution arrays per fine
+    row (column): the maximum filters of :func:`grow` on the fine grid cost 50 ms a mask on a
+    diagnosis crop of 1150 x 1150 fine pixels, a quarter of a CSI diagnosis that fits a bias.
+    Growths that reach half a block or more go through :func:`grow`.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (rows, cols)
+        The binary design mask.
+    upsample : int
+        Fine pixels per design pixel along each axis.
+    bias_px : float
+        Edge displacement in fine pixels (positive = wider openings).
+
+    Returns
+    -------
+    ndarray of float32, shape (rows * upsample, cols * upsample)
+    """
+    be = backend_of(backend)
+    xp = be.xp
+    b = abs(float(bias_px))
+    whole = int(np.floor(b))
+    if b == 0 or 2 * (whole + 1) > upsample:
+        return grow(upsample_mask(mask, upsample, be), bias_px, be)
+    frac = float(np.float32(b - whole))
+    m = xp.astype(be.asarray(mask), xp.float32)
+    if bias_px < 0:
+        m = 1.0 - m
+    rows = _grow_axis(m, 0, whole, frac, upsample, xp)
+    cols = _grow_axis(rows, 1, whole, frac, upsample, xp)
+    return 1.0 - cols if bias_px < 0 else cols
+
+
+def _grow_axis(a, axis, whole, frac, u, xp):
+    """One axis's pass of :func:`grow` on the upsample, along ``axis``, of ``a`` (design
+    resolution along that axis, constant over each block), for ``2 (whole + 1) <= u``: fine
+    pixel k of a block is the block's value, its maximum with the previous block's (k < whole)
+    or the next's (k >= u - whole), or with ``frac`` times it (k = whole, k = u - 1 - whole);
+    zero beyond the edges, as :func:`grow`'s filters have it."""
+    a = xp.moveaxis(a, axis, -1)
+    zero = xp.zeros(a.shape[:-1] + (1,), dtype=a.dtype)
+    before = xp.concat([zero, a[..., :-1]], axis=-1)
+    after = xp.concat([a[..., 1:], zero], axis=-1)
+    out = xp.empty(a.shape + (u,), dtype=a.dtype)
+    out[...] = a[..., None]
+    if whole:
+        out[..., :whole] = xp.maximum(a, before)[..., None]
+        out[..., u - whole:] = xp.maximum(a, after)[..., None]
+    if frac > 0:
+        out[..., whole] = xp.maximum(a, before * frac)
+        out[..., u - 1 - whole] = xp.maximum(a, after * frac)
+    out = xp.reshape(out, a.shape[:-1] + (a.shape[-1] * u,))
+    return xp.moveaxis(out, -1, axis)
 
 
 def _max3(image, axis, be):

@@ -291,8 +291,7 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be):
     # Rotation centre in fine-pixel indices of the window.
     centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
                    (centre_design[1] - window[2] + 0.5) * u - 0.5)
-    coverage = litho.upsample_mask(mask, u, be)
-    coverage = litho.grow(coverage, float(params.linewidth_bias[j] / step), be)
+    coverage = litho.grown_mask(mask, u, float(params.linewidth_bias[j] / step), be)
     shift_px, rotation = mask_motion(params, j, pitch_m)
     coverage = litho.move(coverage, (shift_px[0] * u, shift_px[1] * u), rotation, centre_fine, be)
     coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from doedesign.budget import check_memory, format_bytes, psf_bytes
-from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import output_run, write_json

@@ -20,6 +20,7 @@ process starts that pool (:mod:`doedesign.engine.threaded_fft`).
 
 from __future__ import annotations
 
+import gc
 import os
 import pickle
 import signal
@@ -142,6 +143,10 @@ def _fork(fn: Callable[[Any], Any], items: list, workers: int) -> _Pool:
     """Fork ``workers`` processes serving ``fn`` over ``items``; all pipes made before the first fork."""
     pipes = [(Pipe(duplex=False), Pipe(duplex=False)) for _ in range(workers)]
     pids = []
+    # The objects that exist now stay out of the collector's passes until the workers are
+    # forked, and a worker never collects: a collection walks every object it tracks and writes
+    # its header, which copies each page of the parent's that the worker shares.
+    gc.freeze()
     try:
         for w in range(workers):
             pid = os.fork()
@@ -156,6 +161,8 @@ def _fork(fn: Callable[[Any], Any], items: list, workers: int) -> _Pool:
             for conn in (a, b, c, d):
                 conn.close()
         raise
+    finally:
+        gc.unfreeze()
     # The parent keeps the task pipes' sending ends and the result pipes' reading ends.
     for (task_in, _), (_, result_out) in pipes:
         task_in.close()
@@ -167,6 +174,7 @@ def _child(fn: Callable[[Any], Any], items: list, pipes: list, w: int) -> None:
     """A worker's whole life: never returns into the parent's code."""
     global _IN_WORKER
     _IN_WORKER = True
+    gc.disable()
     code = 0
     try:
         # Only this worker's own ends stay open, so a dead sibling's pipe reads as closed.

@@ -267,3 +267,25 @@ def test_trench_foot_is_recomputed_for_each_coverage_and_kept_for_the_same():
         for width in (2.0, 5.0):
             np.testing.assert_allclose(litho.edge_foot(coverage, width), reference(coverage, width), rtol=0, atol=1e-6)
     assert not np.allclose(litho.edge_foot(a, 2.0), litho.edge_foot(b, 2.0))
+
+
+def test_grown_mask_is_grow_of_the_upsampled_mask():
+    """The design-resolution growth equals the fine grid's maximum filters bit for bit: widening
+    and narrowing, whole and fractional pixels, up to half a block and past it (the filters'
+    route), at the edges of the design; and a square opening grows by the bias on every edge."""
+    from masks import litho
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        u = int(rng.integers(1, 40))
+        mask = rng.random(tuple(rng.integers(1, 9, 2))) < 0.5
+        bias = float(rng.uniform(-u, u) * rng.choice([1.0, 0.2]))
+        bias = float(np.trunc(bias)) if rng.random() < 0.2 else bias
+        expected = litho.grow(litho.upsample_mask(mask, u), bias)
+        got = litho.grown_mask(mask, u, bias)
+        assert got.dtype == np.float32 and got.shape == expected.shape
+        np.testing.assert_array_equal(got, expected)
+    square = np.zeros((5, 5), bool)
+    square[2, 2] = True
+    area = float(litho.grown_mask(square, 20, 3.25).sum())
+    assert area == pytest.approx((20 + 2 * 3.25) ** 2, abs=0.25 ** 2 + 1e-3)
