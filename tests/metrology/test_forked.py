@@ -131,3 +131,15 @@ print(before, len(os.listdir("/proc/self/task")))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     before, after = map(int, out.stdout.split())
     assert after == before
+
+
+def test_workers_never_collect_and_the_parent_is_left_as_it_was():
+    """A collection in a worker writes the header of every object it walks, copying the pages it
+    shares with the parent: the workers run with the collector off, the parent's objects frozen
+    only while it forks."""
+    import gc
+
+    assert gc.isenabled()
+    states = list(forked_map(lambda i: (gc.isenabled(), gc.get_freeze_count() > 0), range(4), workers=2))
+    assert states == [(False, True)] * 4
+    assert gc.isenabled() and gc.get_freeze_count() == 0
