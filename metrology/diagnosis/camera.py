@@ -16,6 +16,7 @@ Arrays are row-major with row 0 at the top of the camera image.
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -32,9 +33,9 @@ from metrology.diagnosis.breakdown import (edge_breakdown, instrument_signature,
 from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, DEFAULT_TRANSFER, OBJECTIVE, PLACED,
                                                  STAGE_WINDOW_PX, choose_transfer, placement_report)
 from metrology.diagnosis.effects import Effect, effects_for, get_effect
-from metrology.diagnosis.forked import forked_map
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M, sampled_edge_distance_m
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
+from metrology.diagnosis.parallel import parallel_map
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import (ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Leveller, Placement,
                                            levelling_plane, robust_valid)
@@ -164,8 +165,8 @@ class CameraHeightProblem(dg.Problem):
         self._spectra = ArrayCache(cache_bytes, max_items=24)
         self._factors = ArrayCache(cache_bytes, max_items=12)
         self._factor_reach = {}
-        # Design quantities at each camera pixel (nearest design pixel), for the noise floor,
-        # the structure test and the breakdown.
+        self._lock = threading.Lock()  # the factors and their reach change together
+        # Design quantities at each camera pixel (nearest design pixel): noise, structure, breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
         ri = np.clip(np.rint(r).astype(int), 0, self.levels.shape[0] - 1)
         ci = np.clip(np.rint(c).astype(int), 0, self.levels.shape[1] - 1)
@@ -313,15 +314,16 @@ class CameraHeightProblem(dg.Problem):
         further than ``reach`` cells (the effect finds that out before computing anything);
         kept for the last few values, with the reach it was made for."""
         key = (effect.name, tuple(np.asarray(values, float)))
-        factor = self._factors.get(key)
-        if factor is None or reach < self._factor_reach.get(key, reach):
+        with self._lock:
+            factor, made_for = self._factors.get(key), self._factor_reach.get(key, reach)
+        if factor is None or reach < made_for:
             wr, wc = self.instrument.fourier_grid()
             factor = effect.fourier(effect.check(values), self.instrument.step_m, wr, wc, reach)
             if factor is not None:
-                self._factors.put(key, factor)
-                # The reach of the factors still kept only.
-                self._factor_reach = {k: r for k, r in self._factor_reach.items() if k in self._factors}
-                self._factor_reach[key] = reach
+                with self._lock:  # the reach of the factors still kept only
+                    self._factors.put(key, factor)
+                    self._factor_reach = {k: r for k, r in self._factor_reach.items() if k in self._factors}
+                    self._factor_reach[key] = reach
         return factor
 
     def residual(self, model: dict[str, np.ndarray]) -> np.ndarray:
@@ -365,13 +367,11 @@ class CameraHeightProblem(dg.Problem):
                                    objective=self.objective, batwing=self.batwing)
 
     def _render_blocked(self, model):
-        """:meth:`render` of a large field, block by block: squares of about
-        :data:`RENDER_BLOCK_PX` pixels, each on its own fine grid with a margin past the
-        kernel's reach and a placement refinement, so the stitched map is the whole field's to
-        the FFTs' rounding. The blocks render side by side in forked workers and keep nothing:
-        a field is rendered once per model (the map is kept for a few models), and memory that
-        is freed and reused costs nothing, while on this scale each array kept in a cache
-        came from fresh pages the kernel zeroed (the whole grid's arrays are 100-200 MB)."""
+        """:meth:`render` of a large field in blocks of about :data:`RENDER_BLOCK_PX` pixels, each on
+        its own fine grid with a margin past the kernel's reach and a placement refinement (the
+        stitched map is the whole field's to the FFTs' rounding), side by side in worker threads.
+        They keep nothing: a field is rendered once per model (its map is kept for a few), and here
+        each array kept in a cache would come from fresh pages the kernel zeroes (100-200 MB)."""
         key = tuple((name, tuple(np.asarray(v, float).ravel())) for name, v in sorted(model.items()))
         out = self._maps.get(key)
         if out is None:
@@ -387,7 +387,7 @@ class CameraHeightProblem(dg.Problem):
                 return part.render(model)
 
             out = np.empty(self.measured.shape)
-            for block, part_map in zip(blocks, forked_map(block_map, blocks)):
+            for block, part_map in zip(blocks, parallel_map(block_map, blocks)):
                 out[block] = part_map
             out.flags.writeable = False
             self._maps.put(key, out)
@@ -460,7 +460,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     """
     from masks.process import ProcessParams
 
-    # Small linear algebra: BLAS threads would only spin beside the renders and forked workers.
+    # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
     with threadpool_limits(limits=1, user_api="blas"):
         cpu0 = dg.cpu_seconds()
         deadline = None if cpu_budget_s is None else cpu0 + float(cpu_budget_s)

@@ -40,7 +40,7 @@ import numpy as np
 
 from doedesign.progress import Progress
 from metrology.diagnosis.fitting import JAC_STEP, fit_effects, standard_errors
-from metrology.diagnosis.forked import WORKERS, forked_map
+from metrology.diagnosis.parallel import WORKERS, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 
@@ -69,9 +69,9 @@ FINAL_ODD_SHARE = 0.5
 
 
 def cpu_seconds() -> float:
-    """CPU seconds of this process and of its finished children (the forked workers that screen
-    candidates and compute Jacobian columns are reaped at the end of each batch): the measure of
-    a diagnosis's time budget, which a shared machine's load does not stretch as it does wall time."""
+    """CPU seconds of this process (its worker threads included) and of its finished children:
+    the measure of a diagnosis's time budget, which a shared machine's load does not stretch as
+    it does wall time."""
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
@@ -322,7 +322,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
-    in up to :data:`~metrology.diagnosis.forked.WORKERS` forked processes (the same fits, so
+    in up to :data:`~metrology.diagnosis.parallel.WORKERS` threads (the same fits, so
     the same result as in one process).
 
     Parameters
@@ -424,7 +424,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         # Those with the most parameters first (the longest fits): the workers then finish together.
         by_size = sorted(pending, key=lambda c: -problem.effects[c].n_params)
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:
-            for name, fitted, score in forked_map(lambda c: _screen_one(rd, c), by_size, workers, ordered=False):
+            for name, fitted, score in parallel_map(lambda c: _screen_one(rd, c), by_size, workers, ordered=False):
                 scores[name], fits[name] = score, fitted
                 bar.update(1, status=f"{name} {score:+.1f}")
         scores = {c: scores[c] for c in pending}  # in the candidates' order, however they finished

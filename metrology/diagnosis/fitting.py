@@ -1,8 +1,8 @@
 """Least-squares fits of effects' parameters on a diagnosis problem, and their uncertainties.
 
 Bounded ``scipy.optimize.least_squares`` in units of each parameter's scale, with
-finite-difference Jacobians whose columns may be computed in forked workers
-(:mod:`metrology.diagnosis.forked`): SciPy's own differences take relative steps, which vanish
+finite-difference Jacobians whose columns may be computed in worker threads
+(:mod:`metrology.diagnosis.parallel`): SciPy's own differences take relative steps, which vanish
 at a parameter of exactly zero, where most effects start. Uncertainties are
 ``cov = s^2 (J^T J)^-1 A`` with ``A`` the noise's correlation area.
 
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.optimize import least_squares
 
-from metrology.diagnosis.forked import WORKERS, forked_map
+from metrology.diagnosis.parallel import WORKERS, parallel_map
 
 if TYPE_CHECKING:
     from metrology.diagnosis.problem import Problem
@@ -171,8 +171,8 @@ def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None):
 
     ``central``: per column, central differences (else forward ones). Central differences are
     one-sided against a bound; forward ones go backward against the upper bound, from
-    ``f0 = fun(x)`` (computed when not given). The columns are computed in ``workers`` forked
-    processes when more than one.
+    ``f0 = fun(x)`` (computed when not given). The columns are computed in ``workers`` threads when more
+    than one.
     """
     central = np.broadcast_to(np.asarray(central, bool), x.shape)
     if not central.all() and f0 is None:
@@ -188,4 +188,4 @@ def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None):
         other[i] = x[i] + step if x[i] + step <= hi[i] else max(x[i] - step, lo[i])
         return (fun(other) - f0) / (other[i] - x[i])
 
-    return np.stack(list(forked_map(column, range(x.size), workers)), axis=1)
+    return np.stack(list(parallel_map(column, range(x.size), workers)), axis=1)

@@ -34,10 +34,10 @@ class Problem:
     # footprint and a fabrication effect that does not may be withheld as a partial match. The
     # design-frame height fit resamples the data and does not close to the floor (issue 11).
     judges_partial_matches = False
-    # Whether candidates are screened, and Jacobian columns computed, side by side in forked
-    # workers (:mod:`metrology.diagnosis.forked`; each holds a copy-on-write view of the problem
-    # and its own render caches). Off where a problem's working arrays would double the peak
-    # memory (the full-size PSF stack).
+    # Whether candidates are screened, and Jacobian columns computed, side by side in worker
+    # threads (:mod:`metrology.diagnosis.parallel`; they share the problem and its locked render
+    # caches, and must be safe to evaluate at once). Off where a problem's working arrays would
+    # double the peak memory (the full-size PSF stack).
     parallel_fits = False
     # Whether the residual has kinks in the parameters (area-coverage edges crossing grid lines):
     # fits then take central-difference Jacobians; a smooth problem takes forward ones.

@@ -20,7 +20,7 @@ from doedesign.levels import printed_height_m
 from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
-from metrology.diagnosis.forked import WORKERS
+from metrology.diagnosis.parallel import WORKERS
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.window import window_sums
 

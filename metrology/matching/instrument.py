@@ -36,6 +36,7 @@ footprint is far below the noise).
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass, replace
@@ -131,31 +132,40 @@ class Placement:
 
 
 class ArrayCache:
-    """Least-recently-used store of arrays within a byte budget (always keeps the newest)."""
+    """Least-recently-used store of arrays within a byte budget (always keeps the newest).
+
+    Safe to share between threads (a diagnosis's workers): each call holds the store's lock.
+    Two threads that miss the same key both compute it; the later one's array is kept.
+    """
 
     def __init__(self, max_bytes: int, max_items: int | None = None) -> None:
         self.max_bytes = int(max_bytes)
         self.max_items = max_items
         self._items: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
 
     def get(self, key: Hashable) -> np.ndarray | None:
-        value = self._items.get(key)
-        if value is not None:
-            self._items.move_to_end(key)
-        return value
+        with self._lock:
+            value = self._items.get(key)
+            if value is not None:
+                self._items.move_to_end(key)
+            return value
 
     def put(self, key: Hashable, value: np.ndarray) -> None:
-        self._items[key] = value
-        self._items.move_to_end(key)
-        while len(self._items) > 1 and (sum(v.nbytes for v in self._items.values()) > self.max_bytes
-                                        or (self.max_items and len(self._items) > self.max_items)):
-            self._items.popitem(last=False)
+        with self._lock:
+            self._items[key] = value
+            self._items.move_to_end(key)
+            while len(self._items) > 1 and (sum(v.nbytes for v in self._items.values()) > self.max_bytes
+                                            or (self.max_items and len(self._items) > self.max_items)):
+                self._items.popitem(last=False)
 
     def __contains__(self, key: Hashable) -> bool:
-        return key in self._items
+        with self._lock:
+            return key in self._items
 
     def clear(self) -> None:
-        self._items.clear()
+        with self._lock:
+            self._items.clear()
 
 
 class InstrumentModel:
