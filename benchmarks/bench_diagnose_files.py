@@ -53,8 +53,8 @@ def _diagnose(case, tmp, window_px):
 
 
 def _cpu_s():
-    """CPU seconds of this process and of its finished children (the diagnosis screens
-    candidates in forked workers)."""
+    """CPU seconds of this process (the diagnosis's worker threads included) and of its
+    finished children."""
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + kids.ru_utime + kids.ru_stime
 
