@@ -55,14 +55,11 @@ SCREEN_WINDOW_PX = 128
 # Memory kept for rendered camera maps, as much for the masks' spectra (and a quarter of it for
 # fine surfaces) between renders: on a whole 512 px field, one model's four masks (110 MB each).
 RENDER_CACHE_BYTES = 640 * 2 ** 20
-# Camera fields larger than this (pixels per side) are rendered in blocks of about
-# RENDER_BLOCK_PX pixels per side (see CameraHeightProblem._render_blocked).
+# Fields larger than this (pixels per side) render in blocks of about RENDER_BLOCK_PX (_render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
-# Share of the window's pixels the robust rule must re-admit or newly exclude under the final
-# model for the selection to run again on them: a handful of pixels (3 of 25,000 on a CSI
-# field) cannot change what a criterion over thousands of effective samples chose, and a rerun
-# costs a whole selection.
+# Share of the window's pixels the robust rule must re-admit or newly exclude under the final model
+# for the selection (all of it) to run again: 3 of 25,000 cannot change what thousands of samples chose.
 RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
@@ -450,8 +447,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        once spent, no further round, revision or rerun starts, and a rerun on re-admitted pixels
-        cut short leaves the previous pass.
+        once spent, no further round or revision starts. A rerun on re-admitted pixels that what is
+        left cannot pay (it costs about the pass before it) is not started; one cut short leaves
+        the previous pass.
 
     Returns
     -------
@@ -486,9 +484,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         noise = first.noise
 
         def make(keep, **extras):
-            # The floor is the measurement's: estimated once, on the screening model's residual
-            # (the comparison's fitted process when given), not on the ideal element's, whose
-            # process errors would leak into the interiors and raise it.
+            # The floor is the measurement's, estimated on the screening model's residual (not the
+            # ideal element's, whose process errors would leak into the interiors and raise it).
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
                                           noise=noise, instrument=first.instrument, transfer=transfer,
                                           **held, **extras)
@@ -499,10 +496,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
 
         def stage(named=None):
             # The instrument stage (:func:`choose_transfer`) on the busiest square, then the floor
-            # again through the instrument it chose, when it chose more than blur and fill: an
-            # objective's long spread or a batwing rings into the interiors and raised the first
-            # estimate. It only ever lowers the floor: a higher one is process error leaking into
-            # the interiors (an unknown depth law raised it by half).
+            # again through what it chose beyond blur and fill (an objective or a batwing rings into
+            # the interiors), only ever lowered: a higher one is process error leaking in.
             stage_px = min(size, STAGE_WINDOW_PX)
             chosen, fitted, changes = choose_transfer(
                 lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
@@ -525,10 +520,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
 
         def restage(model, steps):
             nonlocal restaged, skipped_restage
-            # The stage ran before any fabrication effect, and a large one (a 0.4 um bias, one
-            # mask's overlay) hides the instrument's edge profile. Once the effects named hold
-            # most of what the stage saw, it runs again with them in the model; if it now chooses
-            # the objective or the batwing, the selection starts afresh through them.
+            # A large fabrication effect (a 0.4 um bias) hid the instrument's edge profile from the
+            # stage: once the named ones hold most of what it saw, it runs again with them, and if it
+            # now chooses the objective or the batwing, the selection starts afresh through them.
             fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
             if (restaged or not fab or all(extras.values())
                     or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
@@ -539,9 +533,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
                 restaged, skipped_restage = True, round(deadline - now, 1)
                 return
-            # Nor where what they leave holds no edge profile shared by every mask (what a lateral
-            # transfer leaves at edges) that would pay for one parameter: a screen, not a bound (the
-            # family's joint refit earned -1082 where the profile alone made -472 on a CSI overlay).
+            # Nor where what they leave holds no edge profile shared by every mask that would pay for
+            # one parameter: a screen, not a bound (the family's refit earned -1082, the profile -472).
             rss, gain = shared_profile_gain(fit.residual_map(model), problem.edge_m, problem.base.etch_depth,
                                             problem.keep)
             n_eff = max(np.count_nonzero(problem.keep) / problem.noise.corr_area_px, 2.0)
@@ -557,9 +550,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
 
         for _ in range(4):
             problem, fit = make(keep, **extras)
-            # The information criterion alone decides: the floor is an estimate good to ~5 %, and an
-            # effect of a few tenths of a nanometre (a gradient over a small field) still earns its
-            # parameters after the residual has reached it.
+            # The criterion alone decides: the floor is good to ~5 %, and a gradient of a few tenths
+            # of a nanometre still earns its parameters after the residual has reached it.
+            pass_cpu0 = dg.cpu_seconds()
             try:
                 diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                         quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
@@ -581,6 +574,13 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             new_keep = robust_valid(np.where(np.isfinite(crop), r, np.nan)
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
             if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
+                break
+            # A rerun is a whole selection again: one the budget left cannot pay is not started.
+            now = dg.cpu_seconds()
+            if deadline is not None and deadline - now < now - pass_cpu0:
+                diag.stopped_early = dict(reason="time budget: the rerun on re-admitted pixels was not started "
+                                          "(it costs about a pass); this pass stands", budget_cpu_s=cpu_budget_s,
+                                          cpu_s=now - cpu0, final_over_floor=diag.final_residual_rms / diag.noise_floor)
                 break
             keep = new_keep
         diag.map_step_m = problem.pixel_m

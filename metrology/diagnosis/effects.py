@@ -81,9 +81,11 @@ class Parameter:
     null : float
         The value at which the effect vanishes (the ideal model).
     smooth : bool
-        The residual is smooth in this parameter (a transfer's width, not an edge's position,
-        which area coverage makes kink where the edge crosses a grid line): a fit's Jacobian
-        takes forward differences in it, at half the evaluations of central ones.
+        The residual is smooth in this parameter (a transfer's width, a trench's decay width) or
+        linear in it (an etch depth, loading or gradient, a trench's depth: the heights scale),
+        not an edge's position, which area coverage makes kink where the edge crosses a grid
+        line: a fit's Jacobian takes forward differences in it, at half the evaluations of
+        central ones (exact where the residual is linear).
     """
 
     name: str
@@ -414,7 +416,7 @@ def batwing_transfer(values: Sequence[float], step_m: float, wr: np.ndarray, wc:
 _UM = 1e-6
 _BUILTIN_HEIGHT = [
     Effect("etch_depth", "height", "process",
-           [Parameter(f"depth_error_mask{j}", "1", -0.3, 0.3, 0.02) for j in range(4)], _etch_depth,
+           [Parameter(f"depth_error_mask{j}", "1", -0.3, 0.3, 0.02, smooth=True) for j in range(4)], _etch_depth,
            "Each mask's etch went deeper or shallower than its target by a fraction: the 16 level "
            "heights stop being multiples of one step."),
     Effect("mask_overlay", "height", "process",
@@ -434,7 +436,7 @@ _BUILTIN_HEIGHT = [
            [Parameter("ramp_width_m", "m", 0.0, 3 * _UM, 0.3 * _UM)], _sidewall_slope,
            "The etch leaves sloped sidewalls: steps become ramps of a finite width.", start=(1.5 * _UM,)),
     Effect("etch_loading", "height", "process",
-           [Parameter("loading", "1", -0.5, 0.5, 0.02)], _etch_loading,
+           [Parameter("loading", "1", -0.5, 0.5, 0.02, smooth=True)], _etch_loading,
            "The etch rate depends on the local open fraction of the mask: depth follows pattern density."),
     Effect("mask_rotation", "height", "process",
            [Parameter(f"rotation_mask{j}_deg", "deg", -0.5, 0.5, 0.005) for j in (1, 2, 3)], _mask_rotation,
@@ -442,14 +444,14 @@ _BUILTIN_HEIGHT = [
            "not the camera field's) against the first one: its overlay grows linearly with the distance from "
            "that centre, opposite in sign on opposite sides."),
     Effect("microtrenching", "height", "process",
-           [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null) for j in range(4)
+           [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null, smooth=True) for j in range(4)
             for q, lo, hi, sc, null in (("depth", 0.0, 150e-9, 5e-9, 0.0), ("width", 0.05 * _UM, 3 * _UM, 0.1 * _UM,
                                                                              0.4 * _UM))],
            _microtrenching,
            "Ions reflected from the sidewalls etched deeper at the foot of a mask's etched edges: a trench "
            "inside each opening along its edges, decaying over a width, in proportion to that etch."),
     Effect("etch_gradient", "height", "process",
-           [Parameter(f"{ax}_per_m", "1/m", -100.0, 100.0, 5.0) for ax in ("x", "y")], _etch_gradient,
+           [Parameter(f"{ax}_per_m", "1/m", -100.0, 100.0, 5.0, smooth=True) for ax in ("x", "y")], _etch_gradient,
            "Plasma non-uniformity made every etch deeper on one side of the field by the same relative "
            "amount per metre (x toward +column, y up; 10 /m = 1 % per mm), referred to the design's centre "
            "(depths nominal there, not at the camera field's centre)."),

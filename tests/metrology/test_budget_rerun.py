@@ -12,7 +12,7 @@ from metrology.matching.instrument import Placement
 import filegen
 
 
-def _diagnose(monkeypatch, run, later_keep):
+def _diagnose(monkeypatch, run, later_keep, budget=1e6):
     """The overlay case diagnosed with ``run`` in place of the selection and ``later_keep(first,
     keep)`` choosing the pixels the robust rule keeps after the first pass."""
     case = filegen.make_case(["mask_overlay"], 11, design_px=40, field_px=130)
@@ -28,7 +28,15 @@ def _diagnose(monkeypatch, run, later_keep):
     monkeypatch.setattr(cam.dg, "run_diagnosis", run)
     monkeypatch.setattr(cam, "robust_valid", valid)
     return cam.diagnose_camera(case.levels, filegen.PITCH_M, case.height_m, placement,
-                               candidates=["mask_overlay", "etch_depth"], window_px=96, cpu_budget_s=1e6)
+                               candidates=["mask_overlay", "etch_depth"], window_px=96, cpu_budget_s=budget)
+
+
+def _more_than_the_share(first, keep):
+    """More than RERUN_SHARE of the pixels dropped: the fit reruns."""
+    keep = keep.copy()
+    drop = np.argwhere(keep)[::50][:int(2 * cam.RERUN_SHARE * keep.size)]
+    keep[tuple(drop.T)] = False
+    return keep
 
 
 def test_a_rerun_cut_short_by_the_budget_leaves_the_finished_pass(monkeypatch):
@@ -45,13 +53,7 @@ def test_a_rerun_cut_short_by_the_budget_leaves_the_finished_pass(monkeypatch):
         return replace(diag, steps=[], model=nuisance, stopped_early={
             "reason": "time budget: no further candidates were tried", "budget_cpu_s": 0.0})
 
-    def more_than_the_share(first, keep):  # more than RERUN_SHARE of the pixels dropped: the fit reruns
-        keep = keep.copy()
-        drop = np.argwhere(keep)[::50][:int(2 * cam.RERUN_SHARE * keep.size)]
-        keep[tuple(drop.T)] = False
-        return keep
-
-    diag = _diagnose(monkeypatch, run, more_than_the_share)
+    diag = _diagnose(monkeypatch, run, _more_than_the_share)
     assert len(runs) == 2
     assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
     assert "previous pass stands" in diag.stopped_early["reason"]
@@ -75,3 +77,25 @@ def test_a_handful_of_readmitted_pixels_does_not_rerun_the_selection(monkeypatch
     diag = _diagnose(monkeypatch, run, three_dropped)
     assert len(runs) == 1
     assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
+
+
+def test_a_rerun_the_budget_left_cannot_pay_is_not_started(monkeypatch):
+    # A rerun is a whole selection again: with less of the budget left than the first pass took, it
+    # would only be cut short (a trenching case spent 41 CPU s so), so it does not start. The CPU
+    # clock is a fake one that each pass advances by 100 s: 150 s of budget leave 50.
+    real_run = cam.dg.run_diagnosis
+    clock = [0.0]
+    runs = []
+
+    def run(*args, **kw):
+        runs.append(kw.get("cpu_budget_s"))
+        diag = real_run(*args, **kw)
+        clock[0] += 100.0
+        return diag
+
+    monkeypatch.setattr(cam.dg, "cpu_seconds", lambda: clock[0])
+    diag = _diagnose(monkeypatch, run, _more_than_the_share, budget=150.0)
+    assert runs == [150.0]
+    assert "not started" in diag.stopped_early["reason"]
+    assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
+    assert diag.final_residual_rms < 1.3 * diag.noise_floor
