@@ -93,7 +93,6 @@ def test_a_shared_cache_survives_threads_that_fill_and_evict_it():
                 assert got[0] == key  # never another key's array
             else:
                 cache.put(key, np.full(100, float(key)))
-            assert (key in cache) in (True, False)
         return True
 
     assert all(parallel_map(hammer, range(4), workers=4))
