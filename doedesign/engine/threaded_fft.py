@@ -3,9 +3,10 @@
 Written by hand because scipy.fft's own threads (``workers``) are not safe here: they come from
 a pool that lives as long as the process and shuts down and restarts around every fork
 (pthread_atfork), and a fork soon after a restart can wait in fork() for ever (pocketfft's
-prefork handler joining an idle pool thread that lost its wake-up: a CSI diagnosis once in 30,
-a CI test worker after PSF tests). The diagnosis forks hundreds of times, in the same process as
-a design or a PSF prediction (``doe demo``, a test run).
+prefork handler joining an idle pool thread that lost its wake-up: a CSI diagnosis once in 30
+when its workers were forked, a CI test worker after PSF tests). Other code forks in the
+same process as a design or a PSF prediction: subprocesses, Dask's local workers, a benchmark's
+process pool.
 
 The engine's transforms are batches of 1-D transforms along one axis of a 2-D or 3-D array, so
 they split into slices of another axis that share nothing. Each slice is transformed by

@@ -67,8 +67,8 @@ MAX_BLUR_M = 1.5e-6
 # Fine cells between any pixel read and a cell the FFT's circular convolution wrapped around:
 # the spline prefilter's decay (0.268^24 ~ 2e-14) plus the cubic spline's support.
 _WRAP_GUARD = 26
-# No FFT here starts scipy.fft's thread pool (``workers`` > 1): it can hang the diagnosis's forks
-# (the reason, measured: :mod:`doedesign.engine.threaded_fft`).
+# No FFT here starts scipy.fft's thread pool (``workers`` > 1): it can hang a later fork in the
+# same process (the reason, measured: :mod:`doedesign.engine.threaded_fft`).
 # Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
 # all four masks of one model on a whole 512 px field (210 MB each in float64).
 ETCH_CACHE_BYTES = 1024 * 2 ** 20

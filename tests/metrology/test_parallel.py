@@ -136,6 +136,7 @@ def test_registration_and_camera_maps_never_start_scipys_fft_thread_pool():
 
     code = """
 import os
+import time
 import numpy as np
 from masks.process import ProcessParams
 from metrology.matching.instrument import InstrumentModel, Placement
@@ -154,6 +155,11 @@ from doedesign.engine.lags import paired_lags
 backend = numpy_backend()
 x = rng.standard_normal((512, 512))
 backend.fftn(x), backend.rfftn(x), backend.fft(x), paired_lags(x, backend)
+# A joined thread's task can stay listed for a moment while the kernel ends it (seen in CI: one
+# run in a few); a pool's threads stay for ever. Wait up to 5 s for the count to come back.
+deadline = time.monotonic() + 5.0
+while len(os.listdir("/proc/self/task")) > before and time.monotonic() < deadline:
+    time.sleep(0.01)
 print(before, len(os.listdir("/proc/self/task")))
 """
     if not os.path.isdir("/proc/self/task"):
