@@ -20,7 +20,8 @@ from metrology.diagnosis.effects import Effect, Parameter, get_effect
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 
-__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "STAGE_WINDOW_PX",
+__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "STAGE_FREE",
+           "STAGE_WINDOW_PX",
            "choose_transfer", "earned_members", "instrument_report", "member_params", "member_starts",
            "objective_starts", "placement_report"]
 
@@ -46,6 +47,13 @@ STAGE_SHARE = 0.3
 BATWING = "batwing"
 # The combinations of the family's members beyond blur and fill factor that are tried.
 MEMBERS = (("objective",), ("batwing",), ("objective", "batwing"))
+# Fabrication effects free in every model of the stage and dropped from what it returns (never
+# named by it): an objective's transfer lowers the steps of fine features, which an etch depth
+# that is not the design's can pay for (a boxcar instrument's file with etch loading and a
+# gradient: objective and batwing chosen for the depth, earning 4283 on an instrument that has
+# neither, and the selection left at 4.2x the floor; with each mask's depth free, neither, and
+# the loading and gradient found within 2 %).
+STAGE_FREE = ("etch_depth",)
 # Members that can act as nothing (the batwing at zero amplitude; the objective cannot: its
 # widest aperture still lowers the transfer at mid frequencies).
 NESTING = ("batwing",)
@@ -117,7 +125,8 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     when they leave an instrument's residual (an odd edge profile shared by every mask), the
     objective's NA, the batwing and both together are fitted, and the combination with the
     lowest information criterion is kept when it lowers it by more than ``threshold`` (both
-    only when they beat each alone by as much). Short fits with forward differences: the
+    only when they beat each alone by as much). The effects of :data:`STAGE_FREE` are fitted
+    in every model and left out of what this returns. Short fits with forward differences: the
     diagnosis refits the nuisances to convergence from what this returns.
 
     Parameters
@@ -140,9 +149,12 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         ``"batwing"``, ``"objective+batwing"``).
     """
     state = {"objective": False, "batwing": False}
+    named = bool(held)
     held = dict(held or {})
     camera = held.pop(CAMERA.name, CAMERA.start_values())
     plain = make(**state)
+    free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
+    held.update({k: plain.effects[k].start_values() for k in free})
     model, rss, _ = dg.fit_effects(plain, {CAMERA.name: camera, **held}, [CAMERA.name, *held], max_iter=12,
                                    central=False)
     n = plain.residual(model).size
@@ -157,11 +169,11 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     # are always tried (once per diagnosis): what a large effect's fit leaves on the edges mixes
     # with the instrument's profile (an overlay's fit under the wrong transfer), and the
     # criterion, not the profile's shape, decides.
-    left = None if held else plain.instrument_signature(
+    left = None if named else plain.instrument_signature(
         plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES, every_mask=False)
-    if not held and (left is None or left["odd_share"] < STAGE_ODD_SHARE):
+    if not named and (left is None or left["odd_share"] < STAGE_ODD_SHARE):
         log.info("instrument stage: blur and fill factor leave no instrument residual")
-        return dict(state), model, {}
+        return dict(state), _without(model, free), {}
     transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
     # Every combination is fitted from the blur-and-fill fit: the objective's NA and the batwing
     # trade against each other (a CSI's batwing sits beside its objective's transfer), so the
@@ -189,7 +201,11 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         model = fits[chosen][1]
         state = {k: k in chosen for k in state}
     log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
-    return state, model, {k: float(v) for k, v in changes.items()}
+    return state, _without(model, free), {k: float(v) for k, v in changes.items()}
+
+
+def _without(model: dict[str, np.ndarray], names: list[str]) -> dict[str, np.ndarray]:
+    return {k: v for k, v in model.items() if k not in names}
 
 
 def member_starts(members: tuple[str, ...], model: dict[str, np.ndarray],

@@ -63,6 +63,10 @@ UNEXPLAINED_RATIO = 1.25
 # a wrong lateral transfer leaves an odd profile, a linewidth bias (the one fabrication effect
 # the same at every mask's edges) an even one.
 EARLY_ODD_SHARE = 0.8
+# ... and the share of the residual's power above the noise floor that profile must hold: an
+# instrument residual beside a larger one it does not explain (an etch's depth varying across
+# the field, on the interiors) leaves candidates to screen.
+EARLY_EXCESS_SHARE = 0.5
 # ... and above which a final unexplained residual shared by every mask's edges is the
 # instrument's (fabrication names then withheld).
 FINAL_ODD_SHARE = 0.5
@@ -391,11 +395,16 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     # named on it.
     early = (problem.instrument_signature(maps[0]) if _rms(r) > UNEXPLAINED_RATIO * problem.noise.sigma
              else None)
-    if early is not None and early["odd_share"] < EARLY_ODD_SHARE:
-        early = None
     if early is not None:
-        log.info("the instrument's fit leaves an instrument residual (odd share %.2f): no candidate screened",
-                 early["odd_share"])
+        excess = _rms(r) ** 2 - problem.noise.sigma ** 2
+        held = early["explained_rms_m"] ** 2 / excess
+        if early["odd_share"] < EARLY_ODD_SHARE or held < EARLY_EXCESS_SHARE:
+            log.info("an instrument residual (odd share %.2f) holds %.0f %% of the residual's excess over "
+                     "the floor: candidates screened", early["odd_share"], 100 * held)
+            early = None
+    if early is not None:
+        log.info("the instrument's fit leaves an instrument residual (odd share %.2f, %.0f %% of the excess "
+                 "over the floor): no candidate screened", early["odd_share"], 100 * held)
     while early is None and len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
         pending = [nm for nm in names if nm not in model]
         if not pending:
