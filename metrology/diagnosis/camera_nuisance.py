@@ -47,12 +47,13 @@ STAGE_SHARE = 0.3
 BATWING = "batwing"
 # The combinations of the family's members beyond blur and fill factor that are tried.
 MEMBERS = (("objective",), ("batwing",), ("objective", "batwing"))
-# Fabrication effects free in every model of the stage and dropped from what it returns (never
-# named by it): an objective's transfer lowers the steps of fine features, which an etch depth
-# that is not the design's can pay for (a boxcar instrument's file with etch loading and a
-# gradient: objective and batwing chosen for the depth, earning 4283 on an instrument that has
-# neither, and the selection left at 4.2x the floor; with each mask's depth free, neither, and
-# the loading and gradient found within 2 %).
+# Fabrication effects freed, once the stage has fitted its combinations, in a second short fit
+# of each from its optimum, whose criteria then choose (never named by it, left out of what it
+# returns): an objective's transfer lowers the steps of fine features, which an etch depth that
+# is not the design's can pay for. On a boxcar instrument's file with etch loading and a
+# gradient, objective and batwing earned 4283 on an instrument that has neither, and the
+# selection ended at 4.2x the floor. Freed in the first fits instead, the depths slowed the
+# short fits into a wrong optimum (a CSI null: fill factor 0 against 0.96, a false loading).
 STAGE_FREE = ("etch_depth",)
 # Members that can act as nothing (the batwing at zero amplitude; the objective cannot: its
 # widest aperture still lowers the transfer at mid frequencies).
@@ -125,9 +126,11 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     when they leave an instrument's residual (an odd edge profile shared by every mask), the
     objective's NA, the batwing and both together are fitted, and the combination with the
     lowest information criterion is kept when it lowers it by more than ``threshold`` (both
-    only when they beat each alone by as much). The effects of :data:`STAGE_FREE` are fitted
-    in every model and left out of what this returns. Short fits with forward differences: the
-    diagnosis refits the nuisances to convergence from what this returns.
+    only when they beat each alone by as much). Where one earns, every combination and the
+    blur and fill factor alone are fitted again with the effects of :data:`STAGE_FREE` free,
+    and those criteria choose (the effects left out of what this returns). Short fits with
+    forward differences: the diagnosis refits the nuisances to convergence from what this
+    returns.
 
     Parameters
     ----------
@@ -153,8 +156,6 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     held = dict(held or {})
     camera = held.pop(CAMERA.name, CAMERA.start_values())
     plain = make(**state)
-    free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
-    held.update({k: plain.effects[k].start_values() for k in free})
     model, rss, _ = dg.fit_effects(plain, {CAMERA.name: camera, **held}, [CAMERA.name, *held], max_iter=12,
                                    central=False)
     n = plain.residual(model).size
@@ -173,7 +174,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         plain.residual_map(model), share=STAGE_SHARE, amplitudes=STAGE_AMPLITUDES, every_mask=False)
     if not named and (left is None or left["odd_share"] < STAGE_ODD_SHARE):
         log.info("instrument stage: blur and fill factor leave no instrument residual")
-        return dict(state), _without(model, free), {}
+        return dict(state), model, {}
     transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
     # Every combination is fitted from the blur-and-fill fit: the objective's NA and the batwing
     # trade against each other (a CSI's batwing sits beside its objective's transfer), so the
@@ -195,12 +196,12 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
             c = crit(problem, rss)
             if members not in fits or c < fits[members][0]:
                 fits[members] = (c, fitted)
-    # A combination that nests a fitted one but came out with the larger RSS did not converge in
-    # its short fit (a CSI's objective and batwing: -947 against the objective's -1132): it is
-    # fitted again from the nested one's optimum, the members it adds at their start values.
+    # A combination that nests a fitted one is fitted again from the nested one's optimum, the
+    # members it adds at their start values: its short fits from the blur-and-fill start can
+    # end in another optimum (a CSI's objective and batwing: NA 0.51 against 0.36, -947 against
+    # the objective alone's -1132, and a false etch loading paid for the difference).
     for members in [m for m in fits if len(m) > 1]:
-        inner = [m for m in fits if set(m) < set(members) and set(members) - set(m) <= set(NESTING)
-                 and fits[m][0] < fits[members][0] - (member_params(members) - member_params(m)) * np.log(n_eff)]
+        inner = [m for m in fits if set(m) < set(members) and set(members) - set(m) <= set(NESTING)]
         if not inner:
             continue
         best = min(inner, key=lambda m: fits[m][0])
@@ -209,6 +210,19 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
         if crit(problem, rss) < fits[members][0]:
             fits[members] = (crit(problem, rss), fitted)
+    free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
+    if free and earned_members({m: c for m, (c, _) in fits.items()}, current, threshold):
+        log.info("instrument stage before %s were freed: %s", free,
+                 {"+".join(m): round(c - current, 1) for m, (c, _) in fits.items()})
+        extra = {k: plain.effects[k].start_values() for k in free}
+        model, rss, _ = dg.fit_effects(plain, {**model, **extra}, [CAMERA.name, *held, *free], max_iter=12,
+                                       central=False)
+        current = crit(plain, rss)
+        for members, (_, fitted) in list(fits.items()):
+            problem = make(**{k: k in members for k in state})
+            again, rss, _ = dg.fit_effects(problem, {**fitted, **extra}, [*problem.nuisance, *held, *free],
+                                           max_iter=12, central=False)
+            fits[members] = (crit(problem, rss), again)
     changes = {"+".join(m): c - current for m, (c, _) in fits.items()}
     chosen = earned_members({m: c for m, (c, _) in fits.items()}, current, threshold)
     if chosen:
@@ -246,8 +260,8 @@ def earned_members(criteria: dict[tuple[str, ...], float], current: float, thres
     for members, c in sorted(criteria.items(), key=lambda kv: kv[1]):
         if c >= current - threshold:
             break
-        # A combination that earns had its parts tried (:func:`choose_transfer`).
-        if len(members) == 1 or all(c < criteria[(m,)] - threshold for m in members):
+        # A member not tried alone could not have earned alone (:func:`choose_transfer`).
+        if len(members) == 1 or all(c < criteria.get((m,), current) - threshold for m in members):
             return members
     return ()
 
