@@ -206,10 +206,11 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
             continue
         best = min(inner, key=lambda m: fits[m][0])
         problem = make(**{k: k in members for k in state})
-        start = {**fits[best][1], **{m: get_effect(BATWING).start_values() for m in set(members) - set(best)}}
+        start = {**fits[best][1], BATWING: get_effect(BATWING).start_values()}  # the one member that nests
         fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
-        if crit(problem, rss) < fits[members][0]:
-            fits[members] = (crit(problem, rss), fitted)
+        c = crit(problem, rss)
+        if c < fits[members][0]:
+            fits[members] = (c, fitted)
     free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
     if free and earned_members({m: c for m, (c, _) in fits.items()}, current, threshold):
         log.info("instrument stage before %s were freed: %s", free,

@@ -397,14 +397,14 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
              else None)
     if early is not None:
         excess = _rms(r) ** 2 - problem.noise.sigma ** 2
-        held = early["explained_rms_m"] ** 2 / excess
-        if early["odd_share"] < EARLY_ODD_SHARE or held < EARLY_EXCESS_SHARE:
+        excess_share = early["explained_rms_m"] ** 2 / excess
+        if early["odd_share"] < EARLY_ODD_SHARE or excess_share < EARLY_EXCESS_SHARE:
             log.info("an instrument residual (odd share %.2f) holds %.0f %% of the residual's excess over "
-                     "the floor: candidates screened", early["odd_share"], 100 * held)
+                     "the floor: candidates screened", early["odd_share"], 100 * excess_share)
             early = None
     if early is not None:
         log.info("the instrument's fit leaves an instrument residual (odd share %.2f, %.0f %% of the excess "
-                 "over the floor): no candidate screened", early["odd_share"], 100 * held)
+                 "over the floor): no candidate screened", early["odd_share"], 100 * excess_share)
     while early is None and len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
         pending = [nm for nm in names if nm not in model]
         if not pending:
