@@ -156,6 +156,14 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     held = dict(held or {})
     camera = held.pop(CAMERA.name, CAMERA.start_values())
     plain = make(**state)
+    problems = {(): plain}
+
+    def problem_of(members):
+        # One problem per combination, shared by its first fits, the nested refit and the second look.
+        if members not in problems:
+            problems[members] = make(**{k: k in members for k in state})
+        return problems[members]
+
     model, rss, _ = dg.fit_effects(plain, {CAMERA.name: camera, **held}, [CAMERA.name, *held], max_iter=12,
                                    central=False)
     n = plain.residual(model).size
@@ -190,7 +198,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
                   if set(members) < set(m) and set(m) - set(members) <= set(NESTING)]
         if bounds and max(bounds) >= current - threshold:
             continue
-        problem = make(**{k: k in members for k in state})
+        problem = problem_of(members)
         for start in member_starts(members, model, transfer):
             fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
             c = crit(problem, rss)
@@ -205,7 +213,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
         if not inner:
             continue
         best = min(inner, key=lambda m: fits[m][0])
-        problem = make(**{k: k in members for k in state})
+        problem = problem_of(members)
         start = {**fits[best][1], BATWING: get_effect(BATWING).start_values()}  # the one member that nests
         fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
         c = crit(problem, rss)
@@ -220,7 +228,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
                                        central=False)
         current = crit(plain, rss)
         for members, (_, fitted) in list(fits.items()):
-            problem = make(**{k: k in members for k in state})
+            problem = problem_of(members)
             again, rss, _ = dg.fit_effects(problem, {**fitted, **extra}, [*problem.nuisance, *held, *free],
                                            max_iter=12, central=False)
             fits[members] = (crit(problem, rss), again)
