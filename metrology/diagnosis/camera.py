@@ -447,9 +447,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
     cpu_budget_s : float, optional
         CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        once spent, no further round or revision starts. A rerun on re-admitted pixels that what is
-        left cannot pay (it costs about the pass before it) is not started; one cut short leaves
-        the previous pass.
+        once spent, no further round or revision starts, and one under way stops. A rerun on
+        re-admitted pixels that what is left cannot pay (it costs about the pass before it) is not
+        started; one cut short leaves the previous pass.
 
     Returns
     -------

@@ -235,10 +235,11 @@ def _screen_one(rd, name):
         return (bic_eff(rss, rd["n_s"], rd["n_eff_s"], rd["k_now"] + eff.n_params) - rd["crit_s"]) \
             * rd["n_eff"] / rd["n_eff_s"]
 
-    fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=False if rd["quick"] else None)
+    fitted, rss_c, _ = fit_effects(screen, trial, free, max_iter=first, central=False if rd["quick"] else None,
+                                   stop=rd["stop"])
     if first < iters and score(rss_c) < 0:
         # The first step paid for the candidate's parameters: finish the short fit.
-        fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False)
+        fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False, stop=rd["stop"])
     return name, fitted, score(rss_c)
 
 
@@ -279,17 +280,21 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
     alternatives that scored close to it when it was chosen (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
     dropped if the criterion no longer needs it. Past ``deadline`` (:func:`cpu_seconds`) the
-    pass stops where it is (the model stays the forward pass's or its last revision).
+    pass stops where it is (the model stays the forward pass's or its last revision; a fit the
+    deadline cut short changes nothing).
     """
     crit = _criterion(problem, model, n, n_eff)
     by_name = {st.effect: st for st in steps}
+    budget = _Budget(deadline)
     for st in list(steps):
         for alt in alternatives.get(st.effect, []):
             if alt in model or st.effect not in model or _past(deadline):
                 continue
             trial = {k: v for k, v in model.items() if k != st.effect}
             trial[alt] = problem.effects[alt].start_values()
-            fitted, rss, errs = fit_effects(problem, trial, list(trial))
+            fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
+            if budget.fired:
+                return model, errors, crit
             c_alt = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
             prefer = problem.effects[alt].kind == "artefact" and problem.effects[st.effect].kind != "artefact"
             if c_alt < crit - threshold or (prefer and c_alt <= crit + threshold):
@@ -306,7 +311,9 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
         if len(model) - len(nuisance) <= 1 or _past(deadline):
             break
         trial = {k: v for k, v in model.items() if k != st.effect}
-        fitted, rss, errs = fit_effects(problem, trial, list(trial))
+        fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
+        if budget.fired:
+            break
         c_drop = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
         if c_drop < crit + threshold:
             log.info("revision: %s no longer needed (criterion %+.1f)", st.effect, c_drop - crit)
@@ -316,6 +323,26 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
 
 def _past(deadline):
     return deadline is not None and cpu_seconds() > deadline
+
+
+def _cut_short(budget_s, what, candidates):
+    """``stopped_early`` of a selection whose round the budget cut short in ``what``."""
+    log.info("diagnosis stopped: CPU budget of %.0f s spent in %s of %s", budget_s, what, candidates)
+    return {"reason": f"time budget: the round was cut short in {what} of {', '.join(sorted(candidates))} "
+                      "(best so far), and nothing is named from it", "budget_cpu_s": budget_s,
+            "cut_short": sorted(candidates)}
+
+
+class _Budget:
+    """A fit's ``stop`` (:func:`fit_effects`): true once the CPU clock is past ``deadline``;
+    ``fired`` says a fit was stopped by it, short of convergence."""
+
+    def __init__(self, deadline: float | None):
+        self.deadline, self.fired = deadline, False
+
+    def __call__(self) -> bool:
+        self.fired = self.fired or _past(self.deadline)
+        return self.fired
 
 
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
@@ -355,7 +382,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         from its values instead of the null ones. The selection itself is made afresh.
     cpu_budget_s : float, optional
         CPU seconds (:func:`cpu_seconds`, workers included) the selection may spend: past them
-        no further round of candidates and no further revision starts, and the diagnosis says
+        no further round of candidates and no further revision starts, a round or revision under
+        way stops at its fit's next evaluation and names nothing from it, and the diagnosis says
         so (``stopped_early``). Default: no budget (the criterion alone stops).
     after_step : callable, optional
         Called with the model (nuisances included) and the steps so far after each named step;
@@ -426,9 +454,14 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             n_s = r_s.size
             n_eff_s = max(n_s / screen.noise.corr_area_px, 2.0)
             crit_s = bic_eff(float(np.sum(r_s ** 2)), n_s, n_eff_s, k_now)
+        # The budget stops the round's fits under way (a round costs 5-10 CPU s, a whole window's
+        # fit to convergence 15-30), and nothing is named from a round it stopped: a screening
+        # fit's parameters are not a diagnosis (on a CSI file an etch loading so named paid for a
+        # gradient whose fit the loading's refit had not yet finished).
+        budget = _Budget(deadline)
         rd = dict(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
                   iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
-                  prior=prior or {})
+                  prior=prior or {}, stop=budget)
         workers = WORKERS if problem.parallel_fits else 1
         # Those with the most parameters first (the longest fits): the workers then finish together.
         by_size = sorted(pending, key=lambda c: -problem.effects[c].n_params)
@@ -441,6 +474,9 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             break
         best = min(scores, key=scores.get)
         log.info("candidates: %s", {k: round(v, 1) for k, v in sorted(scores.items(), key=lambda kv: kv[1])})
+        if budget.fired:
+            stopped = _cut_short(cpu_budget_s, "its screening", [best])
+            break
         if scores[best] > -threshold:
             break
         # Candidates close to the best are fitted to convergence and compared again; those
@@ -454,9 +490,12 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             if screen is not problem:
                 # Converged on the cheap crop first, the fit on the whole problem starts near
                 # its optimum and needs a few of its expensive evaluations, not a dozen.
-                start, _, _ = fit_effects(screen, start, list(model) + [c])
-            refits[c] = fit_effects(problem, start, list(model) + [c])
+                start, _, _ = fit_effects(screen, start, list(model) + [c], stop=budget)
+            refits[c] = fit_effects(problem, start, list(model) + [c], stop=budget)
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
+        if budget.fired:
+            stopped = _cut_short(cpu_budget_s, "its fit to convergence", close)
+            break
         best = min(close, key=scores.get)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
             break

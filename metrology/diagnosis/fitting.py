@@ -13,16 +13,20 @@ instrument fit stopped at the 60-evaluation cap 1580 cost units (17 criterion un
 optimum that ``dogbox`` reached in 28 evaluations, with the objective's NA, fill factor and
 batwing at their true values. ``dogbox`` alone stalls elsewhere: on another such file it spent 60
 evaluations 0.5 % above the cost ``trf`` reached in 8.
+
+Tolerances are in the information criterion's units, which decide: a fit ends where a step
+lowers the criterion by less than :data:`CRITERION_TOL`, or :data:`CRAWL_STEPS` steps together by
+less than :data:`CRAWL_TOL`. A diagnosis's time budget (``stop``) ends one under way.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from metrology.diagnosis.parallel import WORKERS, parallel_map
 
@@ -37,11 +41,28 @@ log = logging.getLogger(__name__)
 JAC_STEP = 0.02
 # Evaluations of a fit to convergence, of which trf may spend the first TRF_EVALS.
 MAX_EVALS, TRF_EVALS = 60, 12
+# A fit has converged when a step lowers the information criterion (:func:`~metrology.diagnosis.
+# engine.bic_eff`: ``n_eff ln RSS``, so a relative change of the cost times ``n_eff``) by less
+# than this: a fiftieth of a unit, where an effect must earn ten. With a relative ``ftol`` of
+# 1e-6 instead (a thousandth of a unit on a 160 px window), dogbox's finish of a CSI file's fits
+# spent up to 7 Jacobians of 14-18 columns on their last 0.01-0.1 units.
+CRITERION_TOL = 0.02
+# A fit to convergence whose last CRAWL_STEPS iterations together lowered the criterion by less
+# than CRAWL_TOL ends there: beside a bound (a fill factor or a batwing's reach on it) the solvers
+# crawl. On a CSI file's refit with an etch gradient, dogbox spent 48 Jacobians of 18 columns (a
+# third of the CPU budget) on its last 2 units, 0.03-0.1 per iteration.
+CRAWL_STEPS, CRAWL_TOL = 5, 1.0
+# A fit to convergence updates its Jacobian by Broyden's rank-one rule after a step its first
+# trial took (one evaluation, where differences cost one or two per parameter), at most this many
+# times running; after a rejected trial, differences again. In a curved valley (a CSI file's fill
+# factor, NA and batwing beside an etch loading the instrument stage had not seen) the solvers
+# take dozens of short accepted steps: that fit took 42 Jacobians of 11 columns, 45 CPU s.
+BROYDEN_STEPS = 4
 
 
 def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],
-                max_iter: int | None = None,
-                central: bool | None = None) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
+                max_iter: int | None = None, central: bool | None = None,
+                stop: Callable[[], bool] | None = None) -> tuple[dict[str, np.ndarray], float, dict[str, np.ndarray]]:
     """Least-squares fit of the ``free`` effects' parameters, others held at ``model``.
 
     Central-difference Jacobians where the residual has kinks (``problem.kinks``: area-coverage
@@ -75,34 +96,85 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     central = _central(effs, problem.kinks if central is None else central)
     sizes = []  # residual size of each solver evaluation
     last = {}  # the last evaluation, the base of a forward-difference Jacobian there
+    best = {}  # the lowest-cost evaluation: where a fit that ``stop`` ends returns
+    crawl = []  # the cost at each Jacobian's point
+    held = {}  # the last Jacobian: its point, residual, matrix, Broyden updates since a full one, evaluations
 
     def fun(x):
+        if np.array_equal(last.get("x"), x):
+            return last["r"]  # the start, evaluated below to size the tolerance
+        if best and stop is not None and stop():
+            raise _Stopped
         r = residual(x)
         sizes.append(r.size)
         last.update(x=x.copy(), r=r)
+        cost = float(r @ r)
+        if not best or cost < best["cost"]:
+            best.update(x=x.copy(), cost=cost)
         return r
 
     def jac(x):
+        if stop is not None and stop():
+            raise _Stopped
         if max_iter and len(sizes) >= max_iter:
             # The solver stops right after this Jacobian, which would only serve the errors.
             sizes.append(-1)
             return np.zeros((sizes[-2], x.size))
-        f0 = last["r"] if not central.all() and np.array_equal(last.get("x"), x) else None
-        return _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0)
+        here = np.array_equal(last.get("x"), x)
+        if (not max_iter and here and held and len(sizes) == held["n"] + 1 and held["age"] < BROYDEN_STEPS):
+            # One step accepted at its first trial since the last Jacobian: Broyden's update.
+            dx = x - held["x"]
+            j = held["j"] + np.outer(last["r"] - held["r"] - held["j"] @ dx, dx / (dx @ dx))
+            age = held["age"] + 1
+        else:
+            f0 = last["r"] if not central.all() and here else None
+            j, age = _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0), 0
+        if here:
+            held.update(x=x.copy(), r=last["r"], j=j, age=age, n=len(sizes))
+        if here and not max_iter:
+            crawl.append(float(last["r"] @ last["r"]))
+            if (len(crawl) > CRAWL_STEPS
+                    and crawl[-1 - CRAWL_STEPS] - crawl[-1] < CRAWL_TOL * crawl[-1] * problem.noise.corr_area_px
+                    / last["r"].size):
+                raise _Crawled(x.copy(), last["r"], j)
+        return j
 
-    opts = dict(jac=jac, bounds=(lo, hi), xtol=1e-6, ftol=1e-6)
-    res = least_squares(fun, x0, method="trf", max_nfev=max_iter or TRF_EVALS, **opts)
-    if not max_iter and res.status == 0:
-        # trf zig-zags beside a bound: dogbox finishes from where it stopped (alone it stalls
-        # where the Jacobian is nearly rank-deficient, which trf crosses).
-        more = least_squares(fun, _inside(res.x, lo, hi), method="dogbox", max_nfev=MAX_EVALS - res.nfev, **opts)
-        res = more if more.cost <= res.cost else res
-    log.debug("fit %s: %d evaluations, %s Jacobians, status %d", free, res.nfev, res.njev, res.status)
+    try:
+        # The cost's relative change that moves the information criterion by CRITERION_TOL.
+        r0 = fun(x0)
+        ftol = max(CRITERION_TOL * problem.noise.corr_area_px / max(r0.size, 1), 1e-10)
+        opts = dict(jac=jac, bounds=(lo, hi), xtol=1e-6, ftol=ftol)
+        res = least_squares(fun, x0, method="trf", max_nfev=max_iter or TRF_EVALS, **opts)
+        if not max_iter and res.status == 0:
+            # trf zig-zags beside a bound: dogbox finishes from where it stopped (alone it stalls
+            # where the Jacobian is nearly rank-deficient, which trf crosses).
+            more = least_squares(fun, _inside(res.x, lo, hi), method="dogbox", max_nfev=MAX_EVALS - res.nfev,
+                                 **opts)
+            res = more if more.cost <= res.cost else res
+    except _Stopped:
+        log.info("fit %s stopped by its budget after %d evaluations", free, len(sizes))
+        rss = best["cost"] * problem.noise.sigma ** 2
+        return unpack(best["x"]), rss, _split(effs, np.full(best["x"].size, np.nan))
+    except _Crawled as crawled:
+        log.debug("fit %s crawls: ended after %d evaluations", free, len(sizes))
+        res = OptimizeResult(x=crawled.args[0], fun=crawled.args[1], jac=crawled.args[2])
+    log.debug("fit %s: %d evaluations", free, len(sizes))
     rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
+    if held.get("age") and not max_iter:
+        # The errors need the differences' Jacobian, not an update's.
+        res.jac = _jacobian(residual, res.x, lo, hi, central, WORKERS if problem.parallel_fits else 1)
     err = _errors(problem, res.fun, res.jac, scale)
     if sizes and sizes[-1] < 0:
         err = np.full(res.x.size, np.nan)
     return unpack(res.x), rss, _split(effs, err)
+
+
+class _Stopped(Exception):
+    """Raised in a fit's evaluation when its ``stop`` says so: ends the solver."""
+
+
+class _Crawled(Exception):
+    """Raised with ``(x, residual, Jacobian)`` at a point where the fit crawls (:data:`CRAWL_STEPS`)."""
 
 
 def standard_errors(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str]) -> dict[str, np.ndarray]:

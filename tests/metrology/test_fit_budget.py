@@ -1,0 +1,127 @@
+"""The time budget stops a fit under way, and nothing is named from a fit it stopped; a fit to
+convergence ends where further steps cannot change a decision (criterion units)."""
+
+import numpy as np
+
+from metrology.diagnosis import diagnose_heights
+from metrology.diagnosis import engine as dg
+from metrology.diagnosis import fitting
+from metrology.diagnosis.effects import Effect, Parameter
+from metrology.diagnosis.noise import NoiseEstimate
+from metrology.diagnosis.synthetic import HEIGHT_EFFECTS, make_height_case
+
+
+class _Decay(dg.Problem):
+    """y = a exp(-x / t) with white noise of known sigma (correlation area 1): nonlinear in t."""
+
+    def __init__(self, x, y, sigma):
+        self.x, self.y, self.calls = x, y, []
+        self.noise = NoiseEstimate(sigma, 1.0, x.size)
+        self.effects = {"decay": Effect("decay", "height", "surface",
+                                        [Parameter("a", "1", 0.0, 10.0, 1.0), Parameter("t", "1", 0.05, 10.0, 1.0, 1.0)],
+                                        lambda h, v, s: h, "an exponential decay")}
+
+    def residual(self, model):
+        a, t = model["decay"]
+        r = self.y - a * np.exp(-self.x / t)
+        self.calls.append(float(r @ r))
+        return r
+
+
+def _decay(seed=5):
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0.0, 4.0, 500)
+    return _Decay(x, 3.0 * np.exp(-x / 0.7) + 0.02 * rng.standard_normal(x.size), 0.02)
+
+
+def test_a_stopped_fit_ends_at_its_best_evaluation_with_no_uncertainties():
+    problem = _decay()
+    asked = []
+
+    def stop():  # the budget runs out after the solver's first step (a Jacobian is 4 evaluations)
+        asked.append(1)
+        return len(problem.calls) >= 7
+
+    start = {"decay": np.array([1.0, 2.0])}
+    fitted, rss, errors = fitting.fit_effects(problem, start, ["decay"], stop=stop)
+    stopped_at = len(problem.calls)
+    assert asked and stopped_at == 7  # under way: asked before each evaluation
+    # The model is the evaluation it returns the RSS of, the best the solver saw (below the start's).
+    np.testing.assert_allclose(np.sum(problem.residual(fitted) ** 2), rss)
+    assert rss < np.sum(problem.residual(start) ** 2)
+    assert np.all(np.isnan(errors["decay"]))
+    problem.calls.clear()
+    _, full, _ = fitting.fit_effects(problem, start, ["decay"])
+    assert len(problem.calls) > 2 * stopped_at and full < rss
+
+
+def test_a_fit_to_convergence_lands_within_the_criterion_tolerance_of_the_optimum():
+    problem = _decay()
+    fitted, rss, errors = fitting.fit_effects(problem, {"decay": np.array([1.0, 2.0])}, ["decay"])
+    # The optimum, independently: scipy's own solver with tight tolerances and its own Jacobian.
+    from scipy.optimize import least_squares
+
+    exact = least_squares(lambda p: problem.y - p[0] * np.exp(-problem.x / p[1]), [1.0, 2.0], method="lm",
+                          xtol=1e-14, ftol=1e-14)
+    n = problem.x.size
+    gap = dg.bic_eff(rss, n, n, 2) - dg.bic_eff(float(np.sum(exact.fun ** 2)), n, n, 2)
+    assert 0.0 <= gap < fitting.CRITERION_TOL + 1e-9
+    # Within a small fraction of its uncertainty of the optimum.
+    assert np.all(np.abs(fitted["decay"] - exact.x) < 0.1 * errors["decay"])
+
+
+def test_no_effect_is_named_from_a_refit_the_budget_cut_short(monkeypatch):
+    # The overlay case that test_diagnose names without a budget. The budget runs out as the
+    # candidate's fit to convergence starts (after its screening fit scored it): the fit stops
+    # at its start, and the screening fit's parameters are not a diagnosis.
+    case = make_height_case(["mask_overlay"], 1000 + HEIGHT_EFFECTS.index("mask_overlay"))
+    d = case.data
+    clock = [0.0]
+    real_fit = dg.fit_effects
+
+    def fit(problem, model, free, max_iter=None, **kw):
+        if max_iter is None and set(free) - set(getattr(problem, "nuisance", {})):
+            clock[0] = 1e9  # a refit with a candidate starts: the budget is spent
+        return real_fit(problem, model, free, max_iter=max_iter, **kw)
+
+    monkeypatch.setattr(dg, "cpu_seconds", lambda: clock[0])
+    monkeypatch.setattr(dg, "fit_effects", fit)
+    diag = diagnose_heights(d["levels"], d["pitch_m"], d["measured_height_m"], d["step_m"], region_px=32,
+                            cpu_budget_s=100.0)
+    assert diag.named == []
+    stop = diag.to_dict()["stopped_early"]
+    assert "cut short" in stop["reason"] and stop["cut_short"] == ["mask_overlay"]
+    assert diag.unexplained
+
+
+class _Valley(dg.Problem):
+    """Rosenbrock's curved valley as least squares, ``r = (10 (b - a^2), 1 - a)``, plus a
+    hundred noisy samples of ``a`` (so the optimum has uncertainties)."""
+
+    def __init__(self):
+        self.calls = 0
+        self.noise = NoiseEstimate(0.1, 1.0, 102)
+        self.samples = 1.0 + 0.1 * np.random.default_rng(2).standard_normal(100)
+        self.effects = {"v": Effect("v", "height", "surface",
+                                    [Parameter("a", "1", -3.0, 3.0, 1.0), Parameter("b", "1", -3.0, 3.0, 1.0)],
+                                    lambda h, v, s: h, "a curved valley")}
+
+    def residual(self, model):
+        self.calls += 1
+        a, b = model["v"]
+        return np.concatenate([[10 * (b - a * a), 1 - a], a - self.samples])
+
+
+def test_broyden_updates_cross_a_curved_valley_in_fewer_evaluations(monkeypatch):
+    counts = {}
+    for steps in (0, fitting.BROYDEN_STEPS):
+        monkeypatch.setattr(fitting, "BROYDEN_STEPS", steps)
+        problem = _Valley()
+        fitted, rss, errors = fitting.fit_effects(problem, {"v": np.array([-1.2, 1.0])}, ["v"])
+        a = (1.0 + problem.samples.sum()) / 101  # the optimum, in closed form: b = a^2
+        np.testing.assert_allclose(fitted["v"], [a, a * a], atol=1e-4)
+        counts[steps] = problem.calls
+        # The uncertainties are the differences' at the optimum, however the fit got there.
+        at_optimum = fitting.standard_errors(problem, fitted, ["v"])
+        np.testing.assert_allclose(errors["v"], at_optimum["v"], rtol=0.05)
+    assert counts[fitting.BROYDEN_STEPS] < counts[0]
