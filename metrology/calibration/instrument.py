@@ -164,7 +164,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
 
         def fit(model, objective=False, batwing=False):
             problem = make(objective, batwing)
-            fitted, rss, errors = dg.fit_effects(problem, model, list(model))
+            fitted, rss, errors = dg.fit_effects(problem, model, list(model), precise=True)
             return problem, fitted, rss, errors
 
         plain = fit({CAMERA.name: CAMERA.start_values(), depth.name: depth.start_values()})
