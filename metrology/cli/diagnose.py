@@ -63,8 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(default: fitted with the placement)")
     p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
                    help="CPU seconds (both cores' together) the camera-frame selection may spend before it stops "
-                        f"trying candidates and says so in the report (default {CPU_BUDGET_S:g}: a fit that does not "
-                        "close within it stops there)")
+                        "trying candidates, a round under way included (nothing is named from a round it cut short), "
+                        f"and says so in the report (default {CPU_BUDGET_S:g}: a fit that does not close within it "
+                        "stops there)")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
