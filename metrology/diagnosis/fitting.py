@@ -109,6 +109,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     best = {}  # the lowest-cost evaluation: where a fit that ``stop`` ends returns
     crawl = []  # the cost at each Jacobian's point
     held = {}  # the last Jacobian: its point, residual, matrix, Broyden updates since a full one, evaluations
+    workers = WORKERS if problem.parallel_fits else 1
 
     def fun(x):
         if np.array_equal(last.get("x"), x):
@@ -139,7 +140,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
             age = held["age"] + 1
         else:
             f0 = last["r"] if not central.all() and here else None
-            j, age = _jacobian(residual, x, lo, hi, central, WORKERS if problem.parallel_fits else 1, f0=f0), 0
+            j, age = _jacobian(residual, x, lo, hi, central, workers, f0=f0), 0
         if here:
             held.update(x=x.copy(), r=last["r"], j=j, age=age, n=len(sizes))
         if here and not max_iter and not precise:
@@ -173,7 +174,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     rss = float(np.sum(res.fun ** 2)) * problem.noise.sigma ** 2
     if held.get("age") and not max_iter:
         # The errors need the differences' Jacobian, not an update's.
-        res.jac = _jacobian(residual, res.x, lo, hi, central, WORKERS if problem.parallel_fits else 1)
+        res.jac = _jacobian(residual, res.x, lo, hi, central, workers)
     err = _errors(problem, res.fun, res.jac, scale)
     if sizes and sizes[-1] < 0:
         err = np.full(res.x.size, np.nan)
