@@ -31,7 +31,7 @@ from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import (edge_breakdown, instrument_signature, shared_profile_gain,
                                            structure_groups)
 from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, DEFAULT_TRANSFER, OBJECTIVE, PLACED,
-                                                 STAGE_WINDOW_PX, choose_transfer, placement_report)
+                                                 RESTAGE_WINDOW_PX, STAGE_WINDOW_PX, choose_transfer, placement_report)
 from metrology.diagnosis.effects import Effect, effects_for, get_effect
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M, sampled_edge_distance_m
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
@@ -64,8 +64,8 @@ RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
 RESTAGE_SHARE = 0.5
-# A restart's CPU time over the pass's before it (stage, nuisance fit, first step: 4-6x on CSI files).
-RESTAGE_COST = 5.0
+# A restart's CPU time over the pass's before it (the stage again, the selection again: 1.5-2x).
+RESTAGE_COST = 1.5
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
@@ -498,7 +498,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # The instrument stage (:func:`choose_transfer`) on the busiest square, then the floor
             # again through what it chose beyond blur and fill (an objective or a batwing rings into
             # the interiors), only ever lowered: a higher one is process error leaking in.
-            stage_px = min(size, STAGE_WINDOW_PX)
+            stage_px = min(size, RESTAGE_WINDOW_PX if named else STAGE_WINDOW_PX)
             chosen, fitted, changes = choose_transfer(
                 lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
                 threshold, named)

@@ -20,8 +20,8 @@ from metrology.diagnosis.effects import Effect, Parameter, get_effect
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 
-__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "STAGE_FREE",
-           "STAGE_WINDOW_PX",
+__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "RESTAGE_WINDOW_PX",
+           "STAGE_FREE", "STAGE_WINDOW_PX",
            "choose_transfer", "earned_members", "instrument_report", "member_params", "member_starts",
            "objective_starts", "placement_report"]
 
@@ -31,6 +31,13 @@ _UM = 1e-6
 # The instrument stage (:func:`choose_transfer`) fits on the busiest square of at most this many
 # camera pixels per side.
 STAGE_WINDOW_PX = 96
+# The stage run again with named fabrication effects held (:func:`choose_transfer`'s ``held``)
+# fits on a smaller square: with the effect's own residual gone, the instrument's edge profile
+# earns hundreds there (a CSI with an overlay held: objective and batwing -578 on 64 px, -1346 on
+# 96), and at 96 px its eleven short fits cost 39 CPU s, more than the budget left after the first
+# pass could pay for a restart (19 s on 64 px). On 48 px (13 s) a 0.06 batwing beside the
+# objective no longer earned, and a false etch loading paid for it.
+RESTAGE_WINDOW_PX = 64
 # Odd share of the shared edge profile (:func:`~metrology.diagnosis.breakdown.instrument_signature`)
 # the blur and fill factor must leave for the stage to try the objective and the batwing.
 STAGE_ODD_SHARE = 0.5
