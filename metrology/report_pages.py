@@ -196,7 +196,8 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
         parts[4:4] = extra
     stopped = rep.get("stopped_early")
     if isinstance(stopped, dict):
-        remedy = (" More CPU time (`doe diagnose --cpu-budget-s`) or a calibrated instrument (`doe calibrate "
+        more = "`--wall-limit-s` (the wall clock ended it)" if stopped.get("limit") == "wall" else "`--cpu-budget-s`"
+        remedy = (f" More time (`doe diagnose` {more}) or a calibrated instrument (`doe calibrate "
                   "instrument`, then `--instrument`) lets the selection finish."
                   if str(stopped.get("reason", "")).startswith("time budget") else "")
         parts.insert(4, f"- Stopped early: {stopped.get('reason')} (final residual "

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import time
 from pathlib import Path
 
 from doedesign.cli.common import Number, NumberList, add_device_option
@@ -18,6 +19,11 @@ log = logging.getLogger(__name__)
 # CPU seconds of the camera-frame selection (about 50 s on two cores with the comparison and the
 # report): a fit that does not close within it stops there and says so.
 CPU_BUDGET_S = 80.0
+# Wall-clock seconds the whole command may take (the 60 s a field on 2 cores) ...
+WALL_LIMIT_S = 60.0
+# ... of which the selection stops this many before the limit: the fits after it (the final joint
+# fit, partial matches, uncertainties), the report and its plots, and the interpreter's start.
+WALL_MARGIN_S = 5.0
 
 __all__ = ["load_effects_file", "parse_effects", "register", "run"]
 
@@ -66,6 +72,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "trying candidates, a round under way included (nothing is named from a round it cut short), "
                         f"and says so in the report (default {CPU_BUDGET_S:g}: a fit that does not close within it "
                         "stops there)")
+    p.add_argument("--wall-limit-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=WALL_LIMIT_S,
+                   help="wall-clock seconds the command may take: the camera-frame selection stops "
+                        f"{WALL_MARGIN_S:g} s before it as it does at the CPU budget, whichever comes first "
+                        f"(default {WALL_LIMIT_S:g}; a loaded machine reaches it with less of the budget spent)")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -73,6 +83,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    args.wall_deadline = time.monotonic() + args.wall_limit_s - WALL_MARGIN_S
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run
@@ -167,7 +178,7 @@ def _camera(design, path, args, candidates):
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,
-                                               cpu_budget_s=args.cpu_budget_s,
+                                               cpu_budget_s=args.cpu_budget_s, wall_deadline=args.wall_deadline,
                                                batwing=None if args.calibration is None else args.calibration.batwing)
     return diag, {"measured": str(path), **_held(args), **inputs}
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -27,6 +28,7 @@ from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
+from metrology.diagnosis import budget as clock
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import (edge_breakdown, instrument_signature, shared_profile_gain,
                                            structure_groups)
@@ -418,7 +420,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
                     screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None,
-                    cpu_budget_s: float | None = None, batwing: Sequence[float] | None = None) -> dg.Diagnosis:
+                    cpu_budget_s: float | None = None, batwing: Sequence[float] | None = None,
+                    wall_deadline: float | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -445,11 +448,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         once they hold most of the residual, the selection restarting when the family grows).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
-    cpu_budget_s : float, optional
-        CPU seconds (workers included) for the selection (:func:`~metrology.diagnosis.engine.run_diagnosis`);
-        once spent, no further round or revision starts, and one under way stops. A rerun on
-        re-admitted pixels that what is left cannot pay (it costs about the pass before it) is not
-        started; one cut short leaves the previous pass.
+    cpu_budget_s, wall_deadline : float, optional
+        CPU seconds (workers included) for the selection, and a ``time.monotonic()`` instant: at
+        whichever comes first no further round or revision starts, and one under way stops
+        (:func:`~metrology.diagnosis.engine.run_diagnosis`). A rerun on re-admitted pixels or a restart
+        that what is left cannot pay is not started; a rerun cut short leaves the previous pass.
 
     Returns
     -------
@@ -460,8 +463,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
 
     # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
     with threadpool_limits(limits=1, user_api="blas"):
-        cpu0 = dg.cpu_seconds()
-        deadline = None if cpu_budget_s is None else cpu0 + float(cpu_budget_s)
+        cpu0, wall0 = clock.cpu_seconds(), time.monotonic()
+        deadline = dg.Deadline.after(cpu_budget_s, wall_deadline)
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)
@@ -472,23 +475,20 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         effects_by_name = {e.name: e for e in effects}
         finite = np.isfinite(crop)
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
-        if transfer is not None:
-            screen_blur = transfer
+        screen_blur = screen_blur if transfer is None else transfer
         # One render serves the noise floor and the robust rule (the screening model's).
         held = {} if batwing is None else {"batwing": tuple(batwing)}
         first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
                                     transfer=as_transfer(screen_blur), **held)
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
-        extras, prior, instrument_stage = {}, None, None
-        noise = first.noise
+        extras, prior, instrument_stage, noise = {}, None, None, first.noise
 
         def make(keep, **extras):
             # The floor is the measurement's, estimated on the screening model's residual (not the
             # ideal element's, whose process errors would leak into the interiors and raise it).
             problem = CameraHeightProblem(design_levels, pitch_m, crop, start, base, effects, step_m=step_m, keep=keep,
-                                          noise=noise, instrument=first.instrument, transfer=transfer,
-                                          **held, **extras)
+                                          noise=noise, instrument=first.instrument, transfer=transfer, **held, **extras)
             fit = TiledCameraProblem(problem) if size > TILED_WINDOW_PX else problem
             if size > screen_window_px:
                 fit.screening = problem.crop(screen_window_px)
@@ -528,10 +528,10 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
                 return
             # A budget that cannot pay a restart keeps its family (asked first: the screen costs a field's residual).
-            now = dg.cpu_seconds()
-            if deadline is not None and deadline - now < RESTAGE_COST * (now - cpu0):
-                log.info("instrument stage not run again: %.0f CPU s of the budget left", deadline - now)
-                restaged, skipped_restage = True, round(deadline - now, 1)
+            spent = clock.cpu_seconds() - cpu0, time.monotonic() - wall0
+            if not deadline.affords(RESTAGE_COST * spent[0], RESTAGE_COST * spent[1]):
+                log.info("instrument stage not run again: %s CPU s of the budget left", deadline.cpu_left())
+                restaged, skipped_restage = True, round(deadline.cpu_left() or 0.0, 1)
                 return
             # Nor where what they leave holds no edge profile shared by every mask that would pay for
             # one parameter: a screen, not a bound (the family's refit earned -1082, the profile -472).
@@ -552,11 +552,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             problem, fit = make(keep, **extras)
             # The criterion alone decides: the floor is good to ~5 %, and a gradient of a few tenths
             # of a nanometre still earns its parameters after the residual has reached it.
-            pass_cpu0 = dg.cpu_seconds()
+            pass0 = clock.cpu_seconds(), time.monotonic()
             try:
                 diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                         quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
-                                        cpu_budget_s=None if deadline is None else max(deadline - dg.cpu_seconds(), 0),
+                                        cpu_budget_s=deadline.cpu_left(), wall_deadline=deadline.wall,
                                         after_step=restage)
             except _Restage as again:
                 extras, prior, instrument_stage, noise = again.args[0]
@@ -576,11 +576,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
                 break
             # A rerun is a whole selection again: one the budget left cannot pay is not started.
-            now = dg.cpu_seconds()
-            if deadline is not None and deadline - now < now - pass_cpu0:
+            if not deadline.affords(clock.cpu_seconds() - pass0[0], time.monotonic() - pass0[1]):
                 diag.stopped_early = dict(reason="time budget: the rerun on re-admitted pixels was not started "
                                           "(it costs about a pass); this pass stands", budget_cpu_s=cpu_budget_s,
-                                          cpu_s=now - cpu0, final_over_floor=diag.final_residual_rms / diag.noise_floor)
+                                          cpu_s=clock.cpu_seconds() - cpu0,
+                                          final_over_floor=diag.final_residual_rms / diag.noise_floor)
                 break
             keep = new_keep
         diag.map_step_m = problem.pixel_m

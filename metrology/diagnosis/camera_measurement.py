@@ -26,7 +26,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
                                 window_px: int = 160, source: str = "measurement", force: bool = False,
                                 comparison: Comparison | None = None,
                                 transfer: LateralTransfer | None = None, cpu_budget_s: float | None = None,
-                                batwing: Sequence[float] | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
+                                batwing: Sequence[float] | None = None,
+                                wall_deadline: float | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -50,7 +51,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         design, if already made (its camera-frame placement starts the fit).
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
-    cpu_budget_s, batwing
+    cpu_budget_s, batwing, wall_deadline
         As for :func:`diagnose_camera`.
 
     Returns
@@ -77,7 +78,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
                            screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
-                           cpu_budget_s=cpu_budget_s, batwing=batwing)
+                           cpu_budget_s=cpu_budget_s, batwing=batwing, wall_deadline=wall_deadline)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

@@ -19,7 +19,8 @@ Method
    measurement artefact is preferred among them. A backward pass then swaps or drops named
    effects that the final model no longer needs (forward-backward stepwise selection).
    A residual shift of the whole pattern (registration) is fitted in every height model.
-   An optional budget of CPU seconds ends the selection early, and the diagnosis says so.
+   An optional budget of CPU seconds, and a wall-clock deadline, end the selection early, and
+   the diagnosis says so.
 5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum
    (the fits and their uncertainties: :mod:`metrology.diagnosis.fitting`).
 
@@ -30,7 +31,6 @@ A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) 
 from __future__ import annotations
 
 import logging
-import resource
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,13 +39,15 @@ from typing import Any
 import numpy as np
 
 from doedesign.progress import Progress
+from metrology.diagnosis import budget as clock
+from metrology.diagnosis.budget import Deadline, FitStop
 from metrology.diagnosis.fitting import JAC_STEP, fit_effects, standard_errors
 from metrology.diagnosis.parallel import WORKERS, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 
-__all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
-           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "cpu_seconds", "fit_effects", "run_diagnosis",
+__all__ = ["DEFAULT_THRESHOLD", "Deadline", "Diagnosis", "JAC_STEP", "Problem",
+           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
            "standard_errors"]
 
 log = logging.getLogger(__name__)
@@ -70,14 +72,6 @@ EARLY_EXCESS_SHARE = 0.5
 # ... and above which a final unexplained residual shared by every mask's edges is the
 # instrument's (fabrication names then withheld).
 FINAL_ODD_SHARE = 0.5
-
-
-def cpu_seconds() -> float:
-    """CPU seconds of this process (its worker threads included) and of its finished children:
-    the measure of a diagnosis's time budget, which a shared machine's load does not stretch as
-    it does wall time."""
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
@@ -272,23 +266,23 @@ def _criterion(problem, model, n, n_eff):
     return bic_eff(float(np.sum(r ** 2)), n, n_eff, sum(problem.effects[m].n_params for m in model))
 
 
-def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold, deadline=None):
+def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold, deadline):
     """Backward pass of the stepwise selection, once all named effects are in the model.
 
     Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
     be told apart once everything else is explained: each named effect is tried against the
     alternatives that scored close to it when it was chosen (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
-    dropped if the criterion no longer needs it. Past ``deadline`` (:func:`cpu_seconds`) the
+    dropped if the criterion no longer needs it. Past ``deadline`` (:class:`Deadline`) the
     pass stops where it is (the model stays the forward pass's or its last revision; a fit the
     deadline cut short changes nothing).
     """
     crit = _criterion(problem, model, n, n_eff)
     by_name = {st.effect: st for st in steps}
-    budget = _Budget(deadline)
+    budget = FitStop(deadline)
     for st in list(steps):
         for alt in alternatives.get(st.effect, []):
-            if alt in model or st.effect not in model or _past(deadline):
+            if alt in model or st.effect not in model or deadline.past():
                 continue
             trial = {k: v for k, v in model.items() if k != st.effect}
             trial[alt] = problem.effects[alt].start_values()
@@ -308,7 +302,7 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
                 by_name[alt] = st
                 model, errors, crit = fitted, errs, c_alt
     for st in list(steps):
-        if len(model) - len(nuisance) <= 1 or _past(deadline):
+        if len(model) - len(nuisance) <= 1 or deadline.past():
             break
         trial = {k: v for k, v in model.items() if k != st.effect}
         fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
@@ -321,34 +315,21 @@ def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, thr
     return model, errors, crit
 
 
-def _past(deadline):
-    return deadline is not None and cpu_seconds() > deadline
-
-
 def _cut_short(budget_s, what, candidates):
     """``stopped_early`` of a selection whose round the budget cut short in ``what``."""
-    log.info("diagnosis stopped: CPU budget of %.0f s spent in %s of %s", budget_s, what, candidates)
+    log.info("diagnosis stopped: time budget spent in %s of %s", what, candidates)
     return {"reason": f"time budget: the round was cut short in {what} of {', '.join(sorted(candidates))} "
                       "(best so far), and nothing is named from it", "budget_cpu_s": budget_s,
             "cut_short": sorted(candidates)}
 
 
-class _Budget:
-    """A fit's ``stop`` (:func:`fit_effects`): true once the CPU clock is past ``deadline``;
-    ``fired`` says a fit was stopped by it, short of convergence."""
-
-    def __init__(self, deadline: float | None):
-        self.deadline, self.fired = deadline, False
-
-    def __call__(self) -> bool:
-        self.fired = self.fired or _past(self.deadline)
-        return self.fired
 
 
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
                   prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None,
+                  wall_deadline: float | None = None,
                   after_step: Callable[[dict[str, np.ndarray], list[Step]], None] | None = None) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
@@ -381,10 +362,14 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         pixels, or the instrument stage's joint fit): the nuisances and each candidate start
         from its values instead of the null ones. The selection itself is made afresh.
     cpu_budget_s : float, optional
-        CPU seconds (:func:`cpu_seconds`, workers included) the selection may spend: past them
-        no further round of candidates and no further revision starts, a round or revision under
-        way stops at its fit's next evaluation and names nothing from it, and the diagnosis says
-        so (``stopped_early``). Default: no budget (the criterion alone stops).
+        CPU seconds (:func:`~metrology.diagnosis.budget.cpu_seconds`, workers included) the
+        selection may spend: past them no further round of candidates and no further revision
+        starts, a round or revision under way stops at its fit's next evaluation and names nothing
+        from it, and the diagnosis says so (``stopped_early``). Default: no budget (the criterion
+        alone stops).
+    wall_deadline : float, optional
+        A ``time.monotonic()`` instant that ends the selection as the budget does (a command's
+        wall-clock limit); default none.
     after_step : callable, optional
         Called with the model (nuisances included) and the steps so far after each named step;
         a caller that learns from it that the problem itself must change (the camera's
@@ -394,8 +379,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     -------
     Diagnosis
     """
-    cpu0 = cpu_seconds()
-    deadline = None if cpu_budget_s is None else cpu0 + float(cpu_budget_s)
+    cpu0 = clock.cpu_seconds()
+    deadline = Deadline.after(cpu_budget_s, wall_deadline)
     stopped = None
     nuisance = list(getattr(problem, "nuisance", {}))
     screen = getattr(problem, "screening", None) or problem
@@ -437,9 +422,9 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         pending = [nm for nm in names if nm not in model]
         if not pending:
             break
-        if _past(deadline):
+        if deadline.past():
             stopped = {"reason": "time budget: no further candidates were tried", "budget_cpu_s": cpu_budget_s}
-            log.info("diagnosis stopped: CPU budget of %.0f s spent after %d step(s)", cpu_budget_s, len(steps))
+            log.info("diagnosis stopped: time budget spent after %d step(s)", len(steps))
             break
         scores = {}
         fits = {}
@@ -458,7 +443,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         # fit to convergence 15-30), and nothing is named from a round it stopped: a screening
         # fit's parameters are not a diagnosis (on a CSI file an etch loading so named paid for a
         # gradient whose fit the loading's refit had not yet finished).
-        budget = _Budget(deadline)
+        budget = FitStop(deadline)
         rd = dict(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
                   iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
                   prior=prior or {}, stop=budget)
@@ -519,6 +504,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         r, crit = r_new, new_crit
         if after_step is not None:
             after_step(model, steps)
+    if stopped is not None:
+        stopped["limit"] = deadline.spent_by()  # which of them: "cpu" (the budget) or "wall"
     if steps:
         model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
                                       deadline)
@@ -591,4 +578,4 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                      breakdown_initial=breakdown_initial, breakdown_final=breakdown_final,
                      residual_maps=maps, unexplained_where=where, partial_matches=partial,
                      stopped_early=None if stopped is None else dict(
-                         stopped, final_over_floor=_rms(r) / problem.noise.sigma, cpu_s=cpu_seconds() - cpu0))
+                         stopped, final_over_floor=_rms(r) / problem.noise.sigma, cpu_s=clock.cpu_seconds() - cpu0))

@@ -93,7 +93,7 @@ def test_a_rerun_the_budget_left_cannot_pay_is_not_started(monkeypatch):
         clock[0] += 100.0
         return diag
 
-    monkeypatch.setattr(cam.dg, "cpu_seconds", lambda: clock[0])
+    monkeypatch.setattr(cam.clock, "cpu_seconds", lambda: clock[0])
     diag = _diagnose(monkeypatch, run, _more_than_the_share, budget=150.0)
     assert runs == [150.0]
     assert "not started" in diag.stopped_early["reason"]

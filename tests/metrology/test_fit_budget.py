@@ -4,6 +4,7 @@ convergence ends where further steps cannot change a decision (criterion units).
 import numpy as np
 
 from metrology.diagnosis import diagnose_heights
+from metrology.diagnosis import budget
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis import fitting
 from metrology.diagnosis.effects import Effect, Parameter
@@ -84,7 +85,7 @@ def test_no_effect_is_named_from_a_refit_the_budget_cut_short(monkeypatch):
             clock[0] = 1e9  # a refit with a candidate starts: the budget is spent
         return real_fit(problem, model, free, max_iter=max_iter, **kw)
 
-    monkeypatch.setattr(dg, "cpu_seconds", lambda: clock[0])
+    monkeypatch.setattr(budget, "cpu_seconds", lambda: clock[0])
     monkeypatch.setattr(dg, "fit_effects", fit)
     diag = diagnose_heights(d["levels"], d["pitch_m"], d["measured_height_m"], d["step_m"], region_px=32,
                             cpu_budget_s=100.0)
