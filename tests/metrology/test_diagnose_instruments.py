@@ -342,7 +342,7 @@ def test_csi_large_bias_is_named_alone_through_the_objective(tmp_path):
     # any fabrication effect: blur and fill factor stood in for the objective, whose long spread
     # then came back as a false etch depth of 1-2 % (benchmarks, CSI seed 278259765). The stage
     # now runs again with the bias in the model and chooses the objective.
-    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "1000", "--wall-limit-s", "1e5",
+    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "1000",
                        "--effects", "linewidth_bias,etch_depth,etch_loading,batwing")
     assert _fabrication(report) == ["linewidth_bias"]
     step = next(s for s in report["steps"] if s["effect"] == "linewidth_bias")
@@ -367,7 +367,7 @@ def test_a_budget_that_cannot_pay_a_restart_keeps_what_the_first_pass_named(tmp_
     import metrology.diagnosis.camera as cam
 
     monkeypatch.setattr(cam, "RESTAGE_COST", 1e9)
-    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "40", "--wall-limit-s", "1e5",
+    report = _diagnose(_csi_bias(), tmp_path, "--window-px", "96", "--cpu-budget-s", "40",
                        "--effects", "linewidth_bias,etch_depth,etch_loading,batwing")
     judged = _fabrication(report) + [p["effect"] for p in report["partial_matches"]]
     assert "linewidth_bias" in judged
