@@ -464,7 +464,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
     with threadpool_limits(limits=1, user_api="blas"):
         cpu0, wall0 = clock.cpu_seconds(), time.monotonic()
-        deadline = dg.Deadline.after(cpu_budget_s, wall_deadline)
+        deadline = clock.Deadline.after(cpu_budget_s, wall_deadline)
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)

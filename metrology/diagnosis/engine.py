@@ -46,7 +46,7 @@ from metrology.diagnosis.parallel import WORKERS, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 
-__all__ = ["DEFAULT_THRESHOLD", "Deadline", "Diagnosis", "JAC_STEP", "Problem",
+__all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
            "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
            "standard_errors"]
 
