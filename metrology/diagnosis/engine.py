@@ -323,8 +323,6 @@ def _cut_short(budget_s, what, candidates):
             "cut_short": sorted(candidates)}
 
 
-
-
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
