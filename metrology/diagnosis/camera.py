@@ -189,13 +189,13 @@ class CameraHeightProblem(dg.Problem):
         return self._noise
 
     def noise_at(self, model: dict[str, np.ndarray]) -> NoiseEstimate:
-        """The noise floor estimated on the flat interiors of the residual against ``model``."""
+        """The noise floor on the flat interiors (each about its plane) of the residual to ``model``."""
         flat = (self.any_edge_m > INTERIOR_MARGIN_M) & self.keep
         groups, _ = ndi.label(flat & (self.cam_levels >= 0))
         first = self.measured - self.render(model)
         levelled = np.full(first.shape, np.nan)
         levelled[self.keep] = self.leveller(first[self.keep])
-        return estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0))
+        return estimate_noise(np.where(self.keep, levelled, np.nan), np.where(self.keep, groups, 0), trend="plane")
 
     def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model heights in the camera frame (before levelling).

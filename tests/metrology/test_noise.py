@@ -30,3 +30,48 @@ def test_streaks_of_structure_left_in_the_interiors_do_not_inflate_the_floor():
     est = estimate_noise(values, groups)
     assert abs(est.sigma / 1e-9 - 1) < 0.1
     assert est.corr_area_px < 2.0
+
+
+def _sloped_field(seed=2, sigma=1e-9, smooth=1):
+    # Each flat region also slopes by its own amount (an etch depth varying across the field
+    # scales with the level's depth): 2-5 nm across a region, as a 0.3 % per mm gradient on a
+    # 1.1 um step over 100 um of field. ``smooth``: the noise averaged over smooth x smooth
+    # pixels (correlation area smooth^2, rms sigma / smooth).
+    values, groups = _flat_field(seed, sigma * smooth)
+    if smooth > 1:
+        from scipy.ndimage import uniform_filter
+
+        rng = np.random.default_rng(seed + 100)
+        values = uniform_filter(rng.normal(0.0, sigma * smooth, values.shape), smooth, mode="wrap")
+    rows, cols = np.mgrid[:values.shape[0], :values.shape[1]]
+    for k in range(1, 5):
+        inside = groups == k
+        values[inside] += k * 50e-9 + (k + 1) * 1e-9 * (0.8 * rows[inside] - 0.6 * cols[inside]) / 50
+    return values, groups
+
+
+def test_a_slope_across_each_flat_is_not_noise_about_its_plane():
+    values, groups = _sloped_field()
+    est = estimate_noise(values, groups, trend="plane")
+    assert abs(est.sigma / 1e-9 - 1) < 0.05
+    assert est.corr_area_px < 1.5
+    # About the mean alone, the slopes pass for correlated noise (what the camera floor did).
+    old = estimate_noise(values, groups)
+    assert old.sigma > 1.3e-9 and old.corr_area_px > 5
+
+
+def test_correlated_noise_about_planes_keeps_its_rms_and_correlation_area():
+    # Noise averaged over 2 x 2 pixels: rms sigma, correlation area 4 (the sum of its
+    # autocorrelation over lags); the plane's three parameters per region are undone.
+    values, groups = _sloped_field(3, smooth=2)
+    est = estimate_noise(values, groups, trend="plane")
+    assert abs(est.sigma / 1e-9 - 1) < 0.07
+    assert abs(est.corr_area_px / 4 - 1) < 0.15
+
+
+def test_an_unknown_trend_is_refused():
+    import pytest
+
+    values, groups = _flat_field()
+    with pytest.raises(ValueError, match="trend"):
+        estimate_noise(values, groups, trend="quadric")
