@@ -194,6 +194,12 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
         if partial:
             extra.append(f"- Not named, they fit only part of the residual on their own footprint: {partial}.")
         parts[4:4] = extra
+    small = rep.get("below_resolution")
+    if isinstance(small, dict):
+        share = small.get("floor_power_share")
+        parts.insert(parts.index(""), f"- Not named, below the model's resolution: {small.get('effect')} would explain "
+                     f"{md.fmt(100 * share if isinstance(share, (int, float)) else None, 2, '%')} of the noise "
+                     "floor's power, within what the instrument model's own error leaves.")
     stopped = rep.get("stopped_early")
     if isinstance(stopped, dict):
         more = "`--wall-limit-s` (the wall clock ended it)" if stopped.get("limit") == "wall" else "`--cpu-budget-s`"
