@@ -244,6 +244,8 @@ def _screen_one(rd, name):
     if first < iters and score(rss_c) < 0:
         # The first step paid for the candidate's parameters: finish the short fit.
         fitted, rss_c, _ = fit_effects(screen, fitted, free, max_iter=iters - 1, central=False, stop=rd["stop"])
+    log.debug("screen %s: %.3f %% of the floor's power", name,
+              100 * (rd["power_s"] - rss_c) / (rd["n_s"] * rd["floor_s"] ** 2))
     return name, fitted, score(rss_c)
 
 
@@ -440,7 +442,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         # Candidates are screened on the problem's cheaper crop when it has one; the criterion
         # change there is scaled by the ratio of effective sample counts (the best candidates
         # are then refitted on the whole problem).
-        n_s, n_eff_s, crit_s, iters = n, n_eff, crit, screen_iter
+        n_s, n_eff_s, crit_s, iters, r_s = n, n_eff, crit, screen_iter, r
         if screen is not problem:
             iters = min(screen_iter, SCREEN_ITER_CROP)
             r_s = screen.residual(model)
@@ -454,6 +456,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         budget = FitStop(deadline)
         rd = dict(screen=screen, effects=problem.effects, model=model, named=[m for m in model if m not in nuisance],
                   iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
+                  power_s=float(np.sum(r_s ** 2)), floor_s=screen.noise.sigma,
                   prior=prior or {}, stop=budget)
         workers = WORKERS if problem.parallel_fits else 1
         # Those with the most parameters first (the longest fits): the workers then finish together.

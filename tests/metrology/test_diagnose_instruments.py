@@ -396,3 +396,27 @@ def test_an_instrument_residual_beside_a_larger_fabrication_one_does_not_stop_th
     step = next(s for s in report["steps"] if s["effect"] == "etch_loading")
     assert step["params"]["loading"] == pytest.approx(0.0648, rel=0.2)
     assert not (set(_fabrication(report)) - {"etch_loading", "etch_gradient"})
+
+
+@pytest.mark.slow
+def test_a_csi_gradient_beside_a_depth_is_named_on_the_instruments_own_noise_floor(tmp_path):
+    # The benchmark's CSI case 1716759499: mask 0 etched 3.7 % deep and an etch gradient of -2.8 %
+    # per mm. About each interior's mean, the floor took the gradient's change across every
+    # feature for noise: 2.1 nm with a correlation area of 37 px, against the instrument's white
+    # 1.2 nm, and the gradient went unnamed (n_eff 678). About each interior's plane it is the
+    # instrument's noise, and the gradient earns its parameters.
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from benchmarks import bench_instruments as bench
+
+    case = bench.make_files("csi", ["etch_depth", "etch_gradient"], 1716759499, tmp_path)
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--design", str(tmp_path / "design.npz"), "--measured",
+                 str(tmp_path / "measured.datx"), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["noise_floor"] == pytest.approx(case.instrument["noise_m"], rel=0.1)
+    assert report["corr_area_px"] < 3
+    row = bench.score(["etch_depth", "etch_gradient"], case.truth, report)
+    assert row["all_right"], row

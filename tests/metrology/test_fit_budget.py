@@ -126,3 +126,37 @@ def test_broyden_updates_cross_a_curved_valley_in_fewer_evaluations(monkeypatch)
         at_optimum = fitting.standard_errors(problem, fitted, ["v"])
         np.testing.assert_allclose(errors["v"], at_optimum["v"], rtol=0.05)
     assert counts[fitting.BROYDEN_STEPS] < counts[0]
+
+
+class _Ripples(dg.Problem):
+    """A large ramp and a weak ripple over white noise (sigma 1, correlation area 1): each effect
+    one amplitude, the data as many samples as a 500 x 500 field."""
+
+    def __init__(self, ripple, seed=3):
+        rng = np.random.default_rng(seed)
+        self.x = np.linspace(0.0, 1.0, 250_000)
+        self.shapes = {"ramp": self.x - 0.5, "ripple": np.sqrt(2) * np.sin(40 * np.pi * self.x)}
+        self.y = 30.0 * self.shapes["ramp"] + ripple * self.shapes["ripple"] + rng.standard_normal(self.x.size)
+        self.noise = NoiseEstimate(1.0, 1.0, self.x.size)
+        self.effects = {k: Effect(k, "height", "process", [Parameter("a", "1", -100.0, 100.0, 1.0, smooth=True)],
+                                  lambda h, v, s: h, f"a {k}") for k in self.shapes}
+
+    def residual(self, model):
+        return self.y - sum(v[0] * self.shapes[k] for k, v in model.items())
+
+    def residual_map(self, model):
+        return self.residual(model)[None, :]
+
+
+def test_an_effect_under_the_models_resolution_is_not_named_however_well_resolved():
+    # A ripple of 0.05 rms on a floor of 1 explains 0.25 % of its power: over 250,000 samples the
+    # criterion resolves it (about -600), but an instrument model good to a few per cent of the
+    # floor's power cannot tell it from its own error. Four times larger (4 %) it is named.
+    weak = dg.run_diagnosis(_Ripples(0.05))
+    assert weak.named == ["ramp"]
+    small = weak.below_resolution
+    assert small["effect"] == "ripple" and small["criterion_change"] < -100
+    assert abs(small["floor_power_share"] - 0.0025) < 0.001
+    assert weak.to_dict()["below_resolution"] == small
+    strong = dg.run_diagnosis(_Ripples(0.2))
+    assert strong.named == ["ramp", "ripple"] and strong.below_resolution is None
