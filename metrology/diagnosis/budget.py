@@ -39,8 +39,14 @@ class Deadline:
 
     def affords(self, cpu_s: float, wall_s: float) -> bool:
         """Whether ``cpu_s`` more CPU seconds and ``wall_s`` more wall seconds end before it."""
-        return ((self.cpu is None or cpu_seconds() + cpu_s <= self.cpu)
-                and (self.wall is None or time.monotonic() + wall_s <= self.wall))
+        return self.refuses(cpu_s, wall_s) is None
+
+    def refuses(self, cpu_s: float, wall_s: float) -> str | None:
+        """Which limit ``cpu_s`` more CPU seconds or ``wall_s`` more wall seconds would pass:
+        ``"cpu"`` (the budget, asked first), ``"wall"``, or None where both can pay."""
+        if self.cpu is not None and cpu_seconds() + cpu_s > self.cpu:
+            return "cpu"
+        return "wall" if self.wall is not None and time.monotonic() + wall_s > self.wall else None
 
     def spent_by(self) -> str | None:
         """Which limit is past: ``"cpu"`` (the budget), ``"wall"`` (the wall clock) or None."""

@@ -576,10 +576,10 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
                 break
             # A rerun is a whole selection again: one the budget left cannot pay is not started.
-            if not deadline.affords(clock.cpu_seconds() - pass0[0], time.monotonic() - pass0[1]):
+            if (why := deadline.refuses(clock.cpu_seconds() - pass0[0], time.monotonic() - pass0[1])) is not None:
                 diag.stopped_early = dict(reason="time budget: the rerun on re-admitted pixels was not started "
                                           "(it costs about a pass); this pass stands", budget_cpu_s=cpu_budget_s,
-                                          cpu_s=clock.cpu_seconds() - cpu0,
+                                          cpu_s=clock.cpu_seconds() - cpu0, limit=why,
                                           final_over_floor=diag.final_residual_rms / diag.noise_floor)
                 break
             keep = new_keep

@@ -41,10 +41,11 @@ import numpy as np
 from doedesign.progress import Progress
 from metrology.diagnosis import budget as clock
 from metrology.diagnosis.budget import Deadline, FitStop
-from metrology.diagnosis.fitting import JAC_STEP, fit_effects, standard_errors
+from metrology.diagnosis.fitting import JAC_STEP, bic_eff, fit_effects, standard_errors
 from metrology.diagnosis.parallel import WORKERS, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
+from metrology.diagnosis.revision import refit_kept, revise
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
            "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
@@ -77,11 +78,6 @@ FINAL_ODD_SHARE = 0.5
 # through its fitted transfer: 0.18 nm rms on a 1.2 nm floor, 2 % of its power), however well the
 # data resolve it (a 0.04 % etch loading earned -57 at 0.3 % of the floor's power beside an overlay).
 MIN_POWER_SHARE = 0.01
-
-
-def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
-    """Information criterion with an effective sample count: ``n_eff ln(RSS/N) + k ln(n_eff)``."""
-    return float(n_eff * np.log(rss / n) + k * np.log(n_eff))
 
 
 # -- the generic fitting loop ------------------------------------------------------------------
@@ -271,60 +267,6 @@ def _structure_test(problem, r_map, n_eff, n):
         k = int(np.count_nonzero(counts))
         best = min(best, bic_eff(rss1, n, n_eff, k) - bic_eff(rss0, n, n_eff, 0))
     return float(best)
-
-
-def _criterion(problem, model, n, n_eff):
-    r = problem.residual(model)
-    return bic_eff(float(np.sum(r ** 2)), n, n_eff, sum(problem.effects[m].n_params for m in model))
-
-
-def _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold, deadline):
-    """Backward pass of the stepwise selection, once all named effects are in the model.
-
-    Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
-    be told apart once everything else is explained: each named effect is tried against the
-    alternatives that scored close to it when it was chosen (swap if better by the threshold,
-    or if tied and the alternative is a measurement artefact), then each named effect is
-    dropped if the criterion no longer needs it. Past ``deadline`` (:class:`Deadline`) the
-    pass stops where it is (the model stays the forward pass's or its last revision; a fit the
-    deadline cut short changes nothing).
-    """
-    crit = _criterion(problem, model, n, n_eff)
-    by_name = {st.effect: st for st in steps}
-    budget = FitStop(deadline)
-    for st in list(steps):
-        for alt in alternatives.get(st.effect, []):
-            if alt in model or st.effect not in model or deadline.past():
-                continue
-            trial = {k: v for k, v in model.items() if k != st.effect}
-            trial[alt] = problem.effects[alt].start_values()
-            fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
-            if budget.fired:
-                return model, errors, crit
-            c_alt = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
-            prefer = problem.effects[alt].kind == "artefact" and problem.effects[st.effect].kind != "artefact"
-            if c_alt < crit - threshold or (prefer and c_alt <= crit + threshold):
-                log.info("revision: %s replaces %s (criterion %+.1f)", alt, st.effect, c_alt - crit)
-                old = st.effect
-                eff = problem.effects[alt]
-                st.effect, st.kind, st.description = alt, eff.kind, eff.description
-                st.units = {p.name: p.unit for p in eff.params}
-                st.ambiguous_with = sorted(set(st.ambiguous_with + [old]) - {alt})
-                st.revised = f"replaced {old} in the backward pass"
-                by_name[alt] = st
-                model, errors, crit = fitted, errs, c_alt
-    for st in list(steps):
-        if len(model) - len(nuisance) <= 1 or deadline.past():
-            break
-        trial = {k: v for k, v in model.items() if k != st.effect}
-        fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
-        if budget.fired:
-            break
-        c_drop = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
-        if c_drop < crit + threshold:
-            log.info("revision: %s no longer needed (criterion %+.1f)", st.effect, c_drop - crit)
-            model, errors, crit = fitted, errs, c_drop
-    return model, errors, crit
 
 
 def _cut_short(budget_s, what, candidates):
@@ -524,7 +466,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     if stopped is not None:
         stopped["limit"] = deadline.spent_by()  # which of them: "cpu" (the budget) or "wall"
     if steps:
-        model, errors, crit = _revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
+        model, errors, crit = revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
                                       deadline)
         r = problem.residual(model)
         steps = [st for st in steps if st.effect in model]
@@ -546,7 +488,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         if partial:
             dropped = {p["effect"] for p in partial}
             kept = {k: v for k, v in model.items() if k not in dropped}
-            model, _, errors = fit_effects(problem, kept, list(kept)) if kept else ({}, None, {})
+            model, errors = refit_kept(problem, kept, errors, deadline)
             steps = [st for st in steps if st.effect not in dropped]
             for s in steps:
                 s.uncertainties = {p.name: float(v) for p, v in zip(problem.effects[s.effect].params,
@@ -568,7 +510,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                  "withheld: %s", 100 * inadequate["explained_share"], sorted(fab))
         if fab:
             kept = {k: v for k, v in model.items() if k not in fab}
-            model, _, errors = fit_effects(problem, kept, list(kept)) if kept else ({}, None, {})
+            model, errors = refit_kept(problem, kept, errors, deadline)
             steps = [st for st in steps if st.effect not in fab]
             for s in steps:
                 eff = problem.effects[s.effect]

@@ -33,7 +33,7 @@ from metrology.diagnosis.parallel import WORKERS, parallel_map
 if TYPE_CHECKING:
     from metrology.diagnosis.problem import Problem
 
-__all__ = ["JAC_STEP", "fit_effects", "standard_errors"]
+__all__ = ["JAC_STEP", "bic_eff", "fit_effects", "standard_errors"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,11 @@ CRAWL_STEPS, CRAWL_TOL = 5, 1.0
 # factor, NA and batwing beside an etch loading the instrument stage had not seen) the solvers
 # take dozens of short accepted steps: that fit took 42 Jacobians of 11 columns, 45 CPU s.
 BROYDEN_STEPS = 4
+
+
+def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
+    """Information criterion with an effective sample count: ``n_eff ln(RSS/N) + k ln(n_eff)``."""
+    return float(n_eff * np.log(rss / n) + k * np.log(n_eff))
 
 
 def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],

@@ -157,6 +157,16 @@ def test_an_empty_diagnosis_claims_agreement_only_when_the_residual_is_noise(tmp
     assert "agrees with the ideal model" in text and "--cpu-budget-s" not in text
 
 
+def test_a_candidate_below_the_models_resolution_is_said_not_named(tmp_path):
+    rep = {"steps": [], "effects_found": ["mask_overlay"], "initial_residual_rms": 22e-9,
+           "final_residual_rms": 0.63e-9, "noise_floor": 0.62e-9, "unexplained": False,
+           "below_resolution": {"effect": "etch_loading", "criterion_change": -57.1, "floor_power_share": 0.0031},
+           "inputs": {"measured": "m.datx", "design": "d.npz"}}
+    text = "\n".join(pages.diagnose_sections(rep, tmp_path))
+    assert "Fabrication effects named: mask_overlay;" in text
+    assert "below the model's resolution: etch_loading would explain 0.31 % of the noise floor's power" in text
+
+
 def test_tolerance_page_reads_as_a_report(tmp_path):
     from masks.tolerance.analysis import nominal_depths, tolerance_analysis
     from masks.tolerance.spec import build_spec

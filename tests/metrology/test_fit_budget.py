@@ -160,3 +160,22 @@ def test_an_effect_under_the_models_resolution_is_not_named_however_well_resolve
     assert weak.to_dict()["below_resolution"] == small
     strong = dg.run_diagnosis(_Ripples(0.2))
     assert strong.named == ["ramp", "ripple"] and strong.below_resolution is None
+
+
+def test_what_stays_after_a_withheld_effect_is_refitted_only_within_the_deadline(monkeypatch):
+    # A partial match withheld once the selection spent its time: the refit of what stays would run
+    # past the command's limit, so the joint fit's values and uncertainties stand.
+    from metrology.diagnosis.revision import refit_kept
+
+    problem = _Ripples(0.2)
+    joint, _, errors = fitting.fit_effects(problem, {"ramp": np.array([1.0]), "ripple": np.array([0.0])},
+                                           ["ramp", "ripple"])
+    kept = {"ramp": joint["ramp"] + 0.5}  # off its optimum, as the joint fit can leave it
+    cpu = [0.0]
+    monkeypatch.setattr(budget, "cpu_seconds", lambda: cpu[0])
+    spent = budget.Deadline.after(10.0)
+    cpu[0] = 11.0
+    model, errs = refit_kept(problem, kept, errors, spent)
+    assert model["ramp"] == kept["ramp"] and errs == {"ramp": errors["ramp"]}
+    model, errs = refit_kept(problem, kept, errors, budget.Deadline())
+    assert abs(model["ramp"][0] - 30.0) < 0.05 and np.all(np.isfinite(errs["ramp"]))

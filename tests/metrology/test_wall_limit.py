@@ -23,6 +23,8 @@ def test_whichever_limit_comes_first_ends_it(monkeypatch):
     d = Deadline.after(50.0, wall=1030.0)
     assert d.cpu == 50.0 and not d.past() and d.spent_by() is None
     assert d.affords(40.0, 20.0) and not d.affords(60.0, 20.0) and not d.affords(40.0, 40.0)
+    # Which clock refuses a cost (a forecast: the rerun not started says which option would pay).
+    assert d.refuses(40.0, 20.0) is None and d.refuses(60.0, 20.0) == "cpu" and d.refuses(40.0, 40.0) == "wall"
     wall[0] = 1031.0  # the wall clock first, with CPU seconds left
     assert d.past() and d.spent_by() == "wall" and d.cpu_left() == 50.0
     wall[0], cpu[0] = 1000.0, 51.0
