@@ -41,12 +41,14 @@ log = logging.getLogger(__name__)
 JAC_STEP = 0.02
 # Evaluations of a fit to convergence, of which trf may spend the first TRF_EVALS.
 MAX_EVALS, TRF_EVALS = 60, 12
-# A fit has converged when a step lowers the information criterion (:func:`~metrology.diagnosis.
-# engine.bic_eff`: ``n_eff ln RSS``, so a relative change of the cost times ``n_eff``) by less
-# than this: a fiftieth of a unit, where an effect must earn ten. With a relative ``ftol`` of
-# 1e-6 instead (a thousandth of a unit on a 160 px window), dogbox's finish of a CSI file's fits
-# spent up to 7 Jacobians of 14-18 columns on their last 0.01-0.1 units.
-CRITERION_TOL = 0.02
+# A fit has converged when a step lowers the information criterion (:func:`bic_eff`: ``n_eff ln
+# RSS``, so a relative change of the cost times ``n_eff``) by less than this: a fifth of a unit,
+# where an effect must earn ten; a parameter then sits within sqrt(0.2) = 0.45 of its standard
+# error of the optimum. With a relative ``ftol`` of 1e-6 instead (a thousandth of a unit on a
+# 160 px window), dogbox's finish of a CSI file's fits spent up to 7 Jacobians of 14-18 columns on
+# their last 0.01-0.1 units. A fiftieth of a unit cost a CSI field its restart once the floor's
+# correlation area came down to the noise's (40 px to 1 px: a fortieth of the tolerance in the cost).
+CRITERION_TOL = 0.2
 # A fit to convergence whose last CRAWL_STEPS iterations together lowered the criterion by less
 # than CRAWL_TOL ends there: beside a bound (a fill factor or a batwing's reach on it) the solvers
 # crawl. On a CSI file's refit with an etch gradient, dogbox spent 48 Jacobians of 18 columns (a
