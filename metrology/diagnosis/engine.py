@@ -77,9 +77,9 @@ FINAL_ODD_SHARE = 0.5
 # is within what the instrument model's own mismatch to a real instrument leaves (a CSI null
 # through its fitted transfer: 0.18 nm rms on a 1.2 nm floor, 2 % of its power), however well the
 # data resolve it. At the instruments' true floors, false names bought 0.2-3.2 % (a 0.04 % etch
-# loading beside an overlay, etch depths of a few tenths of a per cent beside a bias or a loading
-# on CSI and blurred-pixel files); the smallest true second effect measured, 9.9 % (a 2.8 % per mm
-# gradient beside a depth).
+# loading beside an overlay; etch depths beside a bias, beside a loading, and on a null, on CSI and
+# blurred-pixel files); the smallest true second effect measured, 9.9 % (a 2.8 % per mm gradient
+# beside a depth).
 MIN_POWER_SHARE = 0.05
 
 

@@ -7,8 +7,8 @@ area ``A`` (pixels) and the effective sample count ``n_eff = N / A`` of the crit
 A group may instead scatter about its own plane (``trend="plane"``): a profilometer's flat
 interiors carry smooth height changes that are not noise (an etch depth varying across the field,
 the instrument's own form, what levelling the whole field leaves within one feature). About its
-mean alone, a 0.3 % per mm etch gradient or a CSI's form set the floor of a generated field at
-1.7-2.6x its noise, with a correlation area of 20-50 pixels for white noise.
+mean alone, a 2.8 % per mm etch gradient or a CSI's form set the floor of a generated field at
+1.3-3x its noise, with a correlation area of 20-50 pixels for white noise.
 """
 
 from __future__ import annotations

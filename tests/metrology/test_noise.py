@@ -34,7 +34,7 @@ def test_streaks_of_structure_left_in_the_interiors_do_not_inflate_the_floor():
 
 def _sloped_field(seed=2, sigma=1e-9, smooth=1):
     # Each flat region also slopes by its own amount (an etch depth varying across the field
-    # scales with the level's depth): 2-5 nm across a region, as a 0.3 % per mm gradient on a
+    # scales with the level's depth): 2-5 nm across a region, as a 2.8 % per mm gradient on a
     # 1.1 um step over 100 um of field. ``smooth``: the noise averaged over smooth x smooth
     # pixels (correlation area smooth^2, rms sigma / smooth).
     values, groups = _flat_field(seed, sigma * smooth)
