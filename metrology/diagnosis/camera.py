@@ -66,14 +66,15 @@ RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
 RESTAGE_SHARE = 0.5
-# A restart's CPU time over the pass's before it (the stage again, the selection again: 1.5-2x).
-RESTAGE_COST = 1.5
+# A restart's time over the first stage's plus the pass's so far: it runs the stage again and refits
+# what is named (:func:`~metrology.diagnosis.engine.run_diagnosis`'s ``carried``), not the screening.
+RESTAGE_COST = 1.25
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
 
 class _Restage(Exception):
-    """The stage, run again with the effects named, chose more of the family (its result: the argument)."""
+    """The stage, run again with the effects named, chose more of the family (arguments: its result, the steps)."""
 
 
 class CameraHeightProblem(dg.Problem):
@@ -100,18 +101,15 @@ class CameraHeightProblem(dg.Problem):
         The measurement's noise floor, when already estimated on a better model's residual
         (default: estimated here on the residual against ``base_params``).
     instrument : InstrumentModel, optional
-        The measurement model of another problem on the same crop and placement, to share its
-        cached etches.
+        The measurement model of another problem on the same crop and placement (its etches shared).
     centre_px : (float, float), optional
-        Camera pixel about which the placement is refined (default: the crop's centre; a
-        screening crop uses its whole window's, so both read the same nuisance values alike).
+        Camera pixel about which the placement is refined (default: the crop's centre; a screening
+        crop uses its window's, so both read the nuisance values alike).
     cache_bytes : int
-        Memory kept for rendered camera maps, as much for the masks' spectra, and a quarter of
-        it for fine surfaces; the tiles of a field share one budget.
+        Memory for rendered camera maps, as much for the masks' spectra, a quarter for fine surfaces.
     transfer : LateralTransfer, optional
-        A calibrated lateral transfer, held fixed (only the placement is then fitted); default:
-        the transfer is fitted (blur and fill factor, and the objective's NA with ``objective``),
-        its parameters a model does not hold taken from :data:`DEFAULT_TRANSFER`.
+        A calibrated lateral transfer, held fixed (only the placement fitted); default: fitted (blur,
+        fill factor, the objective's NA with ``objective``; the rest from :data:`DEFAULT_TRANSFER`).
     objective : bool
         Fit the objective's NA-limited transfer (:data:`OBJECTIVE`) as a nuisance too.
     batwing : bool or (float, float)
@@ -200,13 +198,12 @@ class CameraHeightProblem(dg.Problem):
     def render(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model heights in the camera frame (before levelling).
 
-        Each mask's etch is rendered in place and sampled under the camera's placement taken
-        into that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of`): a
-        change of placement or of a mask's motion costs a spline sampling, not a new surface.
-        Blur, pixel box, sidewall ramp and linear surface effects commute with the sum of the
-        masks and with their motions, so this is the process model's surface; a non-linear
-        surface effect, roughness, or a motion that would sample beyond the rendered window
-        sends the render through the summed fine surface instead.
+        Each mask's etch is rendered in place and sampled under the camera's placement taken into
+        that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of`): a change of
+        placement or of a mask's motion costs a spline sampling, not a new surface. Blur, pixel box,
+        sidewall ramp and linear surface effects commute with the sum of the masks and with their
+        motions; a non-linear surface effect, roughness, or a motion that would sample beyond the
+        rendered window sends the render through the summed fine surface instead.
         """
         if max(self.measured.shape) > BLOCKED_FIELD_PX:
             return self._render_blocked(model)
@@ -265,11 +262,11 @@ class CameraHeightProblem(dg.Problem):
                                na, t.wavelength_m)
 
     def _render_masks(self, still, surface, model, surface_values, blur, motions, placements):
-        """The masks printed in place (``still``), each group that shares a motion summed in
-        the Fourier domain into one camera map, sampled under that motion's placement. Spectra
-        are kept per mask and maps per group and blur: a change of blur costs one inverse FFT
-        per group, a change of motion only a sampling. A surface effect with a Fourier transfer
-        (a batwing) multiplies the maps' spectra; any other acts on each mask's fine surface."""
+        """The masks printed in place (``still``), each group that shares a motion summed in the
+        Fourier domain into one camera map, sampled under that motion's placement. Spectra are kept
+        per mask, maps per group and blur (a change of blur: one inverse FFT per group; of motion: a
+        sampling). A Fourier transfer (a batwing) multiplies the maps' spectra; any other surface
+        effect acts on each mask's fine surface."""
         step = self.instrument.step_m
         factors, beside, direct = [], [], []
         reach = self.instrument.fourier_reach(placements.values(), blur) if surface else 0
@@ -332,8 +329,7 @@ class CameraHeightProblem(dg.Problem):
         """The same problem on the ``size_px`` square of its window with the most design edges
         (same process, effects, noise floor and placement frame), to screen candidates on."""
         r0, c0 = busiest_camera_window(self.levels, self.placement, self.measured.shape, size_px)
-        log.info("candidates screened on the %d px camera window at (%d, %d)", min(size_px, *self.measured.shape),
-                 r0, c0)
+        log.info("candidates screened on the %d px camera window at (%d, %d)", min(size_px, *self.measured.shape), r0, c0)
         return self.sub(r0, c0, size_px)
 
     def sub(self, r0: int, c0: int, size_px: int, margin_px: int | None = None,
@@ -347,8 +343,7 @@ class CameraHeightProblem(dg.Problem):
         return self._part(slice(r0, r0 + size), slice(c0, c0 + size), margin_px, transfers, share, self.noise)
 
     def _part(self, rows, cols, margin_px, transfers, share, noise, keep=None):
-        """:meth:`sub` on the camera pixels ``rows`` x ``cols`` (slices); ``keep``: its pixels
-        compared (default: the field's)."""
+        """:meth:`sub` on the camera pixels ``rows`` x ``cols`` (slices); ``keep``: its pixels (default: the field's)."""
         r0, c0 = rows.start, cols.start
         shape = (rows.stop - r0, cols.stop - c0)
         start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
@@ -445,7 +440,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
         as a nuisance, the objective's NA and the batwing included when the data ask for it
         (:func:`choose_transfer`: before any fabrication effect, and again with those named
-        once they hold most of the residual, the selection restarting when the family grows).
+        once they hold most of the residual, the selection going on through a family that grew).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
     cpu_budget_s, wall_deadline : float, optional
@@ -512,9 +507,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 floor = min(noise, again, key=lambda e: e.sigma)
             return chosen, fitted, changes, floor
 
+        stage_cost = 0.0, 0.0
         if transfer is None:
             extras, prior, instrument_stage, noise = stage()
-        done = None  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
+            stage_cost = clock.cpu_seconds() - cpu0, time.monotonic() - wall0
+        done, carried = None, ()  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
         skipped_restage = None  # the budget left when the stage was not run again for want of it
 
@@ -522,14 +519,16 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             nonlocal restaged, skipped_restage
             # A large fabrication effect (a 0.4 um bias) hid the instrument's edge profile from the
             # stage: once the named ones hold most of what it saw, it runs again with them, and if it
-            # now chooses the objective or the batwing, the selection starts afresh through them.
+            # now chooses the objective or the batwing, the selection goes on through them.
             fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
             if (restaged or not fab or all(extras.values())
                     or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
                 return
             # A budget that cannot pay a restart keeps its family (asked first: the screen costs a field's residual).
-            spent = clock.cpu_seconds() - cpu0, time.monotonic() - wall0
-            if not deadline.affords(RESTAGE_COST * spent[0], RESTAGE_COST * spent[1]):
+            # A restart repeats the stage and the refits of this pass so far, not its screening.
+            cost = [RESTAGE_COST * (first + now - then) for first, now, then in
+                    zip(stage_cost, (clock.cpu_seconds(), time.monotonic()), pass0)]
+            if not deadline.affords(*cost):
                 log.info("instrument stage not run again: %s CPU s of the budget left", deadline.cpu_left())
                 restaged, skipped_restage = True, round(deadline.cpu_left() or 0.0, 1)
                 return
@@ -546,7 +545,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
             if any(again[0][k] and not extras[k] for k in extras):
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
-                raise _Restage(again)
+                raise _Restage(again, steps)
 
         for _ in range(4):
             problem, fit = make(keep, **extras)
@@ -557,11 +556,12 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                         quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
                                         cpu_budget_s=deadline.cpu_left(), wall_deadline=deadline.wall,
-                                        after_step=restage)
+                                        after_step=restage, carried=carried)
             except _Restage as again:
-                extras, prior, instrument_stage, noise = again.args[0]
+                (extras, prior, instrument_stage, noise), carried = again.args
                 diag = None
                 continue
+            carried = ()  # a rerun on re-admitted pixels selects afresh
             if diag.stopped_early is not None:
                 if done is not None:  # a rerun cut short: the last finished selection stands
                     cut, (problem, fit, keep, diag) = diag.stopped_early, done

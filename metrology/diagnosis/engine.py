@@ -272,6 +272,20 @@ def _structure_test(problem, r_map, n_eff, n):
     return float(best)
 
 
+def _close(scores, best, threshold):
+    """The candidates scored close enough to ``best`` to be fitted to convergence and compared again."""
+    return [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
+
+
+def _step(problem, name, r_before, r_after, change, scores, ambiguous):
+    """The :class:`Step` that names ``name`` (its parameters are filled from the final joint fit)."""
+    eff = problem.effects[name]
+    return Step(effect=name, kind=eff.kind, description=eff.description, params={}, uncertainties={},
+                units={p.name: p.unit for p in eff.params}, residual_rms_before=_rms(r_before),
+                residual_rms_after=_rms(r_after), criterion_change=change,
+                candidates={k: float(v) for k, v in scores.items()}, ambiguous_with=ambiguous)
+
+
 def _cut_short(budget_s, what, candidates):
     """``stopped_early`` of a selection whose round the budget cut short in ``what``."""
     log.info("diagnosis stopped: time budget spent in %s of %s", what, candidates)
@@ -285,7 +299,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                   stop_at_floor: bool = True, quick_screen: bool = False,
                   prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None,
                   wall_deadline: float | None = None,
-                  after_step: Callable[[dict[str, np.ndarray], list[Step]], None] | None = None) -> Diagnosis:
+                  after_step: Callable[[dict[str, np.ndarray], list[Step]], None] | None = None,
+                  carried: Sequence[Step] = ()) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
 
     Candidates of a problem with ``parallel_fits`` are screened, and Jacobian columns computed,
@@ -328,7 +343,12 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     after_step : callable, optional
         Called with the model (nuisances included) and the steps so far after each named step;
         a caller that learns from it that the problem itself must change (the camera's
-        instrument stage) raises, and selects afresh on the new problem.
+        instrument stage) raises, and continues on the new problem (``carried``).
+    carried : sequence of Step
+        What an earlier pass on the same data named before its problem changed: these effects
+        enter first, in their order, each refitted jointly from ``prior`` and kept while it still
+        pays the threshold and the resolution rule; the screening rounds that chose them are not
+        repeated, and the backward pass judges them with the rest.
 
     Returns
     -------
@@ -373,7 +393,29 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     if early is not None:
         log.info("the instrument's fit leaves an instrument residual (odd share %.2f, %.0f %% of the excess "
                  "over the floor): no candidate screened", early["odd_share"], 100 * excess_share)
-    while early is None and len(steps) < max_steps and (_rms(r) > problem.noise.sigma or not stop_at_floor):
+    for old in carried if early is None else ():
+        if old.effect not in problem.effects or old.effect in model:
+            continue
+        budget = FitStop(deadline)
+        free = list(model) + [old.effect]
+        start = {**model, old.effect: (prior or {}).get(old.effect, problem.effects[old.effect].start_values())}
+        fitted, rss_new, errs = fit_effects(problem, start, free, stop=budget)
+        if budget.fired:
+            stopped = _cut_short(cpu_budget_s, "the refit of what the pass before named", [old.effect])
+            break
+        new_crit = bic_eff(rss_new, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
+        share = (float(np.sum(r ** 2)) - rss_new) / (n * problem.noise.sigma ** 2)
+        log.info("carried %s: criterion %+.1f, %.1f %% of the floor's power", old.effect, new_crit - crit, 100 * share)
+        if new_crit - crit > -threshold or share < MIN_POWER_SHARE:
+            break
+        model, errors = fitted, errs
+        r_new = problem.residual(model)
+        steps.append(_step(problem, old.effect, r, r_new, new_crit - crit, old.candidates, list(old.ambiguous_with)))
+        alternatives[old.effect] = [c for c in _close(old.candidates, old.effect, threshold) if c != old.effect]
+        maps.append(problem.residual_map(model))
+        r, crit = r_new, new_crit
+    while (early is None and stopped is None and len(steps) < max_steps
+           and (_rms(r) > problem.noise.sigma or not stop_at_floor)):
         pending = [nm for nm in names if nm not in model]
         if not pending:
             break
@@ -424,7 +466,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         # within the threshold of the best cannot be told apart by the data. Among them a
         # measurement artefact is preferred: it is always present in a measurement, and a
         # fabrication effect must not be blamed for what the instrument does.
-        close = [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
+        close = _close(scores, best, threshold)
         refits = {}
         for c in close:
             start = fits[c]
@@ -455,13 +497,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         model, rss_new, errors = refits[best]
         new_crit = bic_eff(rss_new, n, n_eff, k_now + problem.effects[best].n_params)
         r_new = problem.residual(model)
-        eff = problem.effects[best]
-        steps.append(Step(
-            effect=best, kind=eff.kind, description=eff.description,
-            params={}, uncertainties={}, units={p.name: p.unit for p in eff.params},
-            residual_rms_before=_rms(r), residual_rms_after=_rms(r_new),
-            criterion_change=new_crit - crit, candidates={k: float(v) for k, v in scores.items()},
-            ambiguous_with=ambiguous))
+        steps.append(_step(problem, best, r, r_new, new_crit - crit, scores, ambiguous))
         maps.append(problem.residual_map(model))
         r, crit = r_new, new_crit
         if after_step is not None:

@@ -180,3 +180,36 @@ def test_what_stays_after_a_withheld_effect_is_refitted_only_within_the_deadline
     assert model["ramp"] == kept["ramp"] and errs == {"ramp": errors["ramp"]}
     model, errs = refit_kept(problem, kept, errors, budget.Deadline())
     assert abs(model["ramp"][0] - 30.0) < 0.05 and np.all(np.isfinite(errs["ramp"]))
+
+
+class _Orthogonal(_Ripples):
+    """:class:`_Ripples` with a cosine ripple, orthogonal to the ramp (a sine's projection on it
+    cancels a 0.3 ripple: fitted alone it explains nothing)."""
+
+    def __init__(self, ripple):
+        super().__init__(0.0)
+        self.shapes["ripple"] = np.sqrt(2) * np.cos(40 * np.pi * self.x)
+        self.y = self.y + ripple * self.shapes["ripple"]
+
+
+def _carried(name, candidates):
+    return dg.Step(effect=name, kind="process", description=f"a {name}", params={}, uncertainties={}, units={},
+                   residual_rms_before=0.0, residual_rms_after=0.0, criterion_change=candidates[name],
+                   candidates=candidates)
+
+
+def test_what_an_earlier_pass_named_enters_first_without_its_screening_and_must_still_pay():
+    # The camera's restart after the instrument stage chose more of the family: what the first
+    # pass named is refitted on the new problem, not screened again. A fresh selection names the
+    # ramp first (it holds 99 % of the residual); carried, the ripple comes first, with the
+    # candidates of the round that chose it, and the ramp is still found after it.
+    carried = [_carried("ripple", {"ripple": -600.0, "ramp": 50.0})]
+    fresh = dg.run_diagnosis(_Orthogonal(0.3))
+    assert fresh.named == ["ramp", "ripple"]
+    again = dg.run_diagnosis(_Orthogonal(0.3), carried=carried, prior={"ripple": np.array([0.25])})
+    assert again.named == ["ripple", "ramp"]
+    assert again.steps[0].candidates == {"ripple": -600.0, "ramp": 50.0}
+    assert abs(again.model["ripple"][0] - fresh.model["ripple"][0]) < 1e-3
+    # Where the new problem holds no ripple, the carried name does not pay and is not kept.
+    none = dg.run_diagnosis(_Orthogonal(0.0), carried=carried)
+    assert none.named == ["ramp"]
