@@ -399,6 +399,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         budget = FitStop(deadline)
         free = list(model) + [old.effect]
         start = {**model, old.effect: (prior or {}).get(old.effect, problem.effects[old.effect].start_values())}
+        if screen is not problem:
+            start, _, _ = fit_effects(screen, start, free, stop=budget)
         fitted, rss_new, errs = fit_effects(problem, start, free, stop=budget)
         if budget.fired:
             stopped = _cut_short(cpu_budget_s, "the refit of what the pass before named", [old.effect])
