@@ -66,8 +66,8 @@ RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
 RESTAGE_SHARE = 0.5
-# A restart's time over the first stage's plus the pass's so far: it runs the stage again and refits
-# what is named (:func:`~metrology.diagnosis.engine.run_diagnosis`'s ``carried``), not the screening.
+# A restart's time over the diagnosis's up to its first stage's end plus the pass's so far: it runs the
+# stage again and refits what is named (:func:`~metrology.diagnosis.engine.run_diagnosis`'s ``carried``).
 RESTAGE_COST = 1.25
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)

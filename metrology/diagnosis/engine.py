@@ -403,7 +403,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             start, _, _ = fit_effects(screen, start, free, stop=budget)
         fitted, rss_new, errs = fit_effects(problem, start, free, stop=budget)
         if budget.fired:
-            stopped = _cut_short(cpu_budget_s, "the refit of what the pass before named", [old.effect])
+            stopped = _cut_short(cpu_budget_s, "its refit (carried from before the instrument stage ran again)",
+                                 [old.effect])
             break
         new_crit = bic_eff(rss_new, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
         share = (float(np.sum(r ** 2)) - rss_new) / (n * problem.noise.sigma ** 2)
