@@ -277,6 +277,20 @@ def _close(scores, best, threshold):
     return [c for c in scores if scores[c] < scores[best] + max(threshold, 0.02 * abs(scores[best]))]
 
 
+def _converge(problem, screen, start, free, stop):
+    """``free`` fitted to convergence on ``problem`` (:func:`fit_effects`'s result). Converged on
+    the cheap ``screen`` crop first, the fit on the whole problem starts near its optimum and needs
+    a few of its expensive evaluations, not a dozen."""
+    if screen is not problem:
+        start, _, _ = fit_effects(screen, start, free, stop=stop)
+    return fit_effects(problem, start, free, stop=stop)
+
+
+def _power_share(problem, r, rss):
+    """The share of the floor's power (per sample) that going from residual ``r`` to ``rss`` explains."""
+    return (float(np.sum(r ** 2)) - rss) / (r.size * problem.noise.sigma ** 2)
+
+
 def _step(problem, name, r_before, r_after, change, scores, ambiguous):
     """The :class:`Step` that names ``name`` (its parameters are filled from the final joint fit)."""
     eff = problem.effects[name]
@@ -399,15 +413,13 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         budget = FitStop(deadline)
         free = list(model) + [old.effect]
         start = {**model, old.effect: (prior or {}).get(old.effect, problem.effects[old.effect].start_values())}
-        if screen is not problem:
-            start, _, _ = fit_effects(screen, start, free, stop=budget)
-        fitted, rss_new, errs = fit_effects(problem, start, free, stop=budget)
+        fitted, rss_new, errs = _converge(problem, screen, start, free, budget)
         if budget.fired:
             stopped = _cut_short(cpu_budget_s, "its refit (carried from before the instrument stage ran again)",
                                  [old.effect])
             break
         new_crit = bic_eff(rss_new, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
-        share = (float(np.sum(r ** 2)) - rss_new) / (n * problem.noise.sigma ** 2)
+        share = _power_share(problem, r, rss_new)
         log.info("carried %s: criterion %+.1f, %.1f %% of the floor's power", old.effect, new_crit - crit, 100 * share)
         if new_crit - crit > -threshold or share < MIN_POWER_SHARE:
             break
@@ -472,12 +484,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         close = _close(scores, best, threshold)
         refits = {}
         for c in close:
-            start = fits[c]
-            if screen is not problem:
-                # Converged on the cheap crop first, the fit on the whole problem starts near
-                # its optimum and needs a few of its expensive evaluations, not a dozen.
-                start, _, _ = fit_effects(screen, start, list(model) + [c], stop=budget)
-            refits[c] = fit_effects(problem, start, list(model) + [c], stop=budget)
+            refits[c] = _converge(problem, screen, fits[c], list(model) + [c], budget)
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         if budget.fired:
             stopped = _cut_short(cpu_budget_s, "its fit to convergence", close)
@@ -485,7 +492,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         best = min(close, key=scores.get)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
             break
-        share = (float(np.sum(r ** 2)) - refits[best][1]) / (n * problem.noise.sigma ** 2)
+        share = _power_share(problem, r, refits[best][1])
         if share < MIN_POWER_SHARE:
             small = {"effect": best, "criterion_change": float(scores[best]), "floor_power_share": share}
             log.info("%s would explain %.2f %% of the floor's power: below the model's resolution, not named",
