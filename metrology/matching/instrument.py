@@ -217,6 +217,8 @@ class InstrumentModel:
         self._etches = ArrayCache(cache_bytes, max_items=24)
         self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
+        self._frequencies: dict[tuple[int, int], np.ndarray] = {}
+        self._beside = None  # the last transfer with edge responses beside it: (transfer, beside, sum)
 
     @staticmethod
     def transfer_cache(max_items: int = 24) -> ArrayCache:
@@ -351,9 +353,18 @@ class InstrumentModel:
         rows, cols = self._fine_shape()
         transfer = self._transfer(shape, sigma_m)
         if len(beside):
-            t = as_transfer(sigma_m)
-            plain = self._transfer(shape, replace(t, na=0.0)) if t.na > 0 else transfer
-            transfer = beside_transfer(transfer, plain, beside)
+            last = self._beside  # one read: worker threads replace it whole
+            if last is not None and last[0] is transfer and len(last[1]) == len(beside) and all(
+                    a is b for a, b in zip(last[1], beside)):
+                # A Jacobian's columns for fabrication effects: the same cached transfer and edge
+                # responses (held here, so no other array can take their identity).
+                transfer = last[2]
+            else:
+                t = as_transfer(sigma_m)
+                plain = self._transfer(shape, replace(t, na=0.0)) if t.na > 0 else transfer
+                summed = beside_transfer(transfer, plain, beside)
+                self._beside = (transfer, tuple(beside), summed)
+                transfer = summed
         parts = [spectrum] if isinstance(spectrum, np.ndarray) else list(spectrum)
         if len(parts) == 1:
             product = np.multiply(parts[0], transfer, out=parts[0] if overwrite else None)
@@ -447,11 +458,22 @@ class InstrumentModel:
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
             if t.na > 0:
-                # Isotropic: the design frame's frequencies (cycles per metre) serve.
-                nu = np.hypot((wr / (2 * np.pi * self.step_m))[:, None], (wc / (2 * np.pi * self.step_m))[None, :])
-                spectrum *= na_mtf(nu, t.na, t.wavelength_m).astype(np.float32)
+                spectrum *= na_mtf(self._frequency(shape), t.na, t.wavelength_m)
             self._transfers.put(key, spectrum)
         return self._transfers.get(key)
+
+    def _frequency(self, shape):
+        """Spatial frequency magnitude (cycles per metre, float32) on the FFT grid of ``shape``,
+        kept: the objective's transfer is isotropic, so the design frame's frequencies serve.
+        Made once, not with every NA a fit tries (in double precision, the grid's hypot and
+        arccos cost twice the map's inverse FFT)."""
+        nu = self._frequencies.get(shape)
+        if nu is None:
+            wr, wc = self.fourier_grid()
+            scale = 1.0 / (2 * np.pi * self.step_m)
+            nu = np.hypot((wr * scale)[:, None], (wc * scale)[None, :]).astype(np.float32)
+            self._frequencies = {shape: nu}
+        return nu
 
     def covers(self, placement: Placement, sigma_m: float | LateralTransfer) -> bool:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its

@@ -59,7 +59,7 @@ def test_a_step_through_fill_factor_box_and_blur_is_the_erf_box_convolution(fill
         assert np.abs(other - want).max() > 5e-9
 
 
-@pytest.mark.parametrize("s,mtf", [(0.25, 0.68503), (0.5, 0.39100), (0.75, 0.14427)])
+@pytest.mark.parametrize("s,mtf", [(0.25, 0.68503), (0.5, 0.39100), (0.75, 0.14429)])
 def test_a_sinusoid_through_the_objective_is_attenuated_by_the_chinese_hat(s, mtf):
     # Incoherent circular pupil at s = nu / nu_c: 2/pi (acos s - s sqrt(1 - s^2)) (Goodman,
     # Fourier Optics, 6.3), values worked by hand; point sampling, no blur: the optics alone.
@@ -118,3 +118,23 @@ def test_a_batwing_is_added_beside_the_objective_not_imaged_through_it(na):
     # The product of the transfers is a different (attenuated) profile: the check can fail.
     through = model.sample(model.map_of(spectrum, t, factors=[wing]), model.placement)[30]
     assert np.abs((through - plain) - want).max() > 0.1 * amp * height
+    # The model keeps the last summed transfer: another wing (half the amplitude) is not served
+    # the kept one, and the first again is the same map.
+    half = batwing_transfer([amp / 2, width], model.step_m, wr, wc, 10 ** 6)
+    halved = model.sample(model.map_of(spectrum, t, beside=[half]), model.placement)[30]
+    assert np.abs((halved - plain) - want / 2).max() < 0.01 * amp * height
+    again = model.sample(model.map_of(spectrum, t, beside=[wing]), model.placement)[30]
+    assert np.array_equal(again, beside)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_chinese_hat_in_either_precision_is_the_worked_values(dtype):
+    # Goodman's formula worked by hand (to 1e-6) at s = 0.25, 0.5, 0.75, 1 and beyond, from
+    # frequencies in the precision a fit keeps its transfers in (float32) and in double.
+    from metrology.matching.transfer import na_mtf
+
+    na, lam = 0.3, 0.57e-6
+    nu = (np.array([0.25, 0.5, 0.75, 1.0, 1.5]) * 2 * na / lam).astype(dtype)
+    got = na_mtf(nu, na, lam)
+    assert got.dtype == dtype
+    assert got == pytest.approx([0.685038, 0.391002, 0.144294, 0.0, 0.0], abs=1e-5)
