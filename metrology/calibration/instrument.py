@@ -129,7 +129,8 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
                                                      instrument_report, member_starts)
     from metrology.diagnosis.effects import get_effect
     from metrology.matching.compare import compare_measurement
-    from metrology.matching.instrument import Placement, robust_valid
+    from metrology.matching.instrument import Placement
+    from metrology.matching.level import robust_valid
     from metrology.matching.window import busiest_camera_window
 
     try:

@@ -39,8 +39,8 @@ from metrology.diagnosis.heights import INTERIOR_MARGIN_M, sampled_edge_distance
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
 from metrology.diagnosis.parallel import parallel_map
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
-from metrology.matching.instrument import (ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Leveller, Placement,
-                                           levelling_plane, robust_valid)
+from metrology.matching.instrument import ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Placement
+from metrology.matching.level import Leveller, levelling_plane, robust_valid
 from metrology.matching.transfer import LateralTransfer, as_transfer
 from metrology.matching.window import busiest_camera_window
 

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from metrology.diagnosis import engine as dg
-from metrology.matching.instrument import InstrumentModel, Leveller
+from metrology.matching.instrument import InstrumentModel
+from metrology.matching.level import Leveller
 
 __all__ = ["TILED_WINDOW_PX", "TILE_MARGIN_PX", "TILE_PX", "TILES_PER_SIDE", "TiledCameraProblem", "tile_origins"]
 

@@ -23,7 +23,7 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    a step has been through the pixel box and the blur), so a change of placement costs one
    spline evaluation: shift, rotation and scale are cheap nuisance parameters of any fit.
 4. Levelling (piston, tilt, optional curvature) is fitted linearly in the camera frame and
-   projected out of the residual.
+   projected out of the residual (:class:`metrology.matching.level.Leveller`).
 
 Placement convention: camera pixel centre (row, col) lies at design-pixel coordinates
 ``matrix @ [row, col] + offset`` (design pixel (i, j) centred at (i, j)), as in
@@ -54,9 +54,8 @@ if TYPE_CHECKING:
     from masks.process_params import ProcessParams
     from metrology.matching.register import Registration
 
-__all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "Leveller", "PLACEMENT_PARAMS", "Placement",
-           "beside_transfer", "footprint_kernel", "kernel_half_width", "levelling_basis", "levelling_plane",
-           "robust_valid"]
+__all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "PLACEMENT_PARAMS", "Placement",
+           "beside_transfer", "footprint_kernel", "kernel_half_width"]
 
 # Fine-grid spacing requested from the process model (m).
 FINE_STEP_M = 0.125e-6
@@ -260,22 +259,44 @@ class InstrumentModel:
     def _etch(self, params, mask, pad):
         """One mask's etch (m, >= 0) on the region padded by ``pad`` fine pixels, cached.
 
-        Without microtrenching the etch is its depth times the etch at unit depth (coverage,
-        loading and gradient only scale it): a change of depth, every step of a fit with the
-        etch depths free, costs a product, not a new print of the mask."""
+        The etch is linear in its depth ``D`` and its trench's depth ``t``: ``D E + t F(w)``, with
+        ``E`` the untrenched etch at unit depth (coverage, loading and gradient only scale it) and
+        ``F`` the trench of width ``w`` at unit depths (:func:`masks.process.mask_etch` deepens
+        the etch by ``t / D`` times the foot profile). A change of either depth, every step of a
+        fit with them free, costs a product, not a new print of the mask."""
         from masks.process import etch_key, mask_etch
 
         key = (etch_key(params, mask), pad)
         etch = self._etches.get(key)
         if etch is None:
+            depth = float(params.etch_depth[mask])
+            trench_m, width_m = (float(v) for v in params.microtrenching[mask])
             unit = _unit_depth(params, mask)
-            if unit is None:
+            if trench_m > 0 and depth > 0:
+                etch = self._etch(_varied(params, mask, trench=(0.0, 0.0)), mask, pad)
+                etch = etch + trench_m * self._trench(params, mask, width_m, pad)
+            elif unit is None:
                 etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
                                  pad_px=pad)
             else:
-                etch = self._etch(unit, mask, pad) * float(params.etch_depth[mask])
+                etch = self._etch(unit, mask, pad) * depth
             self._etches.put(key, etch)
         return etch
+
+    def _trench(self, params, mask, width_m, pad):
+        """``F(w)`` of :meth:`_etch`: the etch with unit depth and unit trench depth less the
+        untrenched one, kept per trench width."""
+        from masks.process import etch_key, mask_etch
+
+        unit = _varied(params, mask, depth=1.0, trench=(1.0, width_m))
+        key = ("trench", etch_key(unit, mask), pad)
+        foot = self._etches.get(key)
+        if foot is None:
+            foot = mask_etch(self.levels, self.pitch_m, unit, mask, step_m=self.step_m, region=self.region,
+                             pad_px=pad)
+            foot -= self._etch(_varied(unit, mask, trench=(0.0, 0.0)), mask, pad)
+            self._etches.put(key, foot)
+        return foot
 
     def _placed(self, surface):
         """The region's surface in the window's fine grid (0, unetched, beyond the design)."""
@@ -529,12 +550,21 @@ def _unit_depth(params, mask):
     """``params`` with mask ``mask`` etched to unit depth (1 m), when its etch is proportional
     to its depth (no microtrenching: the trench adds a depth of its own), else None; None too
     when the depth is already 1."""
-    depth = float(params.etch_depth[mask])
-    if params.microtrenching[mask][0] > 0 or depth == 1.0:
+    if params.microtrenching[mask][0] > 0 or float(params.etch_depth[mask]) == 1.0:
         return None
-    depths = np.array(params.etch_depth, float)
-    depths[mask] = 1.0
-    return params.copy(etch_depth=depths)
+    return _varied(params, mask, depth=1.0)
+
+
+def _varied(params, mask, depth=None, trench=None):
+    """``params`` with mask ``mask``'s etch depth (m) or its trench ``(depth_m, width_m)`` replaced."""
+    changes = {}
+    if depth is not None:
+        changes["etch_depth"] = np.array(params.etch_depth, float)
+        changes["etch_depth"][mask] = depth
+    if trench is not None:
+        changes["microtrenching"] = np.array(params.microtrenching, float)
+        changes["microtrenching"][mask] = trench
+    return params.copy(**changes)
 
 
 def beside_transfer(transfer: np.ndarray, plain: np.ndarray, beside: Sequence[np.ndarray]) -> np.ndarray:
@@ -546,52 +576,3 @@ def beside_transfer(transfer: np.ndarray, plain: np.ndarray, beside: Sequence[np
     for b in beside:
         extra = b - np.float32(1.0) if extra is None else extra + (b - np.float32(1.0))
     return transfer + plain * extra
-
-
-def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarray:
-    """Columns of the levelling fit on a camera field: piston, tilt (col, row), curvature.
-
-    Coordinates are centred and scaled to +-1 so the columns are well conditioned.
-    """
-    r, c = np.mgrid[:shape[0], :shape[1]].astype(float)
-    r = (r - (shape[0] - 1) / 2) / max(shape[0] / 2, 1)
-    c = (c - (shape[1] - 1) / 2) / max(shape[1] / 2, 1)
-    cols = [np.ones(shape), c, r] + ([r * r + c * c] if curvature else [])
-    return np.stack([x.ravel() for x in cols], axis=1)
-
-
-def levelling_plane(residual: np.ndarray, keep: np.ndarray, curvature: bool = False) -> np.ndarray:
-    """The levelling (:func:`levelling_basis`) fitted to a residual map on its ``keep`` pixels
-    (NaN read as 0), evaluated everywhere."""
-    basis = levelling_basis(residual.shape, curvature)
-    k = np.asarray(keep, bool).ravel()
-    coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(residual), residual, 0).ravel()[k], rcond=None)
-    return (basis @ coef).reshape(residual.shape)
-
-
-class Leveller:
-    """Projects piston, tilt (and optionally curvature) out of residuals on valid pixels."""
-
-    def __init__(self, shape: tuple[int, int], valid: np.ndarray, curvature: bool = False) -> None:
-        self.valid = np.asarray(valid, bool)
-        basis = levelling_basis(shape, curvature)[self.valid.ravel()]
-        self.q, _ = np.linalg.qr(basis)
-
-    def coefficients(self, residual: np.ndarray) -> np.ndarray:
-        """Projection coefficients (on the orthonormal basis) of a 1-D residual on valid pixels."""
-        return self.q.T @ residual
-
-    def __call__(self, residual: np.ndarray) -> np.ndarray:
-        """The residual (1-D, valid pixels) with the levelling terms removed."""
-        return residual - self.q @ (self.q.T @ residual)
-
-
-def robust_valid(residual_map: np.ndarray, valid: np.ndarray, k: float = 6.0) -> np.ndarray:
-    """Valid pixels whose residual lies within ``k`` robust sigmas (1.4826 MAD) of the median:
-    spikes and fringe-order errors are excluded, never smoothed."""
-    vals = residual_map[valid]
-    med = np.median(vals)
-    mad = 1.4826 * np.median(np.abs(vals - med))
-    keep = valid.copy()
-    keep[valid] = np.abs(vals - med) <= k * max(mad, 1e-15)
-    return keep

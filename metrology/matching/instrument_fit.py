@@ -29,8 +29,8 @@ import numpy as np
 from scipy import optimize
 
 from doedesign.errors import DoeError
-from metrology.matching.instrument import (PLACEMENT_PARAMS, InstrumentModel, Leveller, Placement,
-                                           robust_valid)
+from metrology.matching.instrument import PLACEMENT_PARAMS, InstrumentModel, Placement
+from metrology.matching.level import Leveller, robust_valid
 from metrology.matching.transfer import LateralTransfer
 from metrology.matching.window import busiest_camera_window
 

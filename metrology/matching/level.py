@@ -3,7 +3,9 @@
 A DOE surface is a set of flat terraces (levels) at different depths, so a plane fitted
 through all pixels is pulled toward wherever deep levels cluster: the etched pattern
 biases the tilt. Here the plane is fitted to the unetched top (level 0) only, or jointly
-with one free offset per level.
+with one free offset per level. In the camera frame of the measurement model, a residual's
+levelling (piston, tilt, curvature) is projected out (:class:`Leveller`) and its robust
+outliers left out (:func:`robust_valid`).
 
 All functions work on plain arrays: row 0 at the top, column 0 at the left, NaN for
 invalid pixels. Plane coefficients are per measurement pixel, about the array centre.
@@ -19,9 +21,9 @@ from scipy import ndimage, signal
 
 from doedesign.errors import DoeError
 
-__all__ = ["DEFAULT_SPIKE_THRESHOLD_M", "HIST_BIN_M", "LevelResult", "MIN_CLUSTER_SEPARATION_M",
-           "classify_by_histogram", "fit_plane", "level_joint", "level_on_top", "plane_image",
-           "remove_spikes", "step_plane", "top_level_mask"]
+__all__ = ["DEFAULT_SPIKE_THRESHOLD_M", "HIST_BIN_M", "LevelResult", "Leveller", "MIN_CLUSTER_SEPARATION_M",
+           "classify_by_histogram", "fit_plane", "level_joint", "level_on_top", "levelling_basis", "levelling_plane",
+           "plane_image", "remove_spikes", "robust_valid", "step_plane", "top_level_mask"]
 
 log = logging.getLogger(__name__)
 
@@ -304,3 +306,52 @@ def classify_by_histogram(height_m: np.ndarray, valid: np.ndarray | None = None,
     labels = np.full(h.shape, -1, dtype=np.int16)
     labels[valid] = np.searchsorted(-bounds, -h[valid])
     return labels, peaks
+
+
+def levelling_basis(shape: tuple[int, int], curvature: bool = False) -> np.ndarray:
+    """Columns of the levelling fit on a camera field: piston, tilt (col, row), curvature.
+
+    Coordinates are centred and scaled to +-1 so the columns are well conditioned.
+    """
+    r, c = np.mgrid[:shape[0], :shape[1]].astype(float)
+    r = (r - (shape[0] - 1) / 2) / max(shape[0] / 2, 1)
+    c = (c - (shape[1] - 1) / 2) / max(shape[1] / 2, 1)
+    cols = [np.ones(shape), c, r] + ([r * r + c * c] if curvature else [])
+    return np.stack([x.ravel() for x in cols], axis=1)
+
+
+def levelling_plane(residual: np.ndarray, keep: np.ndarray, curvature: bool = False) -> np.ndarray:
+    """The levelling (:func:`levelling_basis`) fitted to a residual map on its ``keep`` pixels
+    (NaN read as 0), evaluated everywhere."""
+    basis = levelling_basis(residual.shape, curvature)
+    k = np.asarray(keep, bool).ravel()
+    coef, *_ = np.linalg.lstsq(basis[k], np.where(np.isfinite(residual), residual, 0).ravel()[k], rcond=None)
+    return (basis @ coef).reshape(residual.shape)
+
+
+class Leveller:
+    """Projects piston, tilt (and optionally curvature) out of residuals on valid pixels."""
+
+    def __init__(self, shape: tuple[int, int], valid: np.ndarray, curvature: bool = False) -> None:
+        self.valid = np.asarray(valid, bool)
+        basis = levelling_basis(shape, curvature)[self.valid.ravel()]
+        self.q, _ = np.linalg.qr(basis)
+
+    def coefficients(self, residual: np.ndarray) -> np.ndarray:
+        """Projection coefficients (on the orthonormal basis) of a 1-D residual on valid pixels."""
+        return self.q.T @ residual
+
+    def __call__(self, residual: np.ndarray) -> np.ndarray:
+        """The residual (1-D, valid pixels) with the levelling terms removed."""
+        return residual - self.q @ (self.q.T @ residual)
+
+
+def robust_valid(residual_map: np.ndarray, valid: np.ndarray, k: float = 6.0) -> np.ndarray:
+    """Valid pixels whose residual lies within ``k`` robust sigmas (1.4826 MAD) of the median:
+    spikes and fringe-order errors are excluded, never smoothed."""
+    vals = residual_map[valid]
+    med = np.median(vals)
+    mad = 1.4826 * np.median(np.abs(vals - med))
+    keep = valid.copy()
+    keep[valid] = np.abs(vals - med) <= k * max(mad, 1e-15)
+    return keep

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from masks.process import ProcessParams
-from metrology.matching.instrument import (InstrumentModel, Leveller, Placement, footprint_kernel,
-                                           levelling_basis, robust_valid)
+from metrology.matching.instrument import InstrumentModel, Placement, footprint_kernel
+from metrology.matching.level import Leveller, levelling_basis, robust_valid
 
 import filegen
 
@@ -92,6 +92,45 @@ def test_fine_surface_reuses_unchanged_masks_exactly():
     assert calls == [2]
     fresh = InstrumentModel(levels, 5.4e-6, (40, 40), pl).fine_surface(moved)
     np.testing.assert_array_equal(cached, fresh)
+
+
+def test_a_trenched_etch_is_the_process_models_and_a_change_of_its_depths_prints_nothing():
+    # The model's etch of a trenched mask is D E + t F(w) (linear in both depths); against
+    # masks.process printing each variant itself, with loading and a gradient that shape the
+    # depth: the same to rounding. A change of the etch or trench depth prints no mask; a new
+    # width prints once.
+    import masks.process as mp
+    from masks.process import ProcessParams
+
+    rng = np.random.default_rng(7)
+    levels = rng.integers(0, 16, (20, 20))
+    pl = Placement(np.array([[0.2, 0.0], [0.0, 0.2]]), np.array([5.0, 5.0]))
+    model = InstrumentModel(levels, 5.4e-6, (40, 40), pl)
+    trench = np.zeros((4, 2))
+    trench[1] = [30e-9, 0.4e-6]
+    base = ProcessParams.ideal().copy(microtrenching=trench, etch_loading=0.1, etch_gradient=np.array([20.0, -10.0]))
+    model._etch(base, 1, 2)
+    calls = []
+    real = mp.mask_etch
+    variants = []
+    for depth, t, w in [(160e-9, 30e-9, 0.4e-6), (150e-9, 55e-9, 0.4e-6), (140e-9, 55e-9, 0.7e-6)]:
+        depths = np.array(base.etch_depth, float)
+        depths[1] = depth
+        trench = np.array(base.microtrenching, float)
+        trench[1] = [t, w]
+        variants.append(base.copy(etch_depth=depths, microtrenching=trench))
+    try:
+        mp.mask_etch = lambda *a, **kw: calls.append(a[3]) or real(*a, **kw)
+        got = [model._etch(p, 1, 2) for p in variants]
+    finally:
+        mp.mask_etch = real
+    assert len(calls) == 1  # the new width's trench only
+    for p, etch in zip(variants, got):
+        want = real(levels, 5.4e-6, p, 1, step_m=model.step_m, region=model.region, pad_px=2)
+        # The loading's depth map is single precision in the process model: 1e-7 of the etch.
+        assert np.abs(etch - want).max() < 1e-6 * np.abs(want).max()
+    # The check can fail: the trench is a visible part of the etch.
+    assert np.abs(got[1] - got[0]).max() > 0.1 * 25e-9
 
 
 def test_leveller_removes_plane_and_curvature_only():
