@@ -479,20 +479,19 @@ class InstrumentModel:
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
             if t.na > 0:
-                spectrum *= na_mtf(self._frequency(shape), t.na, t.wavelength_m)
+                spectrum *= na_mtf(self._frequency(shape), t.na, t.wavelength_m).astype(np.float32)
             self._transfers.put(key, spectrum)
         return self._transfers.get(key)
 
     def _frequency(self, shape):
-        """Spatial frequency magnitude (cycles per metre, float32) on the FFT grid of ``shape``,
-        kept: the objective's transfer is isotropic, so the design frame's frequencies serve.
-        Made once, not with every NA a fit tries (in double precision, the grid's hypot and
-        arccos cost twice the map's inverse FFT)."""
+        """Spatial frequency magnitude (cycles per metre) on the FFT grid of ``shape``, kept for
+        the last shape: the objective's transfer is isotropic, so the design frame's frequencies
+        serve. Made once, not with every NA a fit tries (the grid's hypot and the transfer's
+        arccos over the whole grid cost twice the map's inverse FFT)."""
         nu = self._frequencies.get(shape)
         if nu is None:
             wr, wc = self.fourier_grid()
-            scale = 1.0 / (2 * np.pi * self.step_m)
-            nu = np.hypot((wr * scale)[:, None], (wc * scale)[None, :]).astype(np.float32)
+            nu = np.hypot((wr / (2 * np.pi * self.step_m))[:, None], (wc / (2 * np.pi * self.step_m))[None, :])
             self._frequencies = {shape: nu}
         return nu
 

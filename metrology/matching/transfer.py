@@ -103,11 +103,13 @@ def as_transfer(value: float | LateralTransfer) -> LateralTransfer:
 def na_mtf(nu_per_m: np.ndarray, na: float, wavelength_m: float) -> np.ndarray:
     """Incoherent transfer of a circular pupil (the "chinese hat") at frequencies ``nu``
     (cycles per metre): ``2/pi (acos s - s sqrt(1 - s^2))``, ``s = nu lambda / (2 NA)``, 0 beyond.
-    In single precision for a float32 ``nu`` (a fit's transfers are kept in it), else double."""
-    nu = np.asarray(nu_per_m)
-    dtype = np.float32 if nu.dtype == np.float32 else np.float64
-    s = np.minimum(np.abs(nu.astype(dtype, copy=False)) * dtype(wavelength_m / (2.0 * na)), dtype(1.0))
-    return dtype(2.0 / np.pi) * (np.arccos(s) - s * np.sqrt(dtype(1.0) - s * s))
+    The formula is evaluated inside the cut-off only (on a fit's FFT grid, a tenth of it)."""
+    s = np.abs(np.asarray(nu_per_m, float)) * wavelength_m / (2.0 * na)
+    out = np.zeros(s.shape)
+    inside = s < 1.0
+    s = s[inside]
+    out[inside] = (2.0 / np.pi) * (np.arccos(s) - s * np.sqrt(1.0 - s * s))
+    return out
 
 
 def _cell_gaussian(x_m, step_m, sigma_m):
