@@ -271,11 +271,11 @@ class InstrumentModel:
         if etch is None:
             depth = float(params.etch_depth[mask])
             trench_m, width_m = (float(v) for v in params.microtrenching[mask])
-            unit = _unit_depth(params, mask)
             if trench_m > 0 and depth > 0:
-                etch = self._etch(_varied(params, mask, trench=(0.0, 0.0)), mask, pad)
-                etch = etch + trench_m * self._trench(params, mask, width_m, pad)
-            elif unit is None:
+                # E and F are kept; D E is not (it costs a product, and a fit tries many D).
+                flat = self._etch(_varied(params, mask, depth=1.0, trench=(0.0, 0.0)), mask, pad)
+                etch = flat * depth + trench_m * self._trench(params, mask, width_m, pad)
+            elif (unit := _unit_depth(params, mask)) is None:
                 etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
                                  pad_px=pad)
             else:
