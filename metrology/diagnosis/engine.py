@@ -280,9 +280,15 @@ def _close(scores, best, threshold):
 def _converge(problem, screen, start, free, stop):
     """``free`` fitted to convergence on ``problem`` (:func:`fit_effects`'s result). Converged on
     the cheap ``screen`` crop first, the fit on the whole problem starts near its optimum and needs
-    a few of its expensive evaluations, not a dozen."""
+    a few of its expensive evaluations, not a dozen. A crop's fit that ``stop`` ended is returned
+    as it is: the round names nothing from it, and the whole problem's first evaluation would only
+    run past the deadline (on a CSI file with a trenching, 1.8 s: the fit stopped at 57.1 s of a
+    selection that ends at 55 s)."""
     if screen is not problem:
-        start, _, _ = fit_effects(screen, start, free, stop=stop)
+        fitted = fit_effects(screen, start, free, stop=stop)
+        if stop is not None and stop():
+            return fitted
+        start = fitted[0]
     return fit_effects(problem, start, free, stop=stop)
 
 

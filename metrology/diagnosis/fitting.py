@@ -147,7 +147,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
             age = held["age"] + 1
         else:
             f0 = last["r"] if not central.all() and here else None
-            j, age = _jacobian(residual, x, lo, hi, central, workers, f0=f0), 0
+            j, age = _jacobian(residual, x, lo, hi, central, workers, f0=f0, stop=stop), 0
         if here:
             held.update(x=x.copy(), r=last["r"], j=j, age=age, n=len(sizes))
         if here and not max_iter and not precise:
@@ -256,20 +256,24 @@ def _split(effs, values):
     return {e.name: v for e, v in zip(effs, np.split(values, np.cumsum([e.n_params for e in effs])[:-1]))}
 
 
-def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None):
+def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None, stop=None):
     """Finite differences with an absolute step (in units of each parameter's scale); SciPy's
     relative steps vanish at a parameter of exactly zero, where most effects start.
 
     ``central``: per column, central differences (else forward ones). Central differences are
     one-sided against a bound; forward ones go backward against the upper bound, from
     ``f0 = fun(x)`` (computed when not given). The columns are computed in ``workers`` threads when more
-    than one.
+    than one. ``stop`` (a fit's budget) is asked before each column: a Jacobian the deadline finds
+    under way ends within one evaluation per thread, not after its last column (a CSI window's fit
+    to convergence with a trenching frees 14 parameters: 14-28 evaluations of 0.3-0.6 s).
     """
     central = np.broadcast_to(np.asarray(central, bool), x.shape)
     if not central.all() and f0 is None:
         f0 = fun(x)
 
     def column(i):
+        if stop is not None and stop():
+            raise _Stopped
         if central[i]:
             up, down = x.copy(), x.copy()
             up[i] = min(x[i] + step, hi[i])

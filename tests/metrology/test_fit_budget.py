@@ -56,6 +56,38 @@ def test_a_stopped_fit_ends_at_its_best_evaluation_with_no_uncertainties():
     assert len(problem.calls) > 2 * stopped_at and full < rss
 
 
+class _Poly(dg.Problem):
+    """y = sum_k c_k x^k, six coefficients (a Jacobian of six central-difference columns, twelve
+    evaluations), white noise of known sigma."""
+
+    def __init__(self, parallel):
+        rng = np.random.default_rng(4)
+        self.x, self.calls, self.parallel_fits = np.linspace(-1.0, 1.0, 400), [], parallel
+        self.y = np.polyval([0.5, -1.0, 0.3, 2.0, -0.7, 1.0], self.x) + 0.01 * rng.standard_normal(400)
+        self.noise = NoiseEstimate(0.01, 1.0, self.x.size)
+        self.effects = {"poly": Effect("poly", "height", "surface",
+                                       [Parameter(f"c{k}", "1", -10.0, 10.0, 1.0) for k in range(6)],
+                                       lambda h, v, s: h, "a polynomial")}
+
+    def residual(self, model):
+        self.calls.append(1)
+        return self.y - np.polyval(model["poly"], self.x)
+
+
+def test_a_jacobian_under_way_ends_at_its_next_column_once_the_budget_is_spent():
+    # The budget runs out in the first Jacobian (after its first column's two evaluations): the
+    # fit returns its start at once, not after the other ten evaluations of that Jacobian. With
+    # two threads the columns already under way finish (two of them at most).
+    for parallel, most in ((False, 3), (True, 5)):
+        problem = _Poly(parallel)
+        start = {"poly": np.zeros(6)}
+        fitted, rss, errors = fitting.fit_effects(problem, start, ["poly"],
+                                                  stop=lambda: len(problem.calls) >= 3)
+        assert 3 <= len(problem.calls) <= most
+        np.testing.assert_array_equal(fitted["poly"], start["poly"])
+        assert np.all(np.isnan(errors["poly"]))
+
+
 def test_a_fit_to_convergence_lands_within_the_criterion_tolerance_of_the_optimum():
     problem = _decay()
     fitted, rss, errors = fitting.fit_effects(problem, {"decay": np.array([1.0, 2.0])}, ["decay"])
@@ -213,3 +245,18 @@ def test_what_an_earlier_pass_named_enters_first_without_its_screening_and_must_
     # Where the new problem holds no ripple, the carried name does not pay and is not kept.
     none = dg.run_diagnosis(_Orthogonal(0.0), carried=carried)
     assert none.named == ["ramp"]
+
+
+def test_a_crops_fit_the_budget_stopped_does_not_start_the_whole_problems():
+    # A fit to convergence runs on the screening crop, then on the whole field from the crop's
+    # optimum. Stopped on the crop, it is cut short: the whole field's first evaluation (seconds
+    # on a camera window) is not paid past the deadline.
+    crop, whole = _Poly(False), _Poly(False)
+    stop = budget.FitStop(budget.Deadline())
+    spent = budget.FitStop(budget.Deadline(wall=0.0))
+    dg._converge(whole, crop, {"poly": np.zeros(6)}, ["poly"], stop)
+    assert crop.calls and whole.calls and not stop.fired
+    crop.calls.clear()
+    whole.calls.clear()
+    dg._converge(whole, crop, {"poly": np.zeros(6)}, ["poly"], spent)
+    assert spent.fired and len(crop.calls) == 1 and not whole.calls
