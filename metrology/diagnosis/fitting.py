@@ -265,7 +265,7 @@ def _jacobian(fun, x, lo, hi, central, workers=1, step=JAC_STEP, f0=None, stop=N
     ``f0 = fun(x)`` (computed when not given). The columns are computed in ``workers`` threads when more
     than one. ``stop`` (a fit's budget) is asked before each column: a Jacobian the deadline finds
     under way ends within one evaluation per thread, not after its last column (a CSI window's fit
-    to convergence with a trenching frees 14 parameters: 14-28 evaluations of 0.3-0.6 s).
+    to convergence with a trenching frees 14 parameters: 14-28 evaluations of about 0.5 s).
     """
     central = np.broadcast_to(np.asarray(central, bool), x.shape)
     if not central.all() and f0 is None:
