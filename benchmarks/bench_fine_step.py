@@ -41,33 +41,36 @@ TRANSFERS = {"point sampling": LateralTransfer(0.25e-6, 0.0),
              "CSI": LateralTransfer(0.05e-6, 0.5, na=0.55, wavelength_m=0.55e-6)}
 
 
-def _cases():
-    """(name, process parameters, surface effect or None) of the element."""
+def cases() -> dict:
+    """Name -> (process parameters, surface effect or None) of the element's models (the step's
+    accuracy test in ``tests/metrology/test_instrument.py`` renders the same ones)."""
     ideal = ProcessParams.ideal()
     batwing = get_effect("batwing")
-    return [("ideal", ideal, None),
-            ("80 nm bias", ideal.copy(linewidth_bias=[80e-9, -60e-9, 40e-9, 100e-9]), None),
-            ("trench", ideal.copy(microtrenching=[[0, 4e-7], [0, 4e-7], [30e-9, 3e-7], [0, 4e-7]]), None),
-            ("sidewall ramp", ideal.copy(sidewall_slope=0.3e-6), None),
-            ("batwing", ideal, lambda h, s: batwing.apply(h, np.array([0.1, 0.3e-6]), s))]
+    return {"ideal": (ideal, None),
+            "80 nm bias": (ideal.copy(linewidth_bias=[80e-9, -60e-9, 40e-9, 100e-9]), None),
+            "trench": (ideal.copy(microtrenching=[[0, 4e-7], [0, 4e-7], [30e-9, 3e-7], [0, 4e-7]]), None),
+            "sidewall ramp": (ideal.copy(sidewall_slope=0.3e-6), None),
+            "batwing": (ideal, lambda h, s: batwing.apply(h, np.array([0.1, 0.3e-6]), s))}
 
 
-def _setup(field_px=96, design_px=40):
+def rotated_field(design_px: int = 40, field_px: int = 96, offset_px: float = 8.0):
+    """(levels, placement, field shape): a random 16-level design of ``design_px`` pixels and a
+    field of 1 um camera pixels rotated 0.5 degrees, its first pixel at design pixel ``offset_px``."""
     levels = filegen.random_levels((design_px, design_px), np.random.default_rng(5))
     turn = np.deg2rad(0.5)
     matrix = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]) * 1e-6 / filegen.PITCH_M
-    placement = Placement(matrix, np.array([8.0, 8.0]))
-    return levels, placement, (field_px, field_px)
+    return levels, Placement(matrix, np.array([offset_px, offset_px])), (field_px, field_px)
 
 
 def run(quick: bool = False) -> list[dict]:
     """The rows: per step and case the largest rms difference (nm), and the render time ratio."""
-    levels, placement, shape = _setup(48 if quick else 96, 24 if quick else 40)
+    levels, placement, shape = rotated_field(24, 48) if quick else rotated_field()
     steps = STEPS_M[::3] if quick else STEPS_M
     model = {s: InstrumentModel(levels, filegen.PITCH_M, shape, placement, step_m=s)
              for s in (REFERENCE_STEP_M, *steps)}
     rows = []
-    for name, params, surface in _cases():
+    models = cases()
+    for name, (params, surface) in models.items():
         worst = dict.fromkeys(steps, 0.0)
         for transfer in TRANSFERS.values():
             ref = model[REFERENCE_STEP_M].render(params, placement, transfer, surface)
@@ -80,7 +83,7 @@ def run(quick: bool = False) -> list[dict]:
                              notes=f"largest of {len(TRANSFERS)} transfers; against a "
                                    f"{REFERENCE_STEP_M * 1e6:.3g} um grid"))
     timing, cells = {}, {}
-    biased = _cases()[1][1]
+    biased = models["80 nm bias"][0]
     for s in steps:
         best = np.inf
         for _ in range(3):

@@ -259,22 +259,21 @@ _TRANSFERS = {"point sampling": (0.25e-6, 0.0, 0.0), "full pixel": (0.4e-6, 1.0,
 
 @pytest.mark.parametrize("transfer", list(_TRANSFERS))
 def test_the_default_fine_step_renders_within_its_discretization_budget(transfer):
-    from metrology.diagnosis.effects import get_effect
+    import sys
+    from pathlib import Path
+
     from metrology.matching.transfer import LateralTransfer
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from benchmarks.bench_fine_step import cases, rotated_field
 
     sigma, fill, na = _TRANSFERS[transfer]
     lateral = LateralTransfer(sigma, fill, na=na, wavelength_m=0.58e-6)
-    levels = filegen.random_levels((20, 20), np.random.default_rng(5))
-    turn = np.deg2rad(0.5)
-    placement = Placement(np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]) * 1e-6
-                          / filegen.PITCH_M, np.array([4.0, 4.0]))
-    default = InstrumentModel(levels, filegen.PITCH_M, (40, 40), placement)
-    fine = InstrumentModel(levels, filegen.PITCH_M, (40, 40), placement, step_m=default.step_m / 4)
-    batwing = get_effect("batwing")
-    ideal = ProcessParams.ideal()
-    cases = {"trench": (ideal.copy(microtrenching=[[0, 4e-7], [0, 4e-7], [30e-9, 3e-7], [0, 4e-7]]), None, 0.1e-9),
-             "batwing": (ideal, lambda h, s: batwing.apply(h, np.array([0.1, 0.3e-6]), s), 0.1e-9),
-             "80 nm bias": (ideal.copy(linewidth_bias=[80e-9, -60e-9, 40e-9, 100e-9]), None, 1.0e-9)}
-    for name, (params, surface, limit) in cases.items():
+    levels, placement, shape = rotated_field(20, 40, 4.0)
+    default = InstrumentModel(levels, filegen.PITCH_M, shape, placement)
+    fine = InstrumentModel(levels, filegen.PITCH_M, shape, placement, step_m=default.step_m / 4)
+    models = cases()
+    for name, limit in (("trench", 0.1e-9), ("batwing", 0.1e-9), ("80 nm bias", 1.0e-9)):
+        params, surface = models[name]
         d = default.render(params, placement, lateral, surface) - fine.render(params, placement, lateral, surface)
         assert np.std(d) < limit, (name, np.std(d))
