@@ -56,6 +56,7 @@ from doedesign.errors import DoeError
 from . import litho
 from .decompose import mask_bit
 from .effects import EFFECTS
+from .moments import moment_corrected
 from .process_params import ProcessParams, finite_float
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
@@ -190,7 +191,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
 
 def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: int, step_m: float = 0.25e-6,
               region: tuple[int, int, int, int] | None = None, pad_px: int = 0,
-              backend: str | Backend | None = None) -> Array:
+              backend: str | Backend | None = None, moments: bool = False) -> Array:
     """Depth (m, >= 0) that one mask's etch removes, on the fine grid of a region.
 
     :func:`simulate_surface` is ``finish_surface(-sum of mask_etch over the masks, ...)``; one
@@ -206,6 +207,10 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
         Fine pixels added on every side of the region (beyond the design: unetched).
     backend : str or Backend, optional
         Where it is computed (default the CPU).
+    moments : bool
+        The printed coverage's partly covered pixels with their first moments folded into their
+        neighbours (:func:`masks.moments.moment_corrected`): for a model that treats each fine
+        pixel as uniform (the camera render), not an area coverage.
 
     Returns
     -------
@@ -219,20 +224,22 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design,
-                                litho.backend_of(backend))
+                                litho.backend_of(backend), moments)
     a = margin * u - int(pad_px)
     return etched[a:etched.shape[0] - a, a:etched.shape[1] - a]
 
 
 def finish_surface(height_m: Array, params: ProcessParams, step_m: float, pad_px: int,
-                   backend: str | Backend | None = None) -> Array:
+                   backend: str | Backend | None = None, moments: bool = False) -> Array:
     """The summed etches (negative heights, m) with the sidewall ramp, cropped by ``pad_px``
     fine pixels on every side, plus roughness: the last stage of :func:`simulate_surface`
-    (on ``backend``'s arrays, default the CPU's)."""
+    (on ``backend``'s arrays, default the CPU's). ``moments``: the ramp's slopes inside the
+    pixels folded into their neighbours (:func:`masks.moments.box_moment_taps`), for
+    :func:`mask_etch`'s ``moments``."""
     be = litho.backend_of(backend)
     height = height_m
     if params.sidewall_slope > 0:
-        kernel = be.asarray(litho.box_kernel(params.sidewall_slope / step_m))
+        kernel = be.asarray(litho.box_kernel(params.sidewall_slope / step_m, moments))
         for axis in (0, 1):
             height = be.ndimage.correlate1d(height, kernel, axis=axis, mode="nearest")
     p = int(pad_px)
@@ -282,34 +289,48 @@ def without_motion(params: ProcessParams) -> ProcessParams:
                        mask_rotation=np.zeros_like(params.mask_rotation))
 
 
-def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be):
+def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, moments=False):
     """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
-    of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``."""
+    of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``;
+    ``moments``: the etch from the moment-corrected coverage (:func:`mask_etch`), and the area
+    coverage None where neither the trench nor the exposure needs it."""
     xp = be.xp
     step = pitch_m / u
     mask = mask_bit(_window(levels, window), j)
     # Rotation centre in fine-pixel indices of the window.
     centre_fine = ((centre_design[0] - window[0] + 0.5) * u - 0.5,
                    (centre_design[1] - window[2] + 0.5) * u - 0.5)
-    coverage = litho.grown_mask(mask, u, float(params.linewidth_bias[j] / step), be)
+    grown = litho.grown_mask(mask, u, float(params.linewidth_bias[j] / step), be)
     shift_px, rotation = mask_motion(params, j, pitch_m)
-    coverage = litho.move(coverage, (shift_px[0] * u, shift_px[1] * u), rotation, centre_fine, be)
-    coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
+    shift_fine = (shift_px[0] * u, shift_px[1] * u)
+    trench_m, trench_width_m = params.microtrenching[j]
+    trenched = trench_m > 0 and params.etch_depth[j] > 0
+    coverage = printed = None
+    if not moments or params.proximity_blur > 0 or trenched:
+        coverage = litho.move(grown, shift_fine, rotation, centre_fine, be)
+        coverage = printed = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
+    if moments:
+        # The grown edges' moments, then a move that keeps them (a linear one leaves a biased and
+        # shifted edge in two partial pixels, which the rule cannot read); an exposure prints its
+        # own edges from the blurred image.
+        if params.proximity_blur > 0:
+            printed = moment_corrected(coverage, be)
+        else:
+            printed = litho.move(moment_corrected(grown, be), shift_fine, rotation, centre_fine, be, order=3)
     depth = _depth_map(levels, window, params, j, pitch_m, u, be)
     gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design, be)
     if gradient is not None:
         depth = depth * gradient
-    trench_m, trench_width_m = params.microtrenching[j]
-    if trench_m > 0 and params.etch_depth[j] > 0:
+    if trenched:
         foot = litho.edge_foot(coverage, trench_width_m / step, be)
         depth = depth * (1.0 + float(trench_m / params.etch_depth[j]) * foot)
     # In float64, so that the ideal surface is exact to double precision (a float32 depth map
     # multiplies in float32, as NumPy's loop for two float32 arrays does).
     if isinstance(depth, float):
-        etched = xp.astype(coverage, xp.float64)
+        etched = xp.astype(printed, xp.float64)
         etched *= depth
     else:
-        etched = xp.astype(coverage * depth, xp.float64, copy=False)
+        etched = xp.astype(printed * depth, xp.float64, copy=False)
     return coverage, etched
 
 

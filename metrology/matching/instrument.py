@@ -9,13 +9,18 @@ compared pixel by pixel and the data are never resampled or smoothed.
 Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
 
 1. The model surface (design + process effects, :func:`masks.process.simulate_surface`) on a
-   fine grid in the design frame (``pitch / ceil(pitch / 0.125 um)``) over the design pixels
-   the camera field covers, unetched (0) outside the design. The step is the accuracy's: against
-   a grid 4x finer, camera renders of an element with 80 nm biased edges differ by 0.25-0.9 nm
-   rms at 0.125 um, 1.3-4.1 nm at 0.25 um (the partial fine cells along the edges, not their
-   area: with 20 nm of bias, a growth rule that cut each design pixel's area error 12-fold moved
-   it by 4 %); a 0.3 um batwing by 0.02-0.08 nm at 0.125 um, 0.15 nm at 0.16 um
-   (``tests/metrology/test_instrument.py``).
+   fine grid in the design frame (``pitch / ceil(pitch / 0.2 um)``) over the design pixels
+   the camera field covers, unetched (0) outside the design. Step 2 treats each fine cell as
+   uniform; an edge inside a cell (bias, overlay, rotation) or a sidewall's slope is not, so
+   the cells carry their first moments into their neighbours
+   (:func:`masks.moments.moment_corrected`). Against a 0.03 um grid, camera renders of an
+   element with 80 nm biased edges differ by 0.25-0.65 nm rms at 0.2 um with the moments,
+   1.1-2.9 nm without (0.3-0.9 nm at the former 0.125 um step); overlays by up to 0.39 nm
+   (1.8), bias and overlay together 0.71 (4.0); a 0.3 um sidewall ramp by 0.01-0.23 nm
+   (0.65-1.7 without); a 0.3 um batwing by 0.07-0.33 nm, the ideal element by up to 0.14 nm
+   (the NA-limited transfer beside the grid's Nyquist frequency); 2-5 times more at 0.25 um.
+   A render from nothing cached costs 0.4 of the 0.125 um step's without moments
+   (``benchmarks/bench_fine_step.py``, ``tests/metrology/test_instrument.py``).
 2. One kernel on that fine grid holds both the objective blur and the pixel footprint (the
    lateral transfer's family, fitted: fill factor, Gaussian blur, NA-limited objective,
    :mod:`metrology.matching.transfer`):
@@ -62,7 +67,9 @@ __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "P
            "beside_transfer", "footprint_kernel", "kernel_half_width"]
 
 # Fine-grid spacing requested from the process model (m).
-FINE_STEP_M = 0.125e-6
+FINE_STEP_M = 0.2e-6
+# Whether renders fold the first moments of edges inside fine cells into their neighbours.
+MOMENTS = True
 # Extra design pixels around the camera footprint: kernel reach plus any placement refinement.
 MARGIN_PX = 3
 # The largest objective blur (Gaussian sigma, m) a camera-frame fit may reach.
@@ -194,17 +201,22 @@ class InstrumentModel:
         pitch and fine step (tiles of one field), so each blur's transfer is computed once.
     cache_bytes : int
         Memory kept for the masks' etches between renders (a field's tiles share one budget).
+    moments : bool
+        Edges and sidewall slopes inside a fine cell rendered with their first moments
+        (:func:`masks.moments.moment_corrected`), not as uniform cells.
     """
 
     def __init__(self, levels: np.ndarray, pitch_m: float, shape: tuple[int, int], placement: Placement,
                  step_m: float = FINE_STEP_M, margin_px: int = MARGIN_PX,
-                 transfers: ArrayCache | None = None, cache_bytes: int = ETCH_CACHE_BYTES) -> None:
+                 transfers: ArrayCache | None = None, cache_bytes: int = ETCH_CACHE_BYTES,
+                 moments: bool = MOMENTS) -> None:
         from masks.process import fine_upsample
 
         self.levels = np.asarray(levels)
         self.pitch_m = float(pitch_m)
         self.shape = tuple(int(v) for v in shape)
         self.placement = placement
+        self.moments = bool(moments)
         self.upsample = fine_upsample(pitch_m, step_m)
         self.step_m = self.pitch_m / self.upsample
         corners = np.array([[r, c] for r in (-0.5, self.shape[0] - 0.5) for c in (-0.5, self.shape[1] - 0.5)])
@@ -243,7 +255,7 @@ class InstrumentModel:
         for j in range(params.n_masks):
             etch = self._etch(params, j, pad)
             total = -etch if total is None else np.subtract(total, etch, out=total)
-        return self._placed(finish_surface(total, params, self.step_m, pad))
+        return self._placed(finish_surface(total, params, self.step_m, pad, moments=self.moments))
 
     def mask_surface(self, params: ProcessParams, mask: int) -> np.ndarray:
         """Mask ``mask``'s part of :meth:`fine_surface` (m, <= 0): its etch with the sidewall
@@ -254,7 +266,8 @@ class InstrumentModel:
         if params.roughness > 0:
             raise DoeError("a rough surface is not the sum of its masks' parts")
         pad = self._pad(params)
-        return self._placed(finish_surface(-self._etch(params, mask, pad), params, self.step_m, pad))
+        return self._placed(finish_surface(-self._etch(params, mask, pad), params, self.step_m, pad,
+                                                   moments=self.moments))
 
     def _pad(self, params):
         # Fine pixels beyond the region for the sidewall ramp (applied to the summed etches).
@@ -281,7 +294,7 @@ class InstrumentModel:
                 etch = flat * depth + trench_m * self._trench(params, mask, width_m, pad)
             elif (unit := _unit_depth(params, mask)) is None:
                 etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
-                                 pad_px=pad)
+                                 pad_px=pad, moments=self.moments)
             else:
                 etch = self._etch(unit, mask, pad) * depth
             self._etches.put(key, etch)
@@ -297,7 +310,7 @@ class InstrumentModel:
         foot = self._etches.get(key)
         if foot is None:
             foot = mask_etch(self.levels, self.pitch_m, unit, mask, step_m=self.step_m, region=self.region,
-                             pad_px=pad)
+                             pad_px=pad, moments=self.moments)
             foot -= self._etch(_varied(unit, mask, trench=(0.0, 0.0)), mask, pad)
             self._etches.put(key, foot)
         return foot

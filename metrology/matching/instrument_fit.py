@@ -123,11 +123,16 @@ class _MaskMaps:
 
         params = ProcessParams.ideal(len(bias_m)).copy(linewidth_bias=np.asarray(bias_m, float))
         s = simulate_surface(levels, pitch_m, params, step_m=model.step_m, region=model.region)
+        printed = s.masks_printed
+        if model.moments:
+            from masks.moments import moment_corrected
+
+            printed = np.stack([moment_corrected(p) for p in printed])
         u = model.upsample
         r0, r1, c0, c1 = model.window
         out = np.zeros((len(bias_m), (r1 - r0) * u, (c1 - c0) * u))
         a, b = (model.region[0] - r0) * u, (model.region[2] - c0) * u
-        out[:, a:a + s.masks_printed.shape[1], b:b + s.masks_printed.shape[2]] = s.masks_printed
+        out[:, a:a + printed.shape[1], b:b + printed.shape[2]] = printed
         return out
 
 

@@ -146,7 +146,7 @@ before = len(os.listdir("/proc/self/task"))
 rng = np.random.default_rng(0)
 image = rng.standard_normal((600, 600))
 _normalized_xcorr(image, image[100:400, 100:400], np.ones((300, 300), bool))
-model = InstrumentModel(rng.integers(0, 16, (60, 60)), 5.4e-6, (256, 256), Placement(np.eye(2) * 0.19, np.array([5.0, 5.0])))
+model = InstrumentModel(rng.integers(0, 16, (90, 90)), 5.4e-6, (400, 400), Placement(np.eye(2) * 0.19, np.array([5.0, 5.0])))
 fine = model.fine_surface(ProcessParams.ideal())
 assert fine.size >= 2 ** 22, fine.shape
 model.camera_map(fine, 0.4e-6)
