@@ -255,10 +255,17 @@ def test_a_held_batwing_renders_as_a_fitted_one_and_is_no_candidate():
 # Without the moments the bias differs by 0.75-2.1 nm and the ramp by 0.47-1.3 nm; at 0.25 um the
 # bias by up to 0.59 nm, the ramp 0.47, the trench 0.23, the batwing 0.45. (At the former 0.125 um,
 # without moments: bias 0.25-0.7 nm.)
-_TRANSFERS = {"point sampling": (0.25e-6, 0.0, 0.0), "full pixel": (0.4e-6, 1.0, 0.0), "CSI": (0.05e-6, 0.7, 0.45)}
+_TRANSFERS = {"point sampling": (0.25e-6, 0.0, 0.0), "full pixel": (0.4e-6, 1.0, 0.0), "CSI": (0.05e-6, 0.7, 0.45),
+              "sharp full pixel": (0.022e-6, 0.98, 0.26)}
+# A known shortfall, kept here so it cannot pass unseen: a full pixel with almost no blur makes the
+# camera map kink where a pixel's edge crosses a step, which no spline on a 0.2 um grid samples to
+# these limits (the trench differs by 0.26 nm here, 0.35 on the benchmark's field; 0.07 at 0.125 um). On a
+# 512 x 512 CSI field with this transfer the diagnosis named a false -2.8 nm linewidth bias.
+_SHORTFALL = pytest.mark.xfail(strict=True, reason="camera map kinks of a sharp full pixel at the 0.2 um step")
 
 
-@pytest.mark.parametrize("transfer", list(_TRANSFERS))
+@pytest.mark.parametrize("transfer", [pytest.param(t, marks=_SHORTFALL) if t == "sharp full pixel" else t
+                                      for t in _TRANSFERS])
 def test_the_default_fine_step_renders_within_its_discretization_budget(transfer):
     import sys
     from pathlib import Path
