@@ -257,11 +257,12 @@ def test_a_held_batwing_renders_as_a_fitted_one_and_is_no_candidate():
 # without moments: bias 0.25-0.7 nm.)
 _TRANSFERS = {"point sampling": (0.25e-6, 0.0, 0.0), "full pixel": (0.4e-6, 1.0, 0.0), "CSI": (0.05e-6, 0.7, 0.45),
               "sharp full pixel": (0.022e-6, 0.98, 0.26)}
-# A known shortfall, kept here so it cannot pass unseen: a full pixel with almost no blur makes the
-# camera map kink where a pixel's edge crosses a step, which no spline on a 0.2 um grid samples to
-# these limits (the trench differs by 0.26 nm here, 0.35 on the benchmark's field; 0.07 at 0.125 um). On a
-# 512 x 512 CSI field with this transfer the diagnosis named a false -2.8 nm linewidth bias.
-_SHORTFALL = pytest.mark.xfail(strict=True, reason="camera map kinks of a sharp full pixel at the 0.2 um step")
+# A known shortfall, kept here so it cannot pass unseen: a sharp full pixel's footprint kernel on the
+# fine grid carries the pixel box's spectrum aliased from above the grid's Nyquist frequency, which the
+# objective's transfer on the DFT grid passes (the trench differs by 0.26 nm here, 0.35 on the
+# benchmark's field; 0.07 at 0.125 um). On a 512 x 512 CSI field with this transfer the diagnosis named
+# a false -2.8 nm linewidth bias.
+_SHORTFALL = pytest.mark.xfail(strict=True, reason="a sharp full pixel's aliased footprint under an objective, 0.2 um step")
 
 
 @pytest.mark.parametrize("transfer", [pytest.param(t, marks=_SHORTFALL) if t == "sharp full pixel" else t
