@@ -479,4 +479,3 @@ def box_kernel(width_px: float, moments: bool = False) -> np.ndarray:
     taps = np.arange(-n, n + 1, dtype=float)
     weights = np.clip(np.minimum(taps + 0.5, half) - np.maximum(taps - 0.5, -half), 0.0, None)
     return weights / weights.sum()
-

@@ -24,6 +24,8 @@ __all__ = ["box_moment_taps", "moment_corrected"]
 
 # Coverage within this of 0 or 1 counts as closed or open (float32 sums of exact parts).
 EDGE_TOL = 1e-6
+# -div m by the fourth-order central difference, as moves: a moment m at p adds w m at p + k.
+_FOLD = ((-1, -8 / 12), (1, 8 / 12), (-2, 1 / 12), (2, -1 / 12))
 
 
 def moment_corrected(coverage: Array, backend: Backend | None = None) -> Array:
@@ -64,9 +66,8 @@ def moment_corrected(coverage: Array, backend: Backend | None = None) -> Array:
         where, pos = partial[keep], along[keep]
         v = values[where]
         m = np.where(up[keep], v * (1 - v) / 2, -v * (1 - v) / 2)
-        # -div m by the fourth-order stencil: a moment at p moves 8m/12 from p - 1 to p + 1 and
-        # m/12 from p + 2 to p - 2 (nothing beyond the image's ends).
-        for k, w in ((-1, -8 / 12), (1, 8 / 12), (-2, 1 / 12), (2, -1 / 12)):
+        # Nothing is folded beyond the image's ends.
+        for k, w in _FOLD:
             inside = (pos + k >= 0) & (pos + k < n)
             np.add.at(flat, where[inside] + k * stride, (w * m[inside]).astype(np.float32))
     return out if be.is_numpy else be.asarray(out)
@@ -91,13 +92,8 @@ def box_moment_taps(width_px: float) -> np.ndarray:
         trapezoid = (np.abs(y) < 0.5).astype(float)
     else:
         trapezoid = np.clip(np.minimum(y + 0.5, half) - np.maximum(y - 0.5, -half), 0.0, None) / width_px
-    mean = trapezoid.mean(axis=1)
+    out = trapezoid.mean(axis=1)
     moment = (trapezoid * sub[None, :]).mean(axis=1)
-    return mean - _divergence(moment)
-
-
-def _divergence(m: np.ndarray) -> np.ndarray:
-    """Fourth-order central difference of a 1-D ``m`` (zero beyond its ends)."""
-    p = np.concatenate([np.zeros(2), m, np.zeros(2)])
-    n = m.size
-    return (8 * (p[3:n + 3] - p[1:n + 1]) - (p[4:n + 4] - p[0:n])) / 12
+    for k, w in _FOLD:  # the outer taps' moments are nil: n leaves two taps beyond the trapezoid
+        out[max(k, 0):out.size + min(k, 0)] += w * moment[max(-k, 0):moment.size - max(k, 0)]
+    return out
