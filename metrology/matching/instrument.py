@@ -18,7 +18,8 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    1.1-2.9 nm without (0.3-0.9 nm at the former 0.125 um step); overlays by up to 0.39 nm
    (1.8), bias and overlay together 0.71 (4.0); a 0.3 um sidewall ramp by 0.01-0.23 nm
    (0.65-1.7 without); a 0.3 um batwing by 0.07-0.33 nm, the ideal element by up to 0.14 nm
-   (the NA-limited transfer beside the grid's Nyquist frequency); 2-5 times more at 0.25 um.
+   (0.33 with a sharp full pixel: the footprint kernel's aliases, which an objective's transfer
+   passes on the FFT grid); 2-5 times more at 0.25 um.
    A render from nothing cached costs 0.4 of the 0.125 um step's without moments
    (``benchmarks/bench_fine_step.py``, ``tests/metrology/test_instrument.py``).
 2. One kernel on that fine grid holds both the objective blur and the pixel footprint (the

@@ -250,8 +250,8 @@ def test_a_held_batwing_renders_as_a_fitted_one_and_is_no_candidate():
 
 # The fine grid's discretization, against the same render on a grid 4x finer (a convergence test):
 # what the default step (FINE_STEP_M, 0.2 um, with the cells' first moments) costs. Here: the ideal
-# element and a trench 0.004-0.14 nm rms (the NA-limited transfer beside the grid's Nyquist
-# frequency), batwing 0.05-0.28 nm, 80 nm bias 0.11-0.30 nm, a 0.3 um sidewall ramp 0.01-0.22 nm.
+# element and a trench 0.004-0.14 nm rms (the footprint kernel's aliases under an objective's
+# transfer, below), batwing 0.05-0.28 nm, 80 nm bias 0.11-0.30 nm, a 0.3 um sidewall ramp 0.01-0.22 nm.
 # Without the moments the bias differs by 0.75-2.1 nm and the ramp by 0.47-1.3 nm; at 0.25 um the
 # bias by up to 0.59 nm, the ramp 0.47, the trench 0.23, the batwing 0.45. (At the former 0.125 um,
 # without moments: bias 0.25-0.7 nm.)
