@@ -117,4 +117,4 @@ def run(quick: bool = False) -> list[dict]:
 if __name__ == "__main__":
     for row in run(quick="--quick" in sys.argv):
         print(f"{row['figure']:55s} {row['value']:8.3f} {row['unit']}" +
-              (f"  ({row['ratio']:.2f}x the default's)" if row["ratio"] is not None else ""))
+              (f"  ({row['ratio']:.2f}x the former default's)" if row["ratio"] is not None else ""))
