@@ -26,6 +26,9 @@ Resumable: each finished case is one JSON line of ``OUT/cases.jsonl``; a rerun s
 ``OUT/summary.md`` and ``OUT/summary.json`` hold the table per instrument.
 
     python -m benchmarks.bench_instruments --n 30 --workers 2 --out benchmarks/results/instruments
+
+``--design-px 130 --field-px 512`` gives the largest fields the speed limit names (512 x 512 camera
+pixels, any drawn pixel size and rotation inside the design).
 """
 
 from __future__ import annotations
@@ -189,14 +192,15 @@ def score(names, truth, report):
 
 
 def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None,
-             calibrated=False):
+             calibrated=False, design_px=DESIGN_PX, field=None):
     """Make, diagnose and score one case (``calibrated``: through a calibration of its
-    instrument, :func:`calibrate`); return its journal row."""
+    instrument, :func:`calibrate`; ``design_px``, ``field``: as :func:`make_files`); return its
+    journal row."""
     directory = Path(work) / f"{instrument}_{seed}"
     if directory.exists():
         shutil.rmtree(directory)
     t = time.process_time()
-    case = make_files(instrument, names, seed, directory)
+    case = make_files(instrument, names, seed, directory, design_px, field)
     inst = {k: v for k, v in case.instrument.items() if k != "spikes"}
     row = {"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth, "camera": inst,
            "make_cpu_s": time.process_time() - t}
@@ -257,7 +261,7 @@ def summary(rows, instruments):
     return table
 
 
-def summary_markdown(table, rows, info=None):
+def summary_markdown(table, rows, info=None, design_px=DESIGN_PX, field=None):
     cols = ["instrument", "cases", "all_right", "ran", "crashed", "refused", "timed_out", "hidden_named", "hidden",
             "false_names", "largest_overlay_or_depth_error", "largest_parameter_error", "within_final_limit",
             "median_final_over_floor", "largest_final_over_floor", "median_wall_s", "median_cpu_s"]
@@ -269,6 +273,7 @@ def summary_markdown(table, rows, info=None):
     if info:
         lines += [f"Machine: {info['cpus']} CPUs, {info.get('memory_gib', '?')} GiB, Python {info['python']} "
                   "(shared: wall times are swamped by other work; CPU seconds are the diagnosis subprocess's).", ""]
+    lines += [f"Design {design_px} x {design_px} px; camera field {field or field_px(design_px)} px square.", ""]
     lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(fmt(t[c]) for c in cols) + " |" for t in table]
     lines += ["", "all_right: every hidden effect named, no false fabrication name, parameter errors within "
@@ -286,7 +291,7 @@ def summary_markdown(table, rows, info=None):
 
 
 def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS), extra=(), keep=False,
-        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None, calibrated=False):
+        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None, calibrated=False, design_px=DESIGN_PX, field=None):
     """Run (or resume) the cases; return ``benchmarks.run`` rows (one per instrument and figure).
 
     ``quick``: one null case per instrument. ``out`` (a folder) keeps ``cases.jsonl`` and the
@@ -306,7 +311,7 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     seen = {(r["instrument"], r["seed"]) for r in done}
     planned = planned_cases(n)
     # Case by case, every instrument in turn: a run stopped early still compares the instruments.
-    todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s, calibrated)
+    todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s, calibrated, design_px, field)
             for names, seed in planned
             for i in instruments if (i, seed) not in seen]
     if workers > 1:
@@ -331,12 +336,12 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     from benchmarks.run import machine
 
     info = machine()
-    write_json(out / "summary.json", {"machine": info, "design_px": DESIGN_PX, "field_px": field_px(),
+    write_json(out / "summary.json", {"machine": info, "design_px": design_px, "field_px": field or field_px(design_px),
                                       "time_limit_s": time_limit_s, "cpu_limit_s": cpu_limit_s,
                                       "extra_options": list(extra), "calibrated": calibrated,
                                       "instruments": table, "cases": rows})
     with atomic_path(out / "summary.md") as path:
-        path.write_text(summary_markdown(table, rows, info))
+        path.write_text(summary_markdown(table, rows, info, design_px, field))
     if tmp is not None:
         tmp.cleanup()
     return [dict(benchmark="instruments", figure=f"{t['instrument']}: cases all right", value=t["all_right"],
@@ -362,6 +367,9 @@ def main(argv=None):
     parser.add_argument("--keep", action="store_true", help="keep every case's files (failures are kept)")
     parser.add_argument("--diagnose-option", action="append", default=[],
                         help="extra option passed to doe diagnose (repeatable, e.g. --diagnose-option=--window-px=96)")
+    parser.add_argument("--design-px", type=int, default=DESIGN_PX, help=f"design pixels per side (default {DESIGN_PX})")
+    parser.add_argument("--field-px", type=int, default=None,
+                        help="camera pixels per side (default: the largest field inside the design)")
     parser.add_argument("--calibrated", action="store_true",
                         help="diagnose through a calibration of each case's instrument on an artefact it measured")
     args = parser.parse_args(argv)
@@ -371,7 +379,8 @@ def main(argv=None):
     if unknown:
         parser.error(f"unknown instruments {sorted(unknown)}; choose from {list(INSTRUMENTS)}")
     run(n=args.n, workers=args.workers, out=args.out, instruments=names, extra=args.diagnose_option,
-        keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit, calibrated=args.calibrated)
+        keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit, calibrated=args.calibrated,
+        design_px=args.design_px, field=args.field_px)
     log.info("summary: %s", Path(args.out, "summary.md"))
     return 0
 

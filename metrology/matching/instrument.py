@@ -17,9 +17,8 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    element with 80 nm biased edges differ by 0.25-0.65 nm rms at 0.2 um with the moments,
    1.1-2.9 nm without (0.3-0.9 nm at the former 0.125 um step); overlays by up to 0.39 nm
    (1.8), bias and overlay together 0.71 (4.0); a 0.3 um sidewall ramp by 0.01-0.23 nm
-   (0.65-1.7 without); a 0.3 um batwing by 0.07-0.33 nm, the ideal element by up to 0.14 nm
-   (0.33 with a sharp full pixel: the footprint kernel's aliases, which an objective's transfer
-   passes on the FFT grid); 2-5 times more at 0.25 um.
+   (0.65-1.7 without); a 0.3 um batwing by 0.05-0.3 nm, the ideal element by up to 0.1 nm
+   (point sampling's); 2-5 times more at 0.25 um.
    A render from nothing cached costs 0.4 of the 0.125 um step's without moments
    (``benchmarks/bench_fine_step.py``, ``tests/metrology/test_instrument.py``).
 2. One kernel on that fine grid holds both the objective blur and the pixel footprint (the
@@ -28,7 +27,9 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    ``K(a) = mean over the footprint y of integral over fine cell a of G_sigma(x - y)``, where
    the footprint is the camera pixel mapped into the design frame by the placement (a
    parallelogram: rotation, per-axis scale, mirror). Correlating the fine surface with ``K``
-   gives, at every fine cell, the value a camera pixel centred there would report.
+   gives, at every fine cell, the value a camera pixel centred there would report. Under an
+   objective, ``K``'s continuous spectrum times the objective's transfer is used instead: the
+   objective cuts the cells' spectral repeats that the discrete kernel's spectrum folds in.
 3. That map is sampled at each camera pixel centre by a cubic spline (the map is smooth there:
    a step has been through the pixel box and the blur), so a change of placement costs one
    spline evaluation: shift, rotation and scale are cheap nuisance parameters of any fit.
@@ -58,7 +59,7 @@ import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
 from metrology.matching.transfer import (LateralTransfer, as_transfer, footprint_kernel, kernel_half_width,
-                                         na_mtf)
+                                         objective_spectrum)
 
 if TYPE_CHECKING:
     from masks.process_params import ProcessParams
@@ -476,28 +477,32 @@ class InstrumentModel:
     def _transfer(self, shape, transfer):
         """Fourier transfer of correlation with the footprint kernel, the objective's optical
         transfer (:mod:`metrology.matching.transfer`) and the spline prefilter; kept per FFT
-        shape and every parameter of the lateral transfer.
+        shape and every parameter of the lateral transfer; under an objective, the kernel's
+        continuous spectrum (:func:`metrology.matching.transfer.objective_spectrum`).
 
-        In single precision throughout, the prefilter applied per axis in place: the transfer
-        is kept in complex64 anyway, and on a whole 512 px field the double-precision
-        temporaries (some 800 MB of fresh pages) made each new blur cost 1.8 s.
+        In single precision, the prefilter applied per axis in place: on a whole 512 px field
+        double-precision temporaries (some 800 MB of fresh pages) made each new blur cost 1.8 s.
         """
         t = as_transfer(transfer)
         key = (shape, t)
         if self._transfers.get(key) is None:
-            kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m, t.fill_factor)
-            k = kernel.shape[0] // 2
-            wrapped = np.zeros(shape, np.float32)
-            # Correlation: value[a] = sum_d kernel[k + d] fine[a + d], i.e. convolution with the
-            # kernel flipped, centred at index 0 (offset d at index d mod the shape).
-            offsets = np.arange(-k, k + 1)
-            wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
-            spectrum = sfft.rfft2(wrapped, overwrite_x=True)
             wr, wc = self.fourier_grid()
+            if t.na > 0:
+                nr, nc = wr / (2 * np.pi * self.step_m), wc / (2 * np.pi * self.step_m)
+                spectrum = objective_spectrum(self.placement.matrix, self.pitch_m, self.step_m, t, nr[:, None],
+                                              nc[None, :], self._frequency(shape)).astype(np.complex64)
+            else:
+                kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m,
+                                          t.fill_factor)
+                k = kernel.shape[0] // 2
+                wrapped = np.zeros(shape, np.float32)
+                # Correlation: value[a] = sum_d kernel[k + d] fine[a + d], i.e. convolution with
+                # the kernel flipped, centred at index 0 (offset d at index d mod the shape).
+                offsets = np.arange(-k, k + 1)
+                wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
+                spectrum = sfft.rfft2(wrapped, overwrite_x=True)
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
-            if t.na > 0:
-                spectrum *= na_mtf(self._frequency(shape), t.na, t.wavelength_m).astype(np.float32)
             self._transfers.put(key, spectrum)
         return self._transfers.get(key)
 

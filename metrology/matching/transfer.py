@@ -28,8 +28,15 @@ A family wide enough for the profilometers in use, every member fitted, none ass
 
 The footprint and the blur form one spatial kernel on the fine grid (exact moments, cell
 integration included: :func:`footprint_kernel`), turned into a Fourier transfer on the
-camera model's FFT grid; the optical transfer multiplies it there (it is isotropic, so the
-placement does not enter it). Kernel written by hand: no library integrates a Gaussian over a
+camera model's FFT grid. Under an objective the kernel's continuous spectrum is used instead
+(:func:`objective_spectrum`): the fine surface is uniform per cell, so its spectrum repeats
+beyond the grid's Nyquist, and the discrete kernel's spectrum carries those repeats folded
+into the base band, where the optical transfer, applied on the grid, would pass them (0.3 nm
+rms of a 600 nm step at a 0.2 um step under NA 0.26); the objective cuts them off, so the
+continuous spectrum times its transfer is the exact one, wherever the cut-off lies below the
+grid's Nyquist frequency (NA < 0.71 at 0.57 um and a 0.2 um step; beyond, the image holds detail
+the grid cannot carry either way). The optical transfer is isotropic, so the placement does not
+enter it. Kernel written by hand: no library integrates a Gaussian over a
 rotated, mirrored parallelogram and a grid cell at once.
 """
 
@@ -42,7 +49,7 @@ import numpy as np
 from scipy.special import erf
 
 __all__ = ["DEFAULT_WAVELENGTH_M", "NA_BOUNDS", "LateralTransfer", "as_transfer", "footprint_kernel",
-           "kernel_half_width", "na_mtf"]
+           "footprint_spectrum", "kernel_half_width", "na_mtf", "objective_spectrum"]
 
 # White-light interferometers: the centre of their source's band.
 DEFAULT_WAVELENGTH_M = 0.57e-6
@@ -164,3 +171,47 @@ def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m:
     gc = _cell_gaussian(x[None, :] - y[1][:, None], step_m, math.sqrt(sigma_m ** 2 + sub_var[1]))
     kernel = gr.T @ gc / y.shape[1]
     return kernel / kernel.sum()
+
+
+def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m: float,
+                       fill_factor: float, nu_r: np.ndarray, nu_c: np.ndarray) -> np.ndarray:
+    """Continuous Fourier transform of :func:`footprint_kernel`'s kernel: one fine cell's box,
+    the pixel's footprint (a parallelogram) and the Gaussian blur, at frequencies ``nu_r``,
+    ``nu_c`` (cycles per metre along rows and columns, broadcast together).
+
+    Parameters
+    ----------
+    matrix, pitch_m, step_m, sigma_m, fill_factor
+        As for :func:`footprint_kernel`.
+    nu_r, nu_c : ndarray
+        Frequencies along the row and column axes (cycles/m).
+
+    Returns
+    -------
+    ndarray
+        The transfer (real: the kernel is centred and symmetric), 1 at zero frequency.
+    """
+    sigma_m = max(float(sigma_m), 0.0)
+    m = np.asarray(matrix, float) * pitch_m * math.sqrt(min(max(fill_factor, 0.0), 1.0))
+    nu_r, nu_c = np.asarray(nu_r, float), np.asarray(nu_c, float)
+    # The footprint is m @ [u, v] over the unit square centred at 0: a sinc per edge vector.
+    return (np.sinc(nu_r * step_m) * np.sinc(nu_c * step_m)
+            * np.sinc(nu_r * m[0, 0] + nu_c * m[1, 0]) * np.sinc(nu_r * m[0, 1] + nu_c * m[1, 1])
+            * np.exp(-2.0 * np.pi ** 2 * sigma_m ** 2 * (nu_r ** 2 + nu_c ** 2)))
+
+
+def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transfer: LateralTransfer,
+                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """The whole lateral transfer under an objective on a fine grid's Fourier grid:
+    :func:`footprint_spectrum` times :func:`na_mtf`, evaluated inside the cut-off only (0 beyond).
+
+    ``nu_r``, ``nu_c`` (cycles/m) broadcast to the grid's shape; ``nu`` is their magnitude on
+    it, passed in because a fit's grid keeps it.
+    """
+    inside = nu < transfer.cutoff_per_m
+    out = np.zeros(nu.shape, np.float32)
+    out[inside] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor,
+                                      np.broadcast_to(nu_r, nu.shape)[inside],
+                                      np.broadcast_to(nu_c, nu.shape)[inside])
+                   * na_mtf(nu[inside], transfer.na, transfer.wavelength_m))
+    return out

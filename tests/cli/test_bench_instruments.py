@@ -12,14 +12,17 @@ from benchmarks import bench_instruments as bench  # noqa: E402
 
 @pytest.mark.parametrize("name", list(bench.INSTRUMENTS))
 @pytest.mark.parametrize("rotation", [-1.0, 1.0])
-def test_field_fits_the_design_at_the_largest_pixel_rotation_and_offset(name, rotation):
-    fine, n = 2, bench.field_px()
-    surface = np.zeros((bench.DESIGN_PX * fine, bench.DESIGN_PX * fine))
-    centre = (bench.DESIGN_PX - 1) / 2 + np.array([0.5, -0.5])
-    bench.INSTRUMENTS[name].measure(surface, fine, (bench.DESIGN_PX,) * 2, (n, n), np.random.default_rng(0),
+@pytest.mark.parametrize("design_px", [bench.DESIGN_PX, 130])
+def test_field_fits_the_design_at_the_largest_pixel_rotation_and_offset(name, rotation, design_px):
+    # 130 design pixels: the --design-px of the 512 x 512 runs, whose field must fit as well.
+    fine, n = 2, bench.field_px(design_px)
+    assert design_px != 130 or n >= 512
+    surface = np.zeros((design_px * fine, design_px * fine))
+    centre = (design_px - 1) / 2 + np.array([0.5, -0.5])
+    bench.INSTRUMENTS[name].measure(surface, fine, (design_px,) * 2, (n, n), np.random.default_rng(0),
                                     pixel_m=1.3e-6, rotation_deg=rotation, centre_px=centre)
     with pytest.raises(ValueError):   # and it is the largest such field
-        bench.INSTRUMENTS[name].measure(surface, fine, (bench.DESIGN_PX,) * 2, (n + 2, n + 2),
+        bench.INSTRUMENTS[name].measure(surface, fine, (design_px,) * 2, (n + 2, n + 2),
                                         np.random.default_rng(0), pixel_m=1.3e-6, rotation_deg=rotation,
                                         centre_px=centre)
 

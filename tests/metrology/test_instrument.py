@@ -250,23 +250,17 @@ def test_a_held_batwing_renders_as_a_fitted_one_and_is_no_candidate():
 
 # The fine grid's discretization, against the same render on a grid 4x finer (a convergence test):
 # what the default step (FINE_STEP_M, 0.2 um, with the cells' first moments) costs. Here: the ideal
-# element and a trench 0.004-0.14 nm rms (the footprint kernel's aliases under an objective's
-# transfer, below), batwing 0.05-0.28 nm, 80 nm bias 0.11-0.30 nm, a 0.3 um sidewall ramp 0.01-0.22 nm.
-# Without the moments the bias differs by 0.75-2.1 nm and the ramp by 0.47-1.3 nm; at 0.25 um the
-# bias by up to 0.59 nm, the ramp 0.47, the trench 0.23, the batwing 0.45. (At the former 0.125 um,
-# without moments: bias 0.25-0.7 nm.)
+# element 0.004-0.10 nm rms, a trench 0.03-0.11 nm, batwing 0.04-0.28 nm, 80 nm bias 0.09-0.30 nm,
+# a 0.3 um sidewall ramp 0.01-0.22 nm. Without the moments the bias differs by 0.75-2.1 nm and the
+# ramp by 0.47-1.3 nm; at 0.25 um the bias by up to 0.59 nm, the ramp 0.47, the trench 0.23, the
+# batwing 0.45. (At the former 0.125 um, without moments: bias 0.25-0.7 nm.) Under an objective the
+# footprint's continuous spectrum is used: the discrete kernel's, whose aliases the objective's
+# transfer on the grid passes, left the sharp full pixel's trench at 0.26 nm.
 _TRANSFERS = {"point sampling": (0.25e-6, 0.0, 0.0), "full pixel": (0.4e-6, 1.0, 0.0), "CSI": (0.05e-6, 0.7, 0.45),
               "sharp full pixel": (0.022e-6, 0.98, 0.26)}
-# A known shortfall, kept here so it cannot pass unseen: a sharp full pixel's footprint kernel on the
-# fine grid carries the pixel box's spectrum aliased from above the grid's Nyquist frequency, which the
-# objective's transfer on the DFT grid passes (the trench differs by 0.26 nm here, 0.35 on the
-# benchmark's field; 0.07 at 0.125 um). On a 512 x 512 CSI field with this transfer the diagnosis named
-# a false -2.8 nm linewidth bias.
-_SHORTFALL = pytest.mark.xfail(strict=True, reason="a sharp full pixel's aliased footprint under an objective, 0.2 um step")
 
 
-@pytest.mark.parametrize("transfer", [pytest.param(t, marks=_SHORTFALL) if t == "sharp full pixel" else t
-                                      for t in _TRANSFERS])
+@pytest.mark.parametrize("transfer", list(_TRANSFERS))
 def test_the_default_fine_step_renders_within_its_discretization_budget(transfer):
     import sys
     from pathlib import Path
