@@ -490,7 +490,7 @@ class InstrumentModel:
             if t.na > 0:
                 nr, nc = wr / (2 * np.pi * self.step_m), wc / (2 * np.pi * self.step_m)
                 spectrum = objective_spectrum(self.placement.matrix, self.pitch_m, self.step_m, t, nr[:, None],
-                                              nc[None, :], self._frequency(shape)).astype(np.complex64)
+                                              nc[None, :], self._frequency(shape), np.complex64)
             else:
                 kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m,
                                           t.fill_factor)

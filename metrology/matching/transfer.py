@@ -201,17 +201,21 @@ def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_
 
 
 def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transfer: LateralTransfer,
-                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray) -> np.ndarray:
+                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray, dtype=np.float64) -> np.ndarray:
     """The whole lateral transfer under an objective on a fine grid's Fourier grid:
     :func:`footprint_spectrum` times :func:`na_mtf`, evaluated inside the cut-off only (0 beyond).
 
-    ``nu_r``, ``nu_c`` (cycles/m) broadcast to the grid's shape; ``nu`` is their magnitude on
-    it, passed in because a fit's grid keeps it.
+    ``nu_r`` (a column) and ``nu_c`` (a row) are the grid's frequencies (cycles/m) along rows
+    and columns; ``nu`` is their magnitude on the grid, passed in because a fit's grid keeps it.
+    Only the block of rows and columns within the cut-off is computed (a fit's FFT grid reaches
+    some ten times further), in ``dtype``.
     """
-    inside = nu < transfer.cutoff_per_m
-    out = np.zeros(nu.shape, np.float32)
-    out[inside] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor,
-                                      np.broadcast_to(nu_r, nu.shape)[inside],
-                                      np.broadcast_to(nu_c, nu.shape)[inside])
-                   * na_mtf(nu[inside], transfer.na, transfer.wavelength_m))
+    cutoff = transfer.cutoff_per_m
+    rows = np.flatnonzero(np.abs(np.ravel(nu_r)) < cutoff)
+    cols = np.flatnonzero(np.abs(np.ravel(nu_c)) < cutoff)
+    block = np.ix_(rows, cols)
+    out = np.zeros(nu.shape, dtype)
+    out[block] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor,
+                                     np.ravel(nu_r)[rows][:, None], np.ravel(nu_c)[cols][None, :])
+                  * na_mtf(nu[block], transfer.na, transfer.wavelength_m))
     return out
