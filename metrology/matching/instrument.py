@@ -19,7 +19,7 @@ Method (one measurement model for ``doe compare`` and ``doe diagnose`` alike):
    (1.8), bias and overlay together 0.71 (4.0); a 0.3 um sidewall ramp by 0.01-0.23 nm
    (0.65-1.7 without); a 0.3 um batwing by 0.05-0.3 nm, the ideal element by up to 0.1 nm
    (point sampling's); 2-5 times more at 0.25 um.
-   A render from nothing cached costs 0.4 of the 0.125 um step's without moments
+   A render from nothing cached costs 0.4-0.5 of the 0.125 um step's without moments
    (``benchmarks/bench_fine_step.py``, ``tests/metrology/test_instrument.py``).
 2. One kernel on that fine grid holds both the objective blur and the pixel footprint (the
    lateral transfer's family, fitted: fill factor, Gaussian blur, NA-limited objective,
