@@ -201,7 +201,7 @@ def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_
 
 
 def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transfer: LateralTransfer,
-                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray, dtype=np.float64) -> np.ndarray:
+                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray, dtype: type = np.float64) -> np.ndarray:
     """The whole lateral transfer under an objective on a fine grid's Fourier grid:
     :func:`footprint_spectrum` times :func:`na_mtf`, evaluated inside the cut-off only (0 beyond).
 
