@@ -207,8 +207,8 @@ def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transf
 
     ``nu_r`` (a column) and ``nu_c`` (a row) are the grid's frequencies (cycles/m) along rows
     and columns; ``nu`` is their magnitude on the grid, passed in because a fit's grid keeps it.
-    Only the block of rows and columns within the cut-off is computed (a fit's FFT grid reaches
-    some ten times further), in ``dtype``.
+    Only the block of rows and columns within the cut-off is computed (the rest of the grid,
+    up to its Nyquist frequency, is 0), in ``dtype``.
     """
     cutoff = transfer.cutoff_per_m
     rows = np.flatnonzero(np.abs(np.ravel(nu_r)) < cutoff)
