@@ -234,7 +234,6 @@ class InstrumentModel:
         self._etches = ArrayCache(cache_bytes, max_items=24)
         self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
-        self._frequencies: dict[tuple[int, int], np.ndarray] = {}
         self._beside = None  # the last transfer with edge responses beside it: (transfer, beside, sum)
 
     @staticmethod
@@ -488,9 +487,9 @@ class InstrumentModel:
         if self._transfers.get(key) is None:
             wr, wc = self.fourier_grid()
             if t.na > 0:
-                nr, nc = wr / (2 * np.pi * self.step_m), wc / (2 * np.pi * self.step_m)
-                spectrum = objective_spectrum(self.placement.matrix, self.pitch_m, self.step_m, t, nr[:, None],
-                                              nc[None, :], self._frequency(shape), np.complex64)
+                spectrum = objective_spectrum(self.placement.matrix, self.pitch_m, self.step_m, t,
+                                              wr / (2 * np.pi * self.step_m), wc / (2 * np.pi * self.step_m),
+                                              np.complex64)
             else:
                 kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m,
                                           t.fill_factor)
@@ -505,18 +504,6 @@ class InstrumentModel:
             spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
             self._transfers.put(key, spectrum)
         return self._transfers.get(key)
-
-    def _frequency(self, shape):
-        """Spatial frequency magnitude (cycles per metre) on the FFT grid of ``shape``, kept for
-        the last shape: the objective's transfer is isotropic, so the design frame's frequencies
-        serve. Made once, not with every NA a fit tries (the grid's hypot and the transfer's
-        arccos over the whole grid cost twice the map's inverse FFT)."""
-        nu = self._frequencies.get(shape)
-        if nu is None:
-            wr, wc = self.fourier_grid()
-            nu = np.hypot((wr / (2 * np.pi * self.step_m))[:, None], (wc / (2 * np.pi * self.step_m))[None, :])
-            self._frequencies = {shape: nu}
-        return nu
 
     def covers(self, placement: Placement, sigma_m: float | LateralTransfer) -> bool:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its

@@ -119,6 +119,12 @@ def na_mtf(nu_per_m: np.ndarray, na: float, wavelength_m: float) -> np.ndarray:
     return out
 
 
+def _footprint(matrix, pitch_m, fill_factor):
+    """The pixel footprint's edge vectors (m, as columns): the placement's linear part scaled by
+    the pitch and the side ``sqrt(fill_factor)`` (clipped to [0, 1])."""
+    return np.asarray(matrix, float) * pitch_m * math.sqrt(min(max(fill_factor, 0.0), 1.0))
+
+
 def _cell_gaussian(x_m, step_m, sigma_m):
     """Integral of a unit Gaussian of width ``sigma_m`` centred at 0 over cells centred at ``x_m``
     (a zero width is the cell's own box, approached within a thousandth of a cell)."""
@@ -156,7 +162,7 @@ def footprint_kernel(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_m:
         Weights summing to 1, centre at index ``k``; row 0 at the top.
     """
     sigma_m = max(float(sigma_m), 0.0)
-    m = np.asarray(matrix, float) * pitch_m * math.sqrt(min(max(fill_factor, 0.0), 1.0))
+    m = _footprint(matrix, pitch_m, fill_factor)
     side = max(np.abs(m).sum(axis=1))
     q = max(8, int(math.ceil(2.0 * side / max(sigma_m, step_m))))
     sub = (np.arange(q) + 0.5) / q - 0.5
@@ -192,7 +198,7 @@ def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_
         The transfer (real: the kernel is centred and symmetric), 1 at zero frequency.
     """
     sigma_m = max(float(sigma_m), 0.0)
-    m = np.asarray(matrix, float) * pitch_m * math.sqrt(min(max(fill_factor, 0.0), 1.0))
+    m = _footprint(matrix, pitch_m, fill_factor)
     nu_r, nu_c = np.asarray(nu_r, float), np.asarray(nu_c, float)
     # The footprint is m @ [u, v] over the unit square centred at 0: a sinc per edge vector.
     return (np.sinc(nu_r * step_m) * np.sinc(nu_c * step_m)
@@ -201,21 +207,19 @@ def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_
 
 
 def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transfer: LateralTransfer,
-                       nu_r: np.ndarray, nu_c: np.ndarray, nu: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+                       nu_r: np.ndarray, nu_c: np.ndarray, dtype: type = np.float64) -> np.ndarray:
     """The whole lateral transfer under an objective on a fine grid's Fourier grid:
     :func:`footprint_spectrum` times :func:`na_mtf`, evaluated inside the cut-off only (0 beyond).
 
-    ``nu_r`` (a column) and ``nu_c`` (a row) are the grid's frequencies (cycles/m) along rows
-    and columns; ``nu`` is their magnitude on the grid, passed in because a fit's grid keeps it.
-    Only the block of rows and columns within the cut-off is computed (the rest of the grid,
-    up to its Nyquist frequency, is 0), in ``dtype``.
+    ``nu_r`` and ``nu_c`` (1-D, cycles/m) are the grid's frequencies along rows and columns; the
+    result has shape ``(nu_r.size, nu_c.size)``, in ``dtype``. Only the block of rows and columns
+    within the cut-off is computed (the rest of the grid, up to its Nyquist frequency, is 0).
     """
     cutoff = transfer.cutoff_per_m
-    rows = np.flatnonzero(np.abs(np.ravel(nu_r)) < cutoff)
-    cols = np.flatnonzero(np.abs(np.ravel(nu_c)) < cutoff)
-    block = np.ix_(rows, cols)
-    out = np.zeros(nu.shape, dtype)
-    out[block] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor,
-                                     np.ravel(nu_r)[rows][:, None], np.ravel(nu_c)[cols][None, :])
-                  * na_mtf(nu[block], transfer.na, transfer.wavelength_m))
+    nu_r, nu_c = np.ravel(nu_r), np.ravel(nu_c)
+    rows, cols = np.flatnonzero(np.abs(nu_r) < cutoff), np.flatnonzero(np.abs(nu_c) < cutoff)
+    r, c = nu_r[rows][:, None], nu_c[cols][None, :]
+    out = np.zeros((nu_r.size, nu_c.size), dtype)
+    out[np.ix_(rows, cols)] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor, r, c)
+                               * na_mtf(np.hypot(r, c), transfer.na, transfer.wavelength_m))
     return out
