@@ -164,6 +164,14 @@ def _um(v):
     return v * 1e6 if isinstance(v, (int, float)) else None
 
 
+def _partial(match):
+    """A partial match as the page says it: the effect, and what it leaves on its footprint."""
+    ratio, share = match.get("residual_on_footprint_over_floor"), match.get("footprint_excess_explained")
+    if ratio is None or share is None:
+        return match["effect"]
+    return f"{match['effect']} ({ratio:.2f}x the floor there, {100 * share:.0f} % of its excess explained)"
+
+
 def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: int = 2) -> list[str]:
     """Markdown parts of a diagnosis: summary in words, the steps with the shrinking residual, figures."""
     h = "#" * level
@@ -185,7 +193,7 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
              "", f"{h} Steps (each added effect and how far the residual shrank)", ""]
     where = rep.get("unexplained_where")
     if where:
-        partial = ", ".join(p["effect"] for p in rep.get("partial_matches") or [])
+        partial = ", ".join(_partial(p) for p in rep.get("partial_matches") or [])
         extra = [f"- Where the unexplained residual lives: {where.get('summary', md.MISSING)}"]
         inadequate = where.get("instrument_model_inadequate")
         if inadequate:

@@ -152,6 +152,10 @@ def test_an_empty_diagnosis_claims_agreement_only_when_the_residual_is_noise(tmp
     text = "\n".join(pages.diagnose_sections(stuck, tmp_path))
     assert "agrees with the ideal model" not in text and "does not agree with the ideal model" in text
     assert "--cpu-budget-s" in text and "doe calibrate instrument" in text
+    judged = {**stuck, "partial_matches": [{"effect": "etch_depth", "residual_on_footprint_over_floor": 1.62,
+                                            "footprint_excess_explained": 0.946, "footprint_px": 900}]}
+    text = "\n".join(pages.diagnose_sections(judged, tmp_path))
+    assert "etch_depth (1.62x the floor there, 95 % of its excess explained)" in text
     quiet = {**base, "unexplained": False, "final_residual_rms": 3.6e-9}
     text = "\n".join(pages.diagnose_sections(quiet, tmp_path))
     assert "agrees with the ideal model" in text and "--cpu-budget-s" not in text

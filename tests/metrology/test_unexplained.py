@@ -108,6 +108,22 @@ def test_an_effect_that_fits_only_part_of_its_footprint_is_not_named():
     assert partial_matches(bad, fitted, bad.residual_map(fitted), {}, 1.25)[0]["effect"] == "scale"
 
 
+def test_an_effect_that_explains_nearly_all_its_footprint_stays_named_beside_a_small_rest():
+    # The template (14 floors) with a rest of 1 floor rms on its footprint: 1.4x the floor there,
+    # above the 1.25 limit, but 99.5 % of the footprint's excess power is the effect's. Before, it
+    # was a partial match and withheld, leaving the whole template unexplained.
+    fitted = {"scale": np.array([0.7])}
+    small = _Toy(extra=0.07)
+    got = partial_matches(small, fitted, small.residual_map(fitted), {}, 1.25)
+    on = small.template > 0
+    assert np.sqrt(np.mean(small.residual_map(fitted)[0, on] ** 2)) > 1.25 * SIGMA
+    assert got == []
+    bad = _Toy(extra=0.5)
+    got = partial_matches(bad, fitted, bad.residual_map(fitted), {}, 1.25)
+    # 0.5 of the template as a rest: 1 - 0.125 / (0.49 + 0.125) of the excess = 80 %.
+    assert got[0]["footprint_excess_explained"] == pytest.approx(0.8, abs=0.02)
+
+
 @pytest.mark.slow
 def test_effect_outside_the_vocabulary_is_unexplained_then_named_once_registered():
     """A depth nonlinearity (filegen's, not in the registry) in a camera file: the first run
