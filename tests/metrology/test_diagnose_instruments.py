@@ -39,6 +39,17 @@ def _fabrication(report):
     return [s["effect"] for s in report["steps"] if not s["measurement_artefact"]]
 
 
+def _bench():
+    """The accuracy table's module (its cases and scoring), from the repository's benchmarks/."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from benchmarks import bench_instruments
+
+    return bench_instruments
+
+
 @pytest.mark.slow
 def test_point_sampled_overlay_is_named_and_closes_at_the_floor(tmp_path):
     # Failed before issue 25: nothing named, the residual at 22x the floor "at the edges of
@@ -381,12 +392,7 @@ def test_an_instrument_residual_beside_a_larger_fabrication_one_does_not_stop_th
     # residual but 14 % of the residual's excess over the floor (the rest: the depth varying with
     # pattern density and position, on the interiors). The selection stopped before any
     # candidate and named nothing at 2.9x the floor (every instrument missed this case).
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    from benchmarks import bench_instruments as bench
-
+    bench = _bench()
     bench.make_files("csi", ["etch_gradient", "etch_loading"], 1047219578, tmp_path)
     out = tmp_path / "diag"
     # Limits past the defaults: what is tested is the selection, not the budget (the table holds the
@@ -409,12 +415,7 @@ def test_a_csi_gradient_beside_a_depth_is_named_on_the_instruments_own_noise_flo
     # feature for noise: 2.1 nm with a correlation area of 37 px, against the instrument's white
     # 1.2 nm, and the gradient went unnamed (n_eff 678). About each interior's plane it is the
     # instrument's noise, and the gradient earns its parameters.
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    from benchmarks import bench_instruments as bench
-
+    bench = _bench()
     case = bench.make_files("csi", ["etch_depth", "etch_gradient"], 1716759499, tmp_path)
     out = tmp_path / "diag"
     assert main(["diagnose", "--design", str(tmp_path / "design.npz"), "--measured",
@@ -432,12 +433,7 @@ def test_a_gradient_screened_behind_a_loading_replaces_it_on_a_512_px_point_fiel
     # screening fits put a loading 3.3 % ahead of it, and the loading was named (1.03x the floor);
     # the gradient beside it, 4.97 % of the floor's power, went below resolution, and the backward
     # pass did not try it in the loading's place (only candidates within 2 % of the winner).
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    from benchmarks import bench_instruments as bench
-
+    bench = _bench()
     case = bench.make_files("point", ["etch_gradient"], 169061796, tmp_path, design_px=130, field=512)
     out = tmp_path / "diag"
     assert main(["diagnose", "--design", str(tmp_path / "design.npz"), "--measured",
