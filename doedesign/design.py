@@ -18,7 +18,11 @@ levels : int (rows, cols), optional
 aperture : bool (rows, cols), optional
     The clear region (True where light passes).
 metadata : str
-    JSON object: name, target, camera parameters, tool version, ``format_version``.
+    JSON object: name, target, camera parameters, tool version, ``format_version``, and two
+    optional fields of the level structure: ``n_levels`` (2, 4, 8, 16 or 32 levels, made by
+    log2(n_levels) binary masks; default 16) and ``mask_depths_m`` (the etch depth of each
+    mask, shallowest bit first; default ``2**j`` level steps). A file without them is a
+    16-level design, as every file written before they existed.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from . import __version__
 from .camera import Camera
 from .errors import DesignFileError, DoeError
 from .fileio import atomic_path, dumps_json, parse_json, read_npz
-from .levels import N_LEVELS, level_step_m, quantize
+from .levels import N_LEVELS, check_level_count, level_step_m, masks_for_levels, quantize
 from .materials import get_material
 
 __all__ = ["Design", "FORMAT_VERSION", "REQUIRED"]
@@ -81,6 +85,28 @@ class Design:
     def name(self) -> str:
         return self.metadata.get("name", "design")
 
+    @property
+    def n_levels(self) -> int:
+        """Level count of the element (``metadata["n_levels"]``, default 16)."""
+        return int(self.metadata.get("n_levels", N_LEVELS))
+
+    @property
+    def n_masks(self) -> int:
+        """Binary masks that etch it: ``log2(n_levels)``."""
+        return masks_for_levels(self.n_levels)
+
+    def etch_depths_m(self) -> tuple[float, ...]:
+        """Nominal etch depth of each mask (m), mask j etching bit j of the level.
+
+        ``metadata["mask_depths_m"]`` when the design names them, else ``2**j`` level steps
+        (:meth:`level_step_m`).
+        """
+        given = self.metadata.get("mask_depths_m")
+        if given is not None:
+            return tuple(float(v) for v in given)
+        step = self.level_step_m()
+        return tuple(step * 2 ** j for j in range(self.n_masks))
+
     def validate(self, source: str = "design") -> None:
         """Raise :class:`DesignFileError` naming the field when anything is wrong."""
         h = self.height_m
@@ -111,6 +137,10 @@ class Design:
                 raise DesignFileError(f"{source}: levels must be non-negative, minimum is {self.levels.min()}")
         if self.aperture is not None and self.aperture.dtype != bool:
             raise DesignFileError(f"{source}: aperture must be boolean, got {self.aperture.dtype}")
+        _check_level_structure(source, self.metadata)
+        if self.levels is not None and self.levels.size and self.levels.max() >= self.n_levels:
+            raise DesignFileError(f"{source}: levels reach {self.levels.max()}, a {self.n_levels}-level design "
+                                  f"has 0..{self.n_levels - 1}")
 
     def phase(self, wavelength_m: float) -> np.ndarray:
         """Phase (rad) of the height map at ``wavelength_m``, from the heights themselves."""
@@ -145,13 +175,14 @@ class Design:
         except (TypeError, ValueError, DoeError) as exc:
             raise DesignFileError(f"{where}: metadata camera entry is not a valid camera: {exc}") from None
 
-    def level_step_m(self, n_levels: int = N_LEVELS) -> float:
-        """Depth of one of ``n_levels`` levels at this design's material and wavelength.
+    def level_step_m(self, n_levels: int | None = None) -> float:
+        """Depth of one of ``n_levels`` levels (default: the design's own count) at this design's
+        material and wavelength.
 
         See :func:`doedesign.levels.level_step_m`; the level map itself comes from
         :func:`doedesign.levels.design_levels`.
         """
-        return level_step_m(self.material, self.design_wavelength_m, n_levels)
+        return level_step_m(self.material, self.design_wavelength_m, self.n_levels if n_levels is None else n_levels)
 
     def save(self, path: str | Path) -> Path:
         """Write the design atomically to ``path`` (``.npz``)."""
@@ -209,8 +240,8 @@ class Design:
         """
         if self.levels is None:
             return
-        step = self.level_step_m(N_LEVELS)
-        off = quantize(self.height_m, step, N_LEVELS).levels != self.levels
+        step = self.level_step_m()
+        off = quantize(self.height_m, step, self.n_levels).levels != self.levels
         if off.any():
             r, c = np.argwhere(off)[0]
             raise DesignFileError(
@@ -233,6 +264,8 @@ class Design:
             "height_max_m": float(h.max()),
             "height_2pi_m": self.height_2pi_m(),
             "levels": None,
+            "n_levels": self.n_levels,
+            "etch_depths_nm": [d * 1e9 for d in self.etch_depths_m()],
             "metadata": self.metadata,
         }
         if self.levels is not None:
@@ -242,6 +275,22 @@ class Design:
         if self.aperture is not None:
             out["aperture_fraction"] = float(self.aperture.mean())
         return out
+
+
+def _check_level_structure(source, metadata):
+    """``n_levels`` one of 2..32 (powers of two) and ``mask_depths_m``, if given, one positive depth
+    (m, under 10 um) per mask."""
+    n = check_level_count(metadata.get("n_levels", N_LEVELS), f"{source}: metadata n_levels")
+    depths = metadata.get("mask_depths_m")
+    if depths is None:
+        return
+    n_masks = masks_for_levels(n)
+    ok = isinstance(depths, (list, tuple)) and len(depths) == n_masks and all(
+        isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool) and np.isfinite(v)
+        and 0 < v < 10e-6 for v in depths)
+    if not ok:
+        raise DesignFileError(f"{source}: metadata mask_depths_m must list {n_masks} etch depths in metres "
+                              f"(0 to 10 um) for a {n}-level design, got {depths!r}")
 
 
 def _check_metadata(path, metadata):

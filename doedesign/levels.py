@@ -35,13 +35,29 @@ from numpy.typing import ArrayLike
 from .errors import DoeError
 from .materials import Material, get_material
 
-__all__ = ["N_LEVELS", "QuantizeResult", "design_levels", "level_step_m", "printed_height_m",
-           "quantize", "quantize_design", "wrap_height_m"]
+__all__ = ["LEVEL_COUNTS", "N_LEVELS", "QuantizeResult", "check_level_count", "design_levels", "level_step_m",
+           "masks_for_levels", "printed_height_m", "quantize", "quantize_design", "wrap_height_m"]
 
 log = logging.getLogger(__name__)
 
-#: Levels of the four-mask process (2**4).
+#: Levels of the four-mask process (2**4): the default level count of a design.
 N_LEVELS = 16
+#: Level counts a design may have: 2**M for M = 1 .. 5 binary masks.
+LEVEL_COUNTS = (2, 4, 8, 16, 32)
+
+
+def check_level_count(n_levels: object, where: str = "levels") -> int:
+    """The level count as an int, refused (:class:`DoeError` naming ``where``) unless it is one of
+    :data:`LEVEL_COUNTS`: M binary masks etch 2**M levels, so no other count can be made."""
+    if isinstance(n_levels, bool) or not isinstance(n_levels, (int, np.integer)) or int(n_levels) not in LEVEL_COUNTS:
+        raise DoeError(f"{where}: the level count must be one of {', '.join(map(str, LEVEL_COUNTS))} "
+                       f"(2**M for M = 1..5 masks), got {n_levels!r}")
+    return int(n_levels)
+
+
+def masks_for_levels(n_levels: int) -> int:
+    """Binary masks that etch ``n_levels`` levels: ``log2(n_levels)`` (see :func:`check_level_count`)."""
+    return int(check_level_count(n_levels)).bit_length() - 1
 
 
 class LevelSource(Protocol):
@@ -52,8 +68,9 @@ class LevelSource(Protocol):
     name: str
     levels: np.ndarray | None
     height_m: np.ndarray
+    n_levels: int
 
-    def level_step_m(self, n_levels: int = N_LEVELS) -> float: ...
+    def level_step_m(self, n_levels: int | None = None) -> float: ...
 
 
 def level_step_m(material: str | Material, design_wavelength_m: float, n_levels: int = N_LEVELS) -> float:
@@ -181,7 +198,7 @@ def wrap_height_m(height_m: ArrayLike, step_m: float, n_levels: int = N_LEVELS) 
     return -np.mod(-np.asarray(height_m, dtype=np.float64), period)
 
 
-def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
+def quantize_design(design: LevelSource, n_levels: int | None = None,
                     source: str | None = None) -> tuple[np.ndarray, QuantizeResult | None]:
     """Level map of a design and, when it had to be quantized, the quantization.
 
@@ -190,8 +207,8 @@ def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
     design : LevelSource
         A design; its ``levels`` are used when present, else its heights are quantized with
         :func:`quantize` at its own level step.
-    n_levels : int
-        Number of levels (16 for four binary masks).
+    n_levels : int, optional
+        Number of levels (default: the design's own, ``design.n_levels``).
     source : str, optional
         File name for error messages (default: the design's name).
 
@@ -208,6 +225,7 @@ def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
         Stored levels that are not integers or lie outside ``0 .. n_levels-1``.
     """
     source = source or design.name
+    n_levels = design.n_levels if n_levels is None else int(n_levels)
     if design.levels is not None:
         lv = np.asarray(design.levels)
         if not np.issubdtype(lv.dtype, np.integer):
@@ -220,12 +238,13 @@ def quantize_design(design: LevelSource, n_levels: int = N_LEVELS,
     return q.levels, q
 
 
-def design_levels(design: LevelSource, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
-    """Level map (int16, 0 .. n_levels-1) of a design: see :func:`quantize_design`."""
+def design_levels(design: LevelSource, n_levels: int | None = None, source: str | None = None) -> np.ndarray:
+    """Level map (int16, 0 .. n_levels-1) of a design (default: its own level count): see
+    :func:`quantize_design`."""
     return quantize_design(design, n_levels, source)[0]
 
 
-def printed_height_m(design: LevelSource, n_levels: int = N_LEVELS, source: str | None = None) -> np.ndarray:
+def printed_height_m(design: LevelSource, n_levels: int | None = None, source: str | None = None) -> np.ndarray:
     """The heights the masks print from a design: its levels (:func:`design_levels`) times its step.
 
     What a measurement of the element is judged against: a heights-only design (continuous,
@@ -236,5 +255,6 @@ def printed_height_m(design: LevelSource, n_levels: int = N_LEVELS, source: str 
     ndarray of float64 (rows, cols)
         ``-levels * step_m``: 0 at the unetched top, negative where etched; row 0 at the top.
     """
+    n_levels = design.n_levels if n_levels is None else int(n_levels)
     levels = design_levels(design, n_levels, source)
     return -levels.astype(np.float64) * design.level_step_m(n_levels)

@@ -39,9 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--mirror", action="store_true", help="mirror x -> -x (contact printing)")
     p.add_argument("--depths-nm", default=None,
                    type=NumberList(Number(float, MIN_ETCH_DEPTH_NM, MAX_ETCH_DEPTH_NM, unit="nm"), max_len=16),
-                   help="etch depth per mask, comma separated (default 2**j times the level step; each "
+                   help="etch depth per mask, comma separated, one per mask of the design's log2(n_levels) "
+                        "(default: the design's mask_depths_m, else 2**j times the level step; each "
                         f"in [{MIN_ETCH_DEPTH_NM:g}, {MAX_ETCH_DEPTH_NM:g}] nm)")
-    p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask")
+    p.add_argument("--layers", default=None, help="GDS layer per mask (default 1..M for the design's M masks: "
+                                                  "1,2,3,4 for 16 levels, 1 for a binary element)")
     p.add_argument("--etch-order", default=None, help="mask index etched in each step, e.g. 3,2,1,0")
     p.add_argument("--clear-aperture-mm", type=Number(float, 0, 1000, lo_open=True, unit="mm"), default=None,
                    help="clear circle diameter (default: camera aperture from the metadata)")
@@ -95,7 +97,7 @@ def run_masks(args: argparse.Namespace) -> int:
     depths = None if args.depths_nm is None else [d * 1e-9 for d in args.depths_nm]
     report = write_element(
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
-        depths_m=depths, layers=_int_list(args.layers, "layers"),
+        depths_m=depths, layers=None if args.layers is None else _int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
         clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, formats=formats,
         max_vertices=max_vertices, plate=args.plate)

@@ -25,10 +25,10 @@ import numpy as np
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, write_json
-from doedesign.levels import N_LEVELS, quantize_design
+from doedesign.levels import quantize_design
 
 from . import layout
-from .decompose import binary_depths_m, levels_to_masks
+from .decompose import levels_to_masks
 from .element import DIE_SIZE_M, clear_aperture_m, preview
 from .gds_read import read_boundaries
 from .gds_records import gds_name
@@ -86,7 +86,7 @@ def offset_feasibility(mask: np.ndarray, pitch_m: float, offset_m: float,
 
 def write_offset_element(design: Design, out: str | Path, offsets_m: Sequence[float], *,
                          notes: dict | None = None, source: str | None = None, mirrored: bool = False,
-                         depths_m: Sequence[float] | None = None, layers: Sequence[int] = (1, 2, 3, 4),
+                         depths_m: Sequence[float] | None = None, layers: Sequence[int] | None = None,
                          datatype: int = 0, clear_aperture: float | None = None) -> dict:
     """Write ``OUT/<name>.gds`` with each mask's openings offset, ``OUT/<name>.lyp`` (KLayout layer
     names), ``OUT/masks.png`` and ``OUT/report.json``.
@@ -117,10 +117,10 @@ def write_offset_element(design: Design, out: str | Path, offsets_m: Sequence[fl
     """
     t0 = time.perf_counter()
     source = source or design.name
-    levels, _ = quantize_design(design, N_LEVELS, source)
-    masks = levels_to_masks(levels, 4)
+    levels, _ = quantize_design(design, None, source)
+    masks = levels_to_masks(levels, design.n_masks)
     n = masks.shape[0]
-    layers = check_layers(layers, n)
+    layers = check_layers(tuple(range(1, n + 1)) if layers is None else layers, n)
     offsets = [round(float(v) / PRECISION_M) * PRECISION_M for v in offsets_m]
     if len(offsets) != n:
         raise DoeError(f"need {n} edge offsets, one per mask, got {len(offsets)}")
@@ -128,7 +128,7 @@ def write_offset_element(design: Design, out: str | Path, offsets_m: Sequence[fl
         why = offset_feasibility(masks[j], design.pitch_m, d)
         if why:
             raise DoeError(f"{source}: mask {j}: an edge offset of {d * 1e6:+.3f} um cannot be drawn: {why}")
-    depths = binary_depths_m(design.level_step_m(N_LEVELS), n) if depths_m is None else list(depths_m)
+    depths = list(design.etch_depths_m()) if depths_m is None else list(depths_m)
     aperture = clear_aperture if clear_aperture is not None else clear_aperture_m(design)
     if aperture is not None and aperture >= DIE_SIZE_M:
         aperture = None

@@ -10,14 +10,18 @@ not change the ideal surface, only the real one (see ``masks.process``).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from doedesign.errors import DoeError
 
+if TYPE_CHECKING:
+    from doedesign.design import Design
+
 __all__ = ["DEFAULT_DEPTHS_M", "DEFAULT_ETCH_ORDER", "binary_depths_m", "check_etch_order",
-           "levels_to_masks", "mask_bit", "masks_to_height", "masks_to_levels"]
+           "levels_to_masks", "mask_bit", "masks_to_height", "masks_to_levels", "process_depths_m"]
 
 # Nominal etch depths of the four masks (m): 1, 2, 4 and 8 steps of ~75 nm (fused silica,
 # 550 nm, 16 levels). Real runs should pass 2**j * level_step_m(...).
@@ -30,6 +34,34 @@ DEFAULT_ETCH_ORDER = (0, 1, 2, 3)
 def binary_depths_m(step_m: float, n_masks: int = 4) -> tuple[float, ...]:
     """Ideal etch depth of each mask, ``2**j * step_m`` (m)."""
     return tuple(float(step_m) * 2 ** j for j in range(int(n_masks)))
+
+
+def process_depths_m(design: Design, depths_m: Sequence[float] | None = None, source: str | None = None) -> list[float]:
+    """The etch depths a design's process was asked for, one per mask (m): the nominal model of
+    ``doe diagnose`` and ``doe calibrate``.
+
+    ``depths_m`` when given (checked: one per mask of the design); else the design's own
+    (``metadata["mask_depths_m"]``); else, for a 16-level design, :data:`DEFAULT_DEPTHS_M`
+    (75, 150, 300, 600 nm: the seed process's round figures, as before level counts were a
+    design's property); else ``2**j`` level steps of the design.
+
+    Parameters
+    ----------
+    design : doedesign.design.Design
+    depths_m : sequence of float, optional
+    source : str, optional
+        File name for the error message.
+    """
+    n = design.n_masks
+    if depths_m is not None:
+        depths = [float(v) for v in depths_m]
+        if len(depths) != n:
+            raise DoeError(f"{source or design.name}: {len(depths)} etch depth(s) given; this {design.n_levels}-level "
+                           f"design has {n} mask(s)")
+        return depths
+    if design.metadata.get("mask_depths_m") is None and design.n_levels == 2 ** len(DEFAULT_DEPTHS_M):
+        return list(DEFAULT_DEPTHS_M)
+    return list(design.etch_depths_m())
 
 
 def check_etch_order(etch_order: Sequence[int] | None, n_masks: int = 4) -> tuple[int, ...]:

@@ -17,9 +17,9 @@ from doedesign.budget import check_memory, mask_export_bytes
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, output_run, safe_file_name, write_json
-from doedesign.levels import N_LEVELS, quantize_design
+from doedesign.levels import quantize_design
 
-from .decompose import binary_depths_m, levels_to_masks
+from .decompose import levels_to_masks
 from .gds import export_masks
 from .grid import vertex_limits
 from .plate import PlateDesign, export_plate
@@ -94,7 +94,7 @@ def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str)
 
 def write_element(design: Design, out: str | Path, *, source: str | None = None, tone: str = "dark",
                   mirrored: bool = False, depths_m: Sequence[float] | None = None,
-                  layers: Sequence[int] = (1, 2, 3, 4), etch_order: Sequence[int] | None = None,
+                  layers: Sequence[int] | None = None, etch_order: Sequence[int] | None = None,
                   clear_aperture: float | None = None, formats: Sequence[str] = ("gds",),
                   max_vertices: int | None | str = "default", plate: bool = False) -> dict:
     """Write ``OUT/<name>.gds`` and/or ``OUT/<name>.oas`` (each read back and verified),
@@ -112,12 +112,15 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         Output directory.
     source : str, optional
         The design's file name (reports and messages).
-    tone, mirrored, layers, etch_order, formats, max_vertices
+    tone, mirrored, etch_order, formats, max_vertices
         See :func:`masks.gds.export_masks`.
+    layers : sequence of int, optional
+        GDS layer of each mask (default 1 .. M for the design's M = log2(n_levels) masks).
     plate : bool
         Also write the full-wafer plate (see above).
     depths_m : sequence of float, optional
-        Etch depth per mask (default ``2**j`` level steps).
+        Etch depth per mask (default :meth:`doedesign.design.Design.etch_depths_m`: the design's
+        own, else ``2**j`` level steps).
     clear_aperture : float, optional
         Cr clear circle diameter (m); default :func:`clear_aperture_m`. None is drawn when it
         does not fit the die.
@@ -134,10 +137,11 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
     if clear_aperture is not None and not MIN_APERTURE_PX * design.pitch_m <= clear_aperture <= DIE_SIZE_M:
         raise DoeError(f"clear aperture {clear_aperture * 1e3:g} mm: must lie between {MIN_APERTURE_PX} DOE pixels "
                        f"({MIN_APERTURE_PX * design.pitch_m * 1e3:g} mm) and the {DIE_SIZE_M * 1e3:g} mm die")
-    levels, quantization = quantize_design(design, N_LEVELS, source)
-    step = design.level_step_m(N_LEVELS)
-    masks = levels_to_masks(levels, 4)
-    depths = binary_depths_m(step, 4) if depths_m is None else list(depths_m)
+    levels, quantization = quantize_design(design, None, source)
+    step = design.level_step_m()
+    masks = levels_to_masks(levels, design.n_masks)
+    depths = list(design.etch_depths_m()) if depths_m is None else list(depths_m)
+    layers = tuple(range(1, design.n_masks + 1)) if layers is None else layers
     aperture = clear_aperture if clear_aperture is not None else clear_aperture_m(design)
     if aperture is not None and aperture >= DIE_SIZE_M:
         log.warning("%s: clear aperture %.2f mm does not fit the die; no Cr aperture drawn", source, aperture * 1e3)
@@ -161,6 +165,7 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
                 depths_m=depths, etch_order=etch_order, die_size_m=DIE_SIZE_M)
         report["design"] = source
         report["level_step_nm"] = step * 1e9
+        report["n_levels"] = design.n_levels
         report["quantization"] = None if quantization is None else quantization.summary()
         preview(levels, masks, out / "masks.png", name)
         write_json(out / "report.json", report)

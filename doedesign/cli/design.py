@@ -57,9 +57,10 @@ Heights are written z up, 0 = unetched top, etched pixels negative; arrays row 0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("design", help="optimize a 16-level DOE for a target PSF",
+    p = subparsers.add_parser("design", help="optimize a multi-level DOE (2-32 levels, 16 by default) for a target PSF",
                               description="Optimize a DOE height map for a target PSF with nlopt and analytic "
-                                          "gradients, then quantize it to the 16 process levels.",
+                                          "gradients, then quantize it to the process levels (--levels: 2, 4, 8, "
+                                          "16 or 32, made by 1-5 binary masks; default 16).",
                               epilog=DESIGN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("target", help="built-in target name or a target TOML file")
     p.add_argument("--config", help="run configuration TOML ([camera], [optimize], [target])")
@@ -74,6 +75,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--wavelengths", help="nm, e.g. 656,589,486 or 400:700:10 (built-in targets)")
     p.add_argument("--side", choices=("left", "right", "full"), help="aperture half carrying the DOE (default left)")
     p.add_argument("--seed", type=Number(int, 0, 2**32 - 1), help="random seed (default 0)")
+    p.add_argument("--levels", type=Number(int, 2, 32), default=None,
+                   help="level count of the element: 2, 4, 8, 16 or 32 (1-5 binary masks; default 16); recorded "
+                        "in the design file, which doe masks, compare, diagnose, correct and tolerance follow")
     p.add_argument("--algorithm", choices=ALGORITHMS, help="nlopt algorithm (default LD_LBFGS; above 2,149,633 free heights, e.g. "
                                                              "--paper-setting, LD_LBFGS runs as LD_CCSAQ)")
     p.add_argument("--init", choices=INITS, help="initial height map (default per target)")
@@ -219,7 +223,7 @@ def cmd_design(args: argparse.Namespace) -> int:
                        ("reweight_iter", args.reweight_iterations), ("objective", args.objective),
                        ("colour_weights", _floats(args.colour_weights, "--colour-weights")),
                        ("starts", tuple(v.strip() for v in args.starts.split(",") if v.strip()) if args.starts
-                        else None), ("robust_measure", args.robust_measure)):
+                        else None), ("robust_measure", args.robust_measure), ("n_levels", args.levels)):
         if value is not None:
             opt[key] = value
     opt.setdefault("init", DEFAULT_INIT.get(kind, "random"))

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..engine.backend import DEVICES
 from ..errors import DoeError
-from ..levels import N_LEVELS
+from ..levels import N_LEVELS, check_level_count
 from .nlopt_driver import ALGORITHMS
 from .robust_loss import ROBUST_MEASURES
 from .starts import INITS
@@ -67,6 +67,7 @@ class OptimizerSettings:
     device: str = "cpu"  # where the PSF engine computes: "cpu", "gpu" or "auto" (doedesign.engine.backend)
 
     def __post_init__(self):
+        self.n_levels = check_level_count(self.n_levels, "n_levels")
         if self.device not in DEVICES:
             raise DoeError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
         if self.objective not in OBJECTIVES:

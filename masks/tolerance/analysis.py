@@ -8,7 +8,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -18,9 +17,8 @@ from doedesign.budget import check_memory, format_bytes, psf_bytes
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import output_run, write_json
-from doedesign.levels import design_levels, level_step_m
+from doedesign.levels import design_levels
 
-from ..decompose import binary_depths_m
 from .evaluate import Evaluator
 from .metrics import DIRECTIONS, design_wavelengths_depths, metric_set
 from .report import (default_thresholds, metric_summary, plot_distributions, plot_tornado, tolerance_page,
@@ -37,10 +35,9 @@ log = logging.getLogger(__name__)
 
 
 def nominal_depths(design: Design) -> np.ndarray:
-    """Mask etch depths (m) of the design's process: binary multiples of its level step."""
-    n_levels = int(design.metadata.get("n_levels", 16))
-    n_masks = int(round(math.log2(n_levels)))
-    return binary_depths_m(level_step_m(design.material, design.design_wavelength_m, n_levels), n_masks)
+    """Mask etch depths (m) of the design's process (:meth:`doedesign.design.Design.etch_depths_m`:
+    its own, else binary multiples of its level step)."""
+    return np.asarray(design.etch_depths_m(), dtype=float)
 
 
 def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design", oversample: int = 2,
@@ -51,7 +48,7 @@ def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design",
     wls, depths = design_wavelengths_depths(design, camera)
     if wavelengths_m is not None:
         wls = np.asarray(wavelengths_m, float)
-    levels = design_levels(design, int(design.metadata.get("n_levels", 16)), source)
+    levels = design_levels(design, None, source)
     base = nominal_process(nominal_depths(design))
     ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
                    wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),

@@ -121,7 +121,6 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from threadpoolctl import threadpool_limits
 
     from doedesign.levels import design_levels
-    from masks.decompose import binary_depths_m
     from masks.process import ProcessParams
     from metrology.diagnosis import engine as dg
     from metrology.diagnosis.camera import CameraHeightProblem
@@ -142,9 +141,9 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         if depths_m is not None:
             raise DoeError("give either the artefact's certified step heights or nominal depths, not both")
         depths_m = step_heights_m
-    depths = list(binary_depths_m(design.level_step_m(16), 4)) if depths_m is None else [float(v) for v in depths_m]
-    if len(depths) != 4:
-        raise DoeError(f"the artefact's step heights: one per mask (4), got {len(depths)}")
+    depths = list(design.etch_depths_m()) if depths_m is None else [float(v) for v in depths_m]
+    if len(depths) != design.n_masks:
+        raise DoeError(f"the artefact's step heights: one per mask ({design.n_masks}), got {len(depths)}")
     placement = comp.instrument_fit.placement
     meas = np.asarray(measurement.height_m, float)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -153,7 +152,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         crop = meas[r0:r0 + size, c0:c0 + size]
         start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
         base = ProcessParams.ideal(depths_m=depths)
-        depth = get_effect("etch_depth")
+        depth = get_effect("etch_depth").for_masks(len(depths))
         first = CameraHeightProblem(levels, design.pitch_m, crop, start, comp.fitted_params(), [],
                                     transfer=LateralTransfer(comp.instrument_fit.blur_sigma_m,
                                                              wavelength_m=wavelength_m))

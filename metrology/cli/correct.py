@@ -38,7 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--diagnosis", action="append", required=True, metavar="DIAG",
                    help="a doe diagnose output folder (repeat for each field)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--layers", default="1,2,3,4", help="GDS layer per mask (as doe masks)")
+    p.add_argument("--layers", default=None, help="GDS layer per mask (as doe masks; default 1..M for the "
+                                                  "design's M masks)")
     p.add_argument("--mirror", action="store_true", help="mirror x -> -x (contact printing, as doe masks)")
     p.add_argument("--samples", type=Number(int, 0, 10_000), default=12,
                    help="Monte Carlo draws per predicted wafer (default 12)")
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples or args.redesign_for):
         raise DoeError("--redesign-iterations, --redesign-samples and --redesign-for need --redesign")
     try:
-        layers = [int(v) for v in args.layers.split(",")]
+        layers = None if args.layers is None else [int(v) for v in args.layers.split(",")]
     except ValueError:
         raise DoeError(f"--layers must be comma-separated integers, got {args.layers!r}") from None
     sheet = correct(Design.load(args.design), args.diagnosis, args.out, design_path=str(args.design), layers=layers,

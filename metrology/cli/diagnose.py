@@ -57,9 +57,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--window-px", type=Number(int, 16, 4096, unit="px"), default=160,
                    help="camera pixels per side of the window diagnosed with --frame camera (default 160)")
     p.add_argument("--depths-nm", type=NumberList(Number(float, 0, 1e5, lo_open=True, unit="nm"), max_len=16),
-                   default=[75, 150, 300, 600],
-                   help="etch depths the process was asked for, one per mask (the ideal model; "
-                        "default 75,150,300,600 as in doe masks)")
+                   default=None,
+                   help="etch depths the process was asked for, one per mask of the design (the ideal model; "
+                        "default: the design's mask_depths_m, else 75,150,300,600 for a 16-level design, else "
+                        "2**j level steps as in doe masks)")
     add_device_option(p)
     p.add_argument("--threshold", type=Number(float, 0, 1e6, lo_open=True), default=10.0,
                    help="criterion drop an effect must achieve to be named (default 10)")
@@ -162,7 +163,7 @@ def _heights(design, path, args, candidates):
 
     measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
-                                        upsample=args.upsample, depths_m=[v * 1e-9 for v in args.depths_nm],
+                                        upsample=args.upsample, depths_m=_depths(args),
                                         candidates=candidates, threshold=args.threshold, source=str(path),
                                         force=args.force)
     return diag, {"measured": str(path), **_held(args), **inputs}
@@ -173,7 +174,7 @@ def _camera(design, path, args, candidates):
     from metrology.diagnosis.camera_measurement import diagnose_camera_measurement
     from metrology.formats.readers import read_measurement
 
-    depths = [v * 1e-9 for v in args.depths_nm]
+    depths = _depths(args)
     measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
@@ -181,6 +182,11 @@ def _camera(design, path, args, candidates):
                                                cpu_budget_s=args.cpu_budget_s, wall_deadline=args.wall_deadline,
                                                batwing=None if args.calibration is None else args.calibration.batwing)
     return diag, {"measured": str(path), **_held(args), **inputs}
+
+
+def _depths(args):
+    """``--depths-nm`` in metres, or None (the design's own: masks.decompose.process_depths_m)."""
+    return None if args.depths_nm is None else [v * 1e-9 for v in args.depths_nm]
 
 
 def _held(args):

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -181,8 +180,7 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     if int(iterations) < 1 or int(robust_samples) < 0:
         raise DoeError(f"re-design: iterations must be >= 1 and robust samples >= 0, got {iterations} and "
                        f"{robust_samples}")
-    n_levels = int(design.metadata.get("n_levels", 16))
-    n_masks = int(round(math.log2(n_levels)))
+    n_levels, n_masks = design.n_levels, design.n_masks
     if len(nominal_depths_m) != n_masks:
         raise DoeError(f"{source}: {len(nominal_depths_m)} diagnosed mask depths for a {n_levels}-level design")
     for_corrected = jobs is not None

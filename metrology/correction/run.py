@@ -41,7 +41,7 @@ CONVENTIONS = {
 
 
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
-            layers: Sequence[int] = (1, 2, 3, 4), mirrored: bool = False, samples: int = 12, seed: int = 0,
+            layers: Sequence[int] | None = None, mirrored: bool = False, samples: int = 12, seed: int = 0,
             min_feature_m: float | None = None, redesign_iterations: int | None = None,
             redesign_samples: int = 0, redesign_for: str = "measured", merit_oversample: int = 2) -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
@@ -57,7 +57,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     design_path : str, optional
         The design's file name, for the sheet.
     layers, mirrored
-        As for ``doe masks``.
+        As for ``doe masks`` (default layers 1 .. M for the design's M masks).
     samples, seed
         Monte Carlo draws of each predicted wafer and their seed.
     min_feature_m : float, optional
@@ -88,6 +88,10 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     fingerprint = design_fingerprint(design, design_path)
     fields = [read_diagnosis(p, design, fingerprint) for p in diagnoses]
     depths = check_same_process(fields)
+    if len(depths) != design.n_masks:
+        raise DoeError(f"{name}: the diagnoses name {len(depths)} mask depth(s); this {design.n_levels}-level design "
+                       f"has {design.n_masks} mask(s)")
+    layers = tuple(range(1, design.n_masks + 1)) if layers is None else tuple(layers)
     masks = levels_to_masks(design_levels(design, source=name), len(depths))
     estimates = combine_fields(fields)
     jobs = job_entries(estimates, masks, design.pitch_m, depths, layers)

@@ -466,7 +466,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         crop = meas[r0:r0 + size, c0:c0 + size]
         start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
         base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
-        effects = effects_for("height", candidates)
+        effects = effects_for("height", candidates, n_masks=base.n_masks)
         effects_by_name = {e.name: e for e in effects}
         finite = np.isfinite(crop)
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])

@@ -61,7 +61,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         excluded pixels, registration correlation, nominal depths, match).
     """
     from doedesign.levels import design_levels
-    from masks.process import ProcessParams
+    from masks.decompose import process_depths_m
     from metrology.matching.compare import compare_measurement
 
     if window_px < 16:
@@ -72,7 +72,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
             comp = compare_measurement(measurement, design, force=force, transfer=transfer)
         except DoeError as exc:
             raise DoeError(f"{source}: {exc}") from None
-    depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
+    depths = process_depths_m(design, depths_m, source)
     # The comparison's placement was refined in the camera's frame (same measurement model).
     fit = comp.instrument_fit
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,

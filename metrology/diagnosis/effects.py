@@ -38,6 +38,7 @@ the residual lives (:mod:`metrology.diagnosis.locate`): that is when to write on
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -139,6 +140,9 @@ class Effect:
         (transfer - 1) is added to the objective's optical transfer instead of imaged through it
         again (:meth:`metrology.matching.instrument.InstrumentModel.map_of`). Without an
         objective both are the same.
+    mask_params : callable, optional
+        For a per-mask effect, ``mask_params(n_masks) -> list of Parameter``: its parameters for
+        an element of that many masks (:meth:`for_masks`); ``params`` holds those of four.
     """
 
     name: str
@@ -154,6 +158,7 @@ class Effect:
     linear: bool = False
     fourier: object = None
     beside_objective: bool = False
+    mask_params: object = None
 
     def __post_init__(self):
         if self.domain not in DOMAINS:
@@ -188,6 +193,23 @@ class Effect:
         start = None if self.start is None else tuple(self.start) * len(channels)
         return Effect(self.name, self.domain, self.stage, params, self.apply, self.description,
                       self.kind, self.order, start, per_channel=False)
+
+    def for_masks(self, n_masks: int) -> Effect | None:
+        """This effect for an element of ``n_masks`` binary masks (``mask_params`` effects).
+
+        A per-mask effect (``mask_params(n_masks)`` gives its parameters: one set per mask, or per
+        mask after the first for an overlay or a rotation against mask 0) gets the parameters of
+        that many masks; every other effect is returned as it is. None when the element has no
+        mask the effect acts on (an overlay of a one-mask, binary element).
+        """
+        if self.mask_params is None:
+            return self
+        params = tuple(self.mask_params(int(n_masks)))
+        if params == self.params:
+            return self
+        if not params:
+            return None
+        return dataclasses.replace(self, params=params, start=None)
 
     def null_values(self) -> np.ndarray:
         """Parameter values of the ideal model (the effect absent)."""
@@ -273,8 +295,13 @@ def get_effect(name: str) -> Effect:
         raise EffectError(f"unknown effect {name!r}; registered: {', '.join(sorted(REGISTRY))}") from None
 
 
-def effects_for(domain: str, names: Sequence[str] | None = None) -> list[Effect]:
-    """Registered effects of ``domain`` (optionally only ``names``), in forward-model order."""
+def effects_for(domain: str, names: Sequence[str] | None = None, n_masks: int | None = None) -> list[Effect]:
+    """Registered effects of ``domain`` (optionally only ``names``), in forward-model order.
+
+    With ``n_masks``, per-mask effects carry the parameters of that many masks
+    (:meth:`Effect.for_masks`); one that no mask of such an element can show (an overlay of a
+    binary element) is left out, or refused when ``names`` asks for it.
+    """
     if domain not in DOMAINS:
         raise EffectError(f"domain must be one of {DOMAINS}, got {domain!r}")
     if names is None:
@@ -284,6 +311,12 @@ def effects_for(domain: str, names: Sequence[str] | None = None) -> list[Effect]
         for e in chosen:
             if e.domain != domain:
                 raise EffectError(f"effect {e.name!r} belongs to the {e.domain} domain, not {domain}")
+    if n_masks is not None:
+        sized = [(e, e.for_masks(n_masks)) for e in chosen]
+        absent = [e.name for e, s in sized if s is None]
+        if absent and names is not None:
+            raise EffectError(f"effect(s) {', '.join(absent)} need at least two masks; this element has {n_masks}")
+        chosen = [s for _, s in sized if s is not None]
     stages = STAGES[domain]
     return sorted(chosen, key=lambda e: (stages.index(e.stage), e.order))
 
@@ -414,20 +447,45 @@ def batwing_transfer(values: Sequence[float], step_m: float, wr: np.ndarray, wc:
 
 
 _UM = 1e-6
+
+
+def _depth_params(n):
+    return [Parameter(f"depth_error_mask{j}", "1", -0.3, 0.3, 0.02, smooth=True) for j in range(n)]
+
+
+def _overlay_params(n):
+    return [Parameter(f"{ax}_mask{j}_m", "m", -3 * _UM, 3 * _UM, 0.2 * _UM) for j in range(1, n) for ax in ("dx", "dy")]
+
+
+def _bias_params(n):
+    return [Parameter(f"bias_mask{j}_m", "m", -1.5 * _UM, 1.5 * _UM, 0.1 * _UM) for j in range(n)]
+
+
+def _rotation_params(n):
+    return [Parameter(f"rotation_mask{j}_deg", "deg", -0.5, 0.5, 0.005) for j in range(1, n)]
+
+
+def _trench_params(n):
+    return [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null, smooth=True) for j in range(n)
+            for q, lo, hi, sc, null in (("depth", 0.0, 150e-9, 5e-9, 0.0),
+                                        ("width", 0.05 * _UM, 3 * _UM, 0.1 * _UM, 0.4 * _UM))]
+
+
+# The registry holds the per-mask effects of the four-mask (16-level) process; a diagnosis of an
+# element of another mask count resizes them (effects_for(..., n_masks)).
+_N = 4
 _BUILTIN_HEIGHT = [
-    Effect("etch_depth", "height", "process",
-           [Parameter(f"depth_error_mask{j}", "1", -0.3, 0.3, 0.02, smooth=True) for j in range(4)], _etch_depth,
+    Effect("etch_depth", "height", "process", _depth_params(_N), _etch_depth,
            "Each mask's etch went deeper or shallower than its target by a fraction: the 16 level "
-           "heights stop being multiples of one step."),
+           "heights stop being multiples of one step.", mask_params=_depth_params),
     Effect("mask_overlay", "height", "process",
-           [Parameter(f"{ax}_mask{j}_m", "m", -3 * _UM, 3 * _UM, 0.2 * _UM) for j in (1, 2, 3) for ax in ("dx", "dy")],
-           _mask_overlay,
+           _overlay_params(_N), _mask_overlay,
            "A mask was printed shifted against the first one (x toward +column, y up): one-signed slivers "
-           "of that mask's depth appear on opposite edges of its features."),
+           "of that mask's depth appear on opposite edges of its features.", mask_params=_overlay_params),
     Effect("linewidth_bias", "height", "process",
-           [Parameter(f"bias_mask{j}_m", "m", -1.5 * _UM, 1.5 * _UM, 0.1 * _UM) for j in range(4)], _linewidth_bias,
+           _bias_params(_N), _linewidth_bias,
            "A mask's openings printed wider (positive) or narrower than drawn, from exposure dose or "
-           "development: same-sign slivers on every edge of its features."),
+           "development: same-sign slivers on every edge of its features.", mask_params=_bias_params),
     Effect("proximity_blur", "height", "process",
            [Parameter("sigma_m", "m", 0.0, 4 * _UM, 0.5 * _UM)], _proximity_blur,
            "The contact-print gap blurs the mask's aerial image before the resist threshold: corners round "
@@ -439,17 +497,15 @@ _BUILTIN_HEIGHT = [
            [Parameter("loading", "1", -0.5, 0.5, 0.02, smooth=True)], _etch_loading,
            "The etch rate depends on the local open fraction of the mask: depth follows pattern density."),
     Effect("mask_rotation", "height", "process",
-           [Parameter(f"rotation_mask{j}_deg", "deg", -0.5, 0.5, 0.005) for j in (1, 2, 3)], _mask_rotation,
+           _rotation_params(_N), _mask_rotation,
            "A mask was printed rotated about the design's centre (design pixel ((rows - 1) / 2, (cols - 1) / 2), "
            "not the camera field's) against the first one: its overlay grows linearly with the distance from "
-           "that centre, opposite in sign on opposite sides."),
+           "that centre, opposite in sign on opposite sides.", mask_params=_rotation_params),
     Effect("microtrenching", "height", "process",
-           [Parameter(f"{q}_mask{j}_m", "m", lo, hi, sc, null, smooth=True) for j in range(4)
-            for q, lo, hi, sc, null in (("depth", 0.0, 150e-9, 5e-9, 0.0), ("width", 0.05 * _UM, 3 * _UM, 0.1 * _UM,
-                                                                             0.4 * _UM))],
-           _microtrenching,
+           _trench_params(_N), _microtrenching,
            "Ions reflected from the sidewalls etched deeper at the foot of a mask's etched edges: a trench "
-           "inside each opening along its edges, decaying over a width, in proportion to that etch."),
+           "inside each opening along its edges, decaying over a width, in proportion to that etch.",
+           mask_params=_trench_params),
     Effect("etch_gradient", "height", "process",
            [Parameter(f"{ax}_per_m", "1/m", -100.0, 100.0, 5.0, smooth=True) for ax in ("x", "y")], _etch_gradient,
            "Plasma non-uniformity made every etch deeper on one side of the field by the same relative "

@@ -242,7 +242,8 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
     meas = meas[sub[0] * u:sub[1] * u, sub[2] * u:sub[3] * u]
     window = (row0 + sub[0], row0 + sub[1], col0 + sub[2], col0 + sub[3])
     base = ProcessParams.ideal(depths_m=depths_m) if depths_m is not None else ProcessParams.ideal()
-    problem = HeightProblem(levels, pitch_m, meas, step_m, window, base, effects_for("height", candidates))
+    problem = HeightProblem(levels, pitch_m, meas, step_m, window, base,
+                            effects_for("height", candidates, n_masks=base.n_masks))
     diag = run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
                          stop_at_floor=stop_at_floor, cpu_budget_s=cpu_budget_s)
     diag.map_step_m = problem.step_m
@@ -269,7 +270,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
     upsample : int
         Model samples per design pixel per axis.
     depths_m : sequence of float, optional
-        Nominal etch depths per mask (the ideal model).
+        Nominal etch depths per mask (the ideal model; default :func:`masks.decompose.process_depths_m`).
     candidates : list of str, optional
     threshold : float
     source : str
@@ -284,7 +285,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
         row 0 at the top), ``upsample``, ``registration_ncc`` and ``nominal_depths_m``.
     """
     from doedesign.levels import design_levels
-    from masks.process import ProcessParams
+    from masks.decompose import process_depths_m
     from metrology.matching.compare import compare_measurement, shift_registration
     from metrology.matching.register import resample_to_design
 
@@ -307,7 +308,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
     c0 = int(np.clip(round(cols.mean() - size / 2), 0, design.shape[1] - size))
     region = (r0, r0 + size, c0, c0 + size)
     fine = resample_to_design(levelled, reg, upsample=upsample, region=region)
-    depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
+    depths = process_depths_m(design, depths_m, source)
     diag = diagnose_heights(design_levels(design), design.pitch_m, fine, design.pitch_m / upsample,
                             region=region, region_px=size, depths_m=depths, candidates=candidates,
                             threshold=threshold)

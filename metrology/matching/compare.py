@@ -144,7 +144,7 @@ class Comparison:
         }
 
 
-def compare_measurement(measurement: Measurement, design: Design, n_masks: int = 4,
+def compare_measurement(measurement: Measurement, design: Design, n_masks: int | None = None,
                         window_px: int = INSTRUMENT_WINDOW_PX, progress: Progress | None = None,
                         force: bool = False, transfer: LateralTransfer | None = None) -> Comparison:
     """Level, register and compare a measurement with its design.
@@ -153,7 +153,9 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
     ----------
     measurement : metrology.formats.measurement.Measurement
     design : doedesign.design.Design
-    n_masks : int
+    n_masks : int, optional
+        Binary masks of the element (default: the design's own, ``log2(design.n_levels)``); the
+        nominal etch depths are the design's (:meth:`~doedesign.design.Design.etch_depths_m`).
     window_px : int
         Camera pixels per side of the window on which depths, overlay and bias are fitted in
         the camera's frame (the level and edge fits use the whole field).
@@ -187,11 +189,12 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int =
             progress.update(1, status=name)
 
     pitch = design.pitch_m
+    n_masks = design.n_masks if n_masks is None else int(n_masks)
     n_levels = 2 ** n_masks
     levels = design_levels(design, n_levels)
     printed = printed_height_m(design, n_levels)
     step_m = design.level_step_m(n_levels)
-    nominal = np.array(binary_depths_m(step_m, n_masks))
+    nominal = np.array(design.etch_depths_m() if n_levels == design.n_levels else binary_depths_m(step_m, n_masks))
     h, n_spikes = remove_spikes(measurement.height_m)
     first = level_on_top(h)
     check_relief(first.height_m, step_m)
