@@ -137,10 +137,9 @@ class Design:
                 raise DesignFileError(f"{source}: levels must be non-negative, minimum is {self.levels.min()}")
         if self.aperture is not None and self.aperture.dtype != bool:
             raise DesignFileError(f"{source}: aperture must be boolean, got {self.aperture.dtype}")
+        # Levels beyond the count are refused where they are used (quantize_design) and where a
+        # file is read (check_levels), so that a wrong in-memory design still reaches the CLI's one line.
         _check_level_structure(source, self.metadata)
-        if self.levels is not None and self.levels.size and self.levels.max() >= self.n_levels:
-            raise DesignFileError(f"{source}: levels reach {self.levels.max()}, a {self.n_levels}-level design "
-                                  f"has 0..{self.n_levels - 1}")
 
     def phase(self, wavelength_m: float) -> np.ndarray:
         """Phase (rad) of the height map at ``wavelength_m``, from the heights themselves."""

@@ -40,8 +40,10 @@ def test_doe_masks_writes_log2_n_verified_layers(tmp_path, n_levels):
 
 def test_a_level_beyond_the_count_or_a_bad_count_is_refused(tmp_path):
     levels = np.array([[0, 1], [2, 1]], np.int16)
-    with pytest.raises(Exception, match="2-level design has 0..1"):
-        Design(np.zeros((2, 2)), 5.4e-6, levels=levels, metadata={"n_levels": 2})
+    bad = Design(-levels * 598e-9, 5.4e-6, levels=levels, metadata={"n_levels": 2})
+    bad.save(tmp_path / "bad.npz")
+    assert main(["masks", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o" / "report.json").exists()
     with pytest.raises(Exception, match="2, 4, 8, 16, 32"):
         Design(np.zeros((2, 2)), 5.4e-6, metadata={"n_levels": 12})
     with pytest.raises(Exception, match="mask_depths_m must list 3"):
