@@ -120,8 +120,9 @@ class Design:
             raise DesignFileError(f"{source}: pitch_m = {self.pitch_m} m is not a DOE pitch (metres expected)")
         if not (np.isfinite(self.design_wavelength_m) and 100e-9 < self.design_wavelength_m < 20e-6):
             raise DesignFileError(f"{source}: design_wavelength_m = {self.design_wavelength_m} is not a wavelength in metres")
-        if np.max(np.abs(h)) > 1e-3:
-            raise DesignFileError(f"{source}: height_m reaches {np.max(np.abs(h)):.3g} m; heights must be in metres")
+        reach = max(float(h.max()), -float(h.min()))  # no temporary the size of the map
+        if reach > 1e-3:
+            raise DesignFileError(f"{source}: height_m reaches {reach:.3g} m; heights must be in metres")
         try:
             get_material(self.material)
         except DoeError as exc:

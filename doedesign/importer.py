@@ -27,7 +27,7 @@ from .budget import check_memory
 from .design import Design
 from .errors import DoeError
 from .fileio import atomic_path, check_input_file, load_npy, read_npz
-from .levels import check_level_count, quantize, wrap_height_m
+from .levels import check_level_count, quantize
 from .materials import get_material
 
 __all__ = ["EXPORT_WHAT", "FORMATS", "export_map", "import_design", "read_map"]
@@ -118,7 +118,7 @@ def read_map(path: str | Path, array: str | None = None) -> tuple[np.ndarray, in
         data = data.ravel()
     if data.ndim not in (1, 2) or data.size < 2:
         raise DoeError(f"{path}: a map must be 2-D (or a 1-D radial profile), got shape {data.shape}")
-    return data.astype(np.float64), bits
+    return np.asarray(data, dtype=np.float64), bits
 
 
 def _radial(profile: np.ndarray, path: Path) -> np.ndarray:
@@ -197,36 +197,57 @@ def import_design(path: str | Path, *, pitch_m: float | None, phase_at_m: float 
         if mask.shape != data.shape:
             raise DoeError(f"{aperture}: aperture mask of shape {mask.shape}, the map has {data.shape}")
         outside |= ~(np.nan_to_num(mask) != 0)
-    values = np.where(outside, 0.0, data)
+    values = data  # converted in place: the map is this function's own copy
+    values[outside] = 0.0
     wl = float(design_wavelength_m or phase_at_m or 550e-9)
     mat = get_material(material)
     if phase_at_m is not None:
-        span = float(values[~outside].max() - values[~outside].min())
+        inside = ~outside
+        span = float(np.max(values, where=inside, initial=-np.inf) - np.min(values, where=inside, initial=np.inf))
+        del inside
         if wrapped and span > 2 * np.pi * 1.01:
             raise DoeError(f"{path}: a wrapped phase spans at most 2 pi, this map spans {span:.3g} rad "
                            f"({span / (2 * np.pi):.1f} x 2 pi): not a phase in radians?")
         if span > 2 * np.pi * 1e4:
             raise DoeError(f"{path}: the phase spans {span:.3g} rad (over 10^4 waves): not a phase in radians")
-        height = values * float(mat.height_2pi_m(float(phase_at_m))) / (2 * np.pi)
+        height = values
+        height *= float(mat.height_2pi_m(float(phase_at_m))) / (2 * np.pi)
     else:
         if height_unit not in HEIGHT_UNITS:
             raise DoeError(f"{path}: --height-unit must be one of m, um, nm, got {height_unit!r}")
         if sign not in ("z_up", "depth"):
             raise DoeError(f"{path}: height sign must be z_up or depth, got {sign!r}")
-        height = values * HEIGHT_UNITS[height_unit] * (1.0 if sign == "z_up" else -1.0)
+        height = values
+        height *= HEIGHT_UNITS[height_unit] * (1.0 if sign == "z_up" else -1.0)
         if np.max(np.abs(height)) > 1e-3:
             raise DoeError(f"{path}: heights reach {np.max(np.abs(height)):.3g} m; is --height-unit right?")
     step = float(mat.height_2pi_m(wl)) / n_levels
-    q = quantize(wrap_height_m(height, step, n_levels), step, n_levels)
-    levels = np.where(outside, 0, q.levels).astype(np.int16)
+    levels, summary = _quantize_in_blocks(height, step, n_levels)
+    del height, values, data
+    levels[outside] = 0
     meta = {"name": name or path.stem, "n_levels": n_levels,
             "import": {"source": str(path), "kind": "phase" if phase_at_m is not None else "height",
                        "phase_at_m": phase_at_m, "height_unit": height_unit, "sign": sign,
-                       "full_scale_rad": full_scale_rad, "quantization": q.summary(),
+                       "full_scale_rad": full_scale_rad, "quantization": summary,
                        "convention": "row 0 at the top; array centred on the optical axis; z up, 0 = unetched "
                                      "top, negative etched; phase = 2 pi h / h_2pi, more glass more phase"}}
-    return Design(-levels * step, float(pitch_m), material=material, design_wavelength_m=wl, levels=levels,
+    return Design(np.multiply(levels, -step, dtype=np.float64), float(pitch_m), material=material, design_wavelength_m=wl, levels=levels,
                   aperture=~outside if outside.any() else None, metadata=meta)
+
+
+def _quantize_in_blocks(height_m: np.ndarray, step_m: float, n_levels: int) -> tuple[np.ndarray, dict]:
+    """:func:`doedesign.levels.quantize` of blocks of rows (the wrap is its own), so that its
+    temporaries stay small beside a large map; the summary of the whole."""
+    levels = np.empty(height_m.shape, np.int16)
+    rows = max(1, (1 << 18) // max(height_m.shape[1], 1))  # 2 MB temporaries
+    sq, worst, wrapped = 0.0, 0.0, 0
+    for r in range(0, height_m.shape[0], rows):
+        q = quantize(height_m[r:r + rows], step_m, n_levels)
+        levels[r:r + rows] = q.levels
+        sq += q.rms_error_m ** 2 * q.levels.size
+        worst, wrapped = max(worst, q.max_error_m), wrapped + q.wrapped_pixels
+    return levels, {"step_nm": step_m * 1e9, "n_levels": n_levels, "rms_error_nm": float(np.sqrt(sq / levels.size)) * 1e9,
+                    "max_error_nm": worst * 1e9, "wrapped_pixels": wrapped}
 
 
 def export_map(design: Design, what: str, out: str | Path, wavelength_m: float | None = None) -> Path:
