@@ -147,3 +147,27 @@ def test_bad_input_is_one_line_naming_the_file(tmp_path, capsys, case, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(src) in err[0] and message in err[0]
     assert not out.exists()
+
+
+def test_matlab_v73_file_is_read_through_hdf5_and_transposed_back(tmp_path):
+    import h5py
+    phase, expected = _grating(16)
+    src = tmp_path / "g73.mat"
+    with h5py.File(src, "w", userblock_size=512) as f:
+        f["phase"] = phase.T  # MATLAB writes column-major: the file holds the transpose
+    with open(src, "r+b") as fh:  # the 128-byte MATLAB 7.3 header in the user block
+        fh.write(b"MATLAB 7.3 MAT-file, written by the test".ljust(116) + b"\0" * 8 + b"\x00\x02" + b"IM")
+    out = tmp_path / "d.npz"
+    assert main(["import", str(src), "--out", str(out), "--pitch-um", "5.4", "--phase-at-nm", "550"]) == 0
+    assert np.array_equal(Design.load(out).levels, expected)
+
+
+def test_several_arrays_need_array(tmp_path, capsys):
+    phase, expected = _grating(4)
+    np.savez(tmp_path / "two.npz", phase=phase, other=np.zeros((3, 3)))
+    out = tmp_path / "d.npz"
+    base = ["import", str(tmp_path / "two.npz"), "--out", str(out), "--pitch-um", "5.4", "--phase-at-nm", "550",
+            "--levels", "4"]
+    assert main(base) == 2 and "--array" in capsys.readouterr().err
+    assert main(base + ["--array", "phase"]) == 0
+    assert np.array_equal(Design.load(out).levels, expected)
