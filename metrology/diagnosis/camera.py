@@ -26,6 +26,7 @@ import scipy.ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
+from doedesign.progress import Progress
 from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import budget as clock
 from metrology.diagnosis import engine as dg
@@ -453,7 +454,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     from masks.process import ProcessParams
 
     # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with threadpool_limits(limits=1, user_api="blas"), Progress(3, desc="camera diagnosis") as bar:
         deadline = limit if limit is not None else clock.Deadline()
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
@@ -503,7 +504,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             return chosen, fitted, changes, floor
 
         if transfer is None:
+            bar.stage("instrument stage: the lateral transfer's family")
             extras, prior, instrument_stage, noise = stage()
+        bar.update(1)
         done, carried = None, ()  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
 
@@ -531,7 +534,9 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
                 raise _Restage(again, steps)
 
-        for _ in range(4):
+        for k in range(4):
+            bar.stage(f"selection, pass {k + 1}" + (f" (carried: {', '.join(s.effect for s in carried)})"
+                                                    if carried else "" if k == 0 else " (re-admitted pixels)"))
             problem, fit = make(keep, **extras)
             # The criterion alone decides: the floor is good to ~5 %, and a gradient of a few tenths
             # of a nanometre still earns its parameters after the residual has reached it.
@@ -559,6 +564,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
                 break
             keep = new_keep
+        bar.update(1, "uncertainties")
         diag.map_step_m = problem.pixel_m
         if fit is not problem:
             # What the user reads is the whole window's (the counts stay the fitted tiles').
@@ -571,4 +577,5 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             diag.placement["instrument"]["criterion_change"] = instrument_stage
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
+        bar.update(1, ", ".join(diag.named) or "nothing named")
         return diag

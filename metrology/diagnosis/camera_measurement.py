@@ -61,6 +61,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         excluded pixels, registration correlation, nominal depths, match).
     """
     from doedesign.levels import design_levels
+    from doedesign.progress import Progress
     from masks.process import ProcessParams
     from metrology.matching.compare import compare_measurement
 
@@ -68,10 +69,13 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         raise DoeError(f"--window-px must be at least 16, got {window_px}")
     comp = comparison
     if comp is None:
-        try:
-            comp = compare_measurement(measurement, design, force=force, transfer=transfer)
-        except DoeError as exc:
-            raise DoeError(f"{source}: {exc}") from None
+        with Progress(1, desc="doe diagnose: comparison") as bar:
+            bar.stage("registration, levelling, the instrument's fit on the whole field")
+            try:
+                comp = compare_measurement(measurement, design, force=force, transfer=transfer)
+            except DoeError as exc:
+                raise DoeError(f"{source}: {exc}") from None
+            bar.update(1, "done")
     depths = [float(v) for v in (ProcessParams.ideal().etch_depth if depths_m is None else depths_m)]
     # The comparison's placement was refined in the camera's frame (same measurement model).
     fit = comp.instrument_fit

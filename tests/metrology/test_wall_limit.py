@@ -71,11 +71,18 @@ def _close(a, b, rtol=1e-6):
     assert a[3] == pytest.approx(b[3], rel=rtol)
 
 
-def test_the_same_file_gives_the_same_answer_idle_and_beside_a_cpu_hog_with_one_worker(tmp_path, monkeypatch):
+def test_the_same_file_gives_the_same_answer_idle_and_beside_a_cpu_hog_with_one_worker(tmp_path, monkeypatch,
+                                                                                      capsys):
     design, measured = _case(tmp_path)
+    monkeypatch.setenv("DOE_PROGRESS", "1")
     code, idle = _diagnose(design, measured, tmp_path / "idle")
     assert code == 0 and not idle["incomplete"] and idle["summary"].startswith("complete")
     assert "mask_overlay" in idle["effects_found"]
+    # The long work showed its stage and each candidate as it was scored.
+    bars = capsys.readouterr().err
+    for shown in ("comparison", "instrument stage", "selection, pass 1", "diagnosis step 1", "mask_overlay"):
+        assert shown in bars, shown
+    monkeypatch.setenv("DOE_PROGRESS", "0")
     # Beside a busy process (both cores contended) and with the fits' worker threads cut to one:
     # the same names and parameters, to 1e-6 relative.
     import metrology.diagnosis.engine as engine
