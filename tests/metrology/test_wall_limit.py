@@ -87,9 +87,10 @@ def test_the_same_file_gives_the_same_answer_idle_and_beside_a_cpu_hog_with_one_
     # the same names and parameters, to 1e-6 relative.
     import metrology.diagnosis.engine as engine
     import metrology.diagnosis.fitting as fitting
+    import metrology.diagnosis.parallel as parallel
 
-    monkeypatch.setattr(engine, "WORKERS", 1)
-    monkeypatch.setattr(fitting, "WORKERS", 1)
+    for module in (engine, fitting, parallel):
+        monkeypatch.setattr(module, "WORKERS", 1)
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         code, busy = _diagnose(design, measured, tmp_path / "busy")
