@@ -28,9 +28,13 @@ from pathlib import Path
 
 __all__ = ["profile_case", "run"]
 
-# The case the issue's point-sampling instrument missed at the old 60 s default (a 0.45 um
-# overlay, 434 x 434 camera pixels of 1.1 um over a design of 110 px of 5.4 um).
-CASE = {"instrument": "point", "effects": ["mask_overlay"], "seed": 11, "design_px": 110, "field": 434}
+# Cases like those the issue's instruments missed at the old 60 s default, on fields of 434-500
+# camera pixels over a design of 110 px of 5.4 um (the first is the quick run's).
+CASES = [{"instrument": "point", "effects": ["mask_overlay"], "seed": 11, "design_px": 110, "field": 434},
+         {"instrument": "point", "effects": ["etch_depth"], "seed": 12, "design_px": 110, "field": 500},
+         {"instrument": "csi", "effects": ["mask_overlay"], "seed": 13, "design_px": 110, "field": 440},
+         {"instrument": "boxcar", "effects": ["mask_rotation"], "seed": 14, "design_px": 110, "field": 500}]
+CASE = CASES[0]
 STAGES = {"comparison": "compare_measurement", "instrument stage": "choose_transfer", "selection": "run_diagnosis"}
 
 
@@ -63,8 +67,10 @@ def profile_case(instrument: str, effects: list[str], seed: int, design_px: int,
 
 
 def run(quick: bool = False, case: dict | None = None) -> list[dict]:
-    """Rows of one large-field case (``quick``: the same case; it is one diagnosis either way)."""
-    case = dict(CASE, **(case or {}))
+    """Rows of every case of :data:`CASES` (``quick``: the first), or of ``case`` alone."""
+    if case is None:
+        return [row for c in (CASES[:1] if quick else CASES) for row in run(case=c)]
+    case = dict(CASE, **case)
     with tempfile.TemporaryDirectory() as tmp:
         got = profile_case(case["instrument"], case["effects"], case["seed"], case["design_px"], case["field"],
                            Path(tmp))
@@ -89,9 +95,10 @@ def _main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=CASE["seed"])
     parser.add_argument("--design-px", type=int, default=CASE["design_px"])
     parser.add_argument("--field", type=int, default=CASE["field"])
+    parser.add_argument("--all", action="store_true", help="every case of CASES (the other options ignored)")
     parser.add_argument("--rows", help="write the rows here (JSON)")
     args = parser.parse_args(argv)
-    rows = run(case={"instrument": args.instrument, "effects": [e for e in args.effects.split(",") if e],
+    rows = run() if args.all else run(case={"instrument": args.instrument, "effects": [e for e in args.effects.split(",") if e],
                      "seed": args.seed, "design_px": args.design_px, "field": args.field})
     text = json.dumps(rows, indent=1)
     if args.rows:
