@@ -36,6 +36,9 @@ CASES = [{"instrument": "point", "effects": ["mask_overlay"], "seed": 11, "desig
          {"instrument": "boxcar", "effects": ["mask_rotation"], "seed": 14, "design_px": 110, "field": 500}]
 CASE = CASES[0]
 STAGES = {"comparison": "compare_measurement", "instrument stage": "choose_transfer", "selection": "run_diagnosis"}
+STAGE_NOTES = {"comparison": " (registration, levelling, edge fit and the instrument's fit on the whole field)",
+               "instrument stage": " (every call; its rerun inside the selection is in the selection's row too)",
+               "selection": " (every pass, on the busiest window of --window-px 160 camera px, not the whole field)"}
 
 
 def profile_case(instrument: str, effects: list[str], seed: int, design_px: int, field: int,
@@ -84,7 +87,7 @@ def run(quick: bool = False, case: dict | None = None) -> list[dict]:
     for label, value in got["stages_cpu_s"].items():
         rows.append({"benchmark": "large_field", "figure": f"{name}: {label}", "value": round(value, 1),
                      "unit": "CPU s", "peer": None, "peer_value": None, "ratio": None, "limit": None,
-                     "notes": f"{100 * value / got['cpu_s']:.0f} % of the command"})
+                     "notes": f"{100 * value / got['cpu_s']:.0f} % of the command" + STAGE_NOTES.get(label, "")})
     return rows
 
 
