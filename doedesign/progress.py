@@ -60,3 +60,8 @@ class Progress:
             if status:
                 self._bar.set_postfix_str(status, refresh=False)
             self._bar.update(step)
+
+    def stage(self, status: str) -> None:
+        """Show ``status`` (the stage now under way) at once, without advancing."""
+        if self._bar is not None:
+            self._bar.set_postfix_str(status, refresh=True)

@@ -210,12 +210,14 @@ def diagnose_sections(rep: dict, folder: str | Path, prefix: str = "", level: in
                      "floor's power, within what the instrument model's own error leaves.")
     stopped = rep.get("stopped_early")
     if isinstance(stopped, dict):
-        more = "`--wall-limit-s` (the wall clock ended it)" if stopped.get("limit") == "wall" else "`--cpu-budget-s`"
-        remedy = (f" More time (`doe diagnose` {more}) or a calibrated instrument (`doe calibrate "
-                  "instrument`, then `--instrument`) lets the selection finish."
-                  if str(stopped.get("reason", "")).startswith("time budget") else "")
+        more = "`--wall-limit-s`" if stopped.get("limit") == "wall" else "`--cpu-budget-s`"
         parts.insert(4, f"- Stopped early: {stopped.get('reason')} (final residual "
-                        f"{md.fmt(stopped.get('final_over_floor'), 3)} x the noise floor).{remedy}")
+                        f"{md.fmt(stopped.get('final_over_floor'), 3)} x the noise floor). Rerun without {more} "
+                        "(the default: no limit) for a finished diagnosis; until then this field says nothing "
+                        "about the candidates not tried.")
+    if rep.get("summary"):
+        # The summary's first line: INCOMPLETE (and what was not tried) where a user's limit ended it.
+        parts.insert(1, f"- {rep['summary']}.")
     inst = ((rep.get("inputs") or {}).get("placement") or {}).get("instrument")
     if isinstance(inst, dict):
         parts.insert(4, "- Instrument's lateral transfer ({}): blur {} um, fill factor {}, NA {}.".format(

@@ -10,7 +10,9 @@ __all__ = ["register", "run"]
 
 HELP = """\
 Combine the diagnoses of several fields (doe diagnose --out folders) of one design: per effect
-parameter the mean over fields with its standard error and the spread between fields. What is
+parameter the mean over the fields whose diagnosis tested that effect (a field a --wall-limit-s
+ended, marked INCOMPLETE, counts only for what it named; the job sheet's first lines say so, and
+only INCOMPLETE diagnoses are refused) with its standard error and the spread between fields. What is
 systematic (|mean| > 3 standard errors and above the effect's detection limit) and has a knob is
 corrected: each mask's openings are redrawn with their edges offset against the measured
 linewidth bias (OUT/masks/, the layout of doe masks, verified), and OUT/job.json (+ report.md)

@@ -3,6 +3,11 @@
 Writes ``OUT/report.json`` (steps, noise floor, residuals, whether a structured residual is
 left unexplained; its ``inputs`` identify the design: file and level-map sha256, shape, pitch),
 ``OUT/residual_steps.png`` and ``OUT/breakdown.png``.
+
+No default time limit or CPU budget: what is tried and named depends only on the file and the
+options. ``--wall-limit-s`` and ``--cpu-budget-s`` are a user's opt-in limits; a diagnosis one of
+them ended is written whole, says ``INCOMPLETE`` in the first line of its summary with the
+candidates not tried, and the command exits with :data:`EXIT_INCOMPLETE`.
 """
 
 from __future__ import annotations
@@ -10,22 +15,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import time
 from pathlib import Path
 
 from doedesign.cli.common import Number, NumberList, add_device_option
 
 log = logging.getLogger(__name__)
-# CPU seconds of the camera-frame selection (about 50 s on two cores with the comparison and the
-# report): a fit that does not close within it stops there and says so.
-CPU_BUDGET_S = 80.0
-# Wall-clock seconds the whole command may take (the issue's 60 s a field on 2 cores) ...
-WALL_LIMIT_S = 60.0
-# ... of which the selection stops this many before the limit: the fits after it (the final joint
-# fit, partial matches, uncertainties), the report and its plots, and the interpreter's start.
-WALL_MARGIN_S = 5.0
+# Exit status of a diagnosis a user's limit ended (its report written whole, marked INCOMPLETE):
+# not 0 (a finished diagnosis) and not 2 (bad input, nothing written).
+EXIT_INCOMPLETE = 3
 
-__all__ = ["load_effects_file", "parse_effects", "register", "run"]
+__all__ = ["EXIT_INCOMPLETE", "load_effects_file", "parse_effects", "register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -68,15 +67,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="the profilometer's calibrated lateral transfer and batwing ('doe calibrate instrument'), held fixed, "
                         "and its height scale, divided out of the measured heights "
                         "(default: fitted with the placement)")
-    p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=CPU_BUDGET_S,
-                   help="CPU seconds (both cores' together) the camera-frame selection may spend before it stops "
-                        "trying candidates, a round under way included (nothing is named from a round it cut short), "
-                        f"and says so in the report (default {CPU_BUDGET_S:g}: a fit that does not close within it "
-                        "stops there)")
-    p.add_argument("--wall-limit-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=WALL_LIMIT_S,
-                   help="wall-clock seconds the command may take: the camera-frame selection stops "
-                        f"{WALL_MARGIN_S:g} s before it as it does at the CPU budget, whichever comes first "
-                        f"(default {WALL_LIMIT_S:g}; a loaded machine reaches it with less of the budget spent)")
+    p.add_argument("--wall-limit-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=None,
+                   help="opt-in: wall-clock seconds from the command's start after which the selection stops where "
+                        "it is (a round under way names nothing); the report is then written, says INCOMPLETE in "
+                        "its summary's first line with the candidates not tried, and the command exits with status "
+                        f"{EXIT_INCOMPLETE}. Default: no limit, so the answer depends on the file and the options "
+                        "alone, never on the machine's speed or load")
+    p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=None,
+                   help="opt-in: CPU seconds (all threads together) after which the selection stops, as "
+                        f"--wall-limit-s does (INCOMPLETE, exit status {EXIT_INCOMPLETE}); default none")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -84,7 +83,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    args.wall_deadline = time.monotonic() + args.wall_limit_s - WALL_MARGIN_S
+    from metrology.diagnosis.budget import Deadline
+
+    args.limit = Deadline.after(args.cpu_budget_s, args.wall_limit_s)  # from the command's start
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run
@@ -111,11 +112,12 @@ def run(args: argparse.Namespace) -> int:
     inputs.update(design_fingerprint(design, args.design))
     with output_run(out, "doe diagnose"):
         report = diag.save(out, dict(design=str(args.design), **inputs))
-    print_json({"report": str(out / "report.json"), "effects_found": diag.named,
+    print_json({"report": str(out / "report.json"), "summary": report["summary"], "incomplete": diag.incomplete,
+                "untried": diag.untried, "effects_found": diag.named,
                 "measurement_artefacts": report["measurement_artefacts"],
                 "initial_residual_rms": diag.initial_residual_rms, "final_residual_rms": diag.final_residual_rms,
                 "noise_floor": diag.noise_floor, "unexplained": diag.unexplained})
-    return 0
+    return EXIT_INCOMPLETE if diag.incomplete else 0
 
 
 def parse_effects(text: str | None, domain: str) -> list[str] | None:
@@ -165,7 +167,7 @@ def _heights(design, path, args, candidates):
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
                                         upsample=args.upsample, depths_m=_depths(args),
                                         candidates=candidates, threshold=args.threshold, source=str(path),
-                                        force=args.force)
+                                        force=args.force, limit=args.limit)
     return diag, {"measured": str(path), **_held(args), **inputs}
 
 
@@ -179,7 +181,7 @@ def _camera(design, path, args, candidates):
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,
-                                               cpu_budget_s=args.cpu_budget_s, wall_deadline=args.wall_deadline,
+                                               limit=args.limit,
                                                batwing=None if args.calibration is None else args.calibration.batwing)
     return diag, {"measured": str(path), **_held(args), **inputs}
 
@@ -207,5 +209,5 @@ def _psf(design, path, args, candidates):
                                  pixel_pitch_m=stack["pixel_pitch_m"])
     diag = diagnose_psf(design, camera, stack["psf"], stack["wavelengths_m"], views=stack["views"],
                         depth_m=stack["depth_m"], candidates=candidates, threshold=args.threshold,
-                        device=args.device)
+                        device=args.device, limit=args.limit)
     return diag, {"measured_psf": str(path), "camera": camera.to_dict(), "views": list(stack["views"])}

@@ -4,6 +4,12 @@
 file's sha256, a sha256 of its 16-level map, its shape and pitch) in its report's
 ``inputs``; :func:`read_diagnosis` refuses a report of another design, of another domain
 than heights, or one written before the fingerprint existed whose shape or pitch differ.
+
+A field carries information only about the effects its diagnosis tested (the report's
+``tested``: what it named, and what the round that ended it by the criterion found absent); a
+diagnosis that a user's limit ended (``incomplete``) tested only what it named. A report from
+before ``tested`` existed counts as having tested every effect when it ran to its end, and only
+what it named when it says it stopped early.
 """
 
 from __future__ import annotations
@@ -52,6 +58,12 @@ class FieldDiagnosis:
     unexplained : bool
         Whether the diagnosis left a structured residual unexplained.
     noise_floor_m : float
+    tested : list of str or None
+        The effects the diagnosis tested (None: every effect).
+    incomplete : bool
+        Whether a limit ended the diagnosis (its summary says INCOMPLETE).
+    summary : str
+        The diagnosis's summary line.
     """
 
     source: str
@@ -61,6 +73,13 @@ class FieldDiagnosis:
     unexplained: bool = False
     noise_floor_m: float | None = None
     artefacts: list = field(default_factory=list)
+    tested: list | None = None
+    incomplete: bool = False
+    summary: str = ""
+
+    def tested_effect(self, effect: str) -> bool:
+        """Whether this field's diagnosis tested ``effect`` (named it or found it absent)."""
+        return effect in self.params or self.tested is None or effect in self.tested
 
 
 def read_diagnosis(folder: str | Path, design: Design, fingerprint: dict | None = None) -> FieldDiagnosis:
@@ -104,10 +123,16 @@ def read_diagnosis(folder: str | Path, design: Design, fingerprint: dict | None 
             continue
         params[st["effect"]] = {k: float(v) for k, v in st["params"].items()}
         errs[st["effect"]] = {k: float(st["uncertainties"].get(k, np.nan)) for k in st["params"]}
+    incomplete = bool(rep.get("incomplete", rep.get("stopped_early") is not None))
+    tested = rep.get("tested")
+    if tested is None and incomplete:
+        tested = list(params)
     depths = inputs.get("nominal_depths_m")
     if depths is None:
         raise DoeError(f"{path}: the report does not record the nominal etch depths it diagnosed against")
     return FieldDiagnosis(source=str(folder), params=params, uncertainties=errs,
                           nominal_depths_m=[float(v) for v in depths], unexplained=bool(rep.get("unexplained")),
                           noise_floor_m=rep.get("noise_floor"),
-                          artefacts=list(rep.get("measurement_artefacts") or []))
+                          artefacts=list(rep.get("measurement_artefacts") or []),
+                          tested=None if tested is None else [str(t) for t in tested], incomplete=incomplete,
+                          summary=str(rep.get("summary") or ""))

@@ -144,8 +144,9 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence, jobs: Sequence
     """Warnings for the job sheet: fields that disagree beyond their uncertainties (in sign, or
     in scatter on a corrected parameter), systematic effects no knob acts on, what of a
     compensated etch loading no knob removes (given the ``jobs``), diagnoses that left a
-    residual unexplained."""
-    out, scatter, spread = [], [], []
+    residual unexplained. First (the sheet's first lines): the diagnoses a limit ended, and the
+    effects fewer fields tested than were given."""
+    out, scatter, spread = incomplete_warnings(estimates, fields), [], []
     for e in estimates:
         signs = {np.sign(v - e.null) for v, s in zip(e.values, e.uncertainties) if abs(v - e.null) > SIGNIFICANCE * s}
         if len(signs) > 1 and e.systematic:
@@ -168,6 +169,18 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence, jobs: Sequence
     for f in fields:
         if f.unexplained:
             out.append(f"{f.source}: its diagnosis left a structured residual unexplained; its effects may be incomplete")
+    return out
+
+
+def incomplete_warnings(estimates: Sequence[Estimate], fields: Sequence) -> list[str]:
+    """The job sheet's first lines: each INCOMPLETE diagnosis (it says nothing about what it did not
+    try), and each effect combined over fewer fields than were given."""
+    out = [f"INCOMPLETE diagnosis {f.source}: a time limit ended it, and it counts only for what it named "
+           f"({', '.join(f.params) or 'nothing'}); rerun doe diagnose without --wall-limit-s / --cpu-budget-s"
+           for f in fields if f.incomplete]
+    fewer = sorted({f"{e.effect} ({e.tested_in} of {e.fields})" for e in estimates if e.tested_in < e.fields})
+    if fewer:
+        out.append("combined only over the fields whose diagnosis tested them: " + ", ".join(fewer))
     return out
 
 

@@ -30,9 +30,11 @@ def job_page(sheet: dict, folder: Path) -> Path:
             verdict = "mean loss corrected (etch targets); the density-dependent rest is not (see warnings)"
         est_rows.append([e["effect"], e["param"], md.fmt_pm(e["mean"] * scale, e["standard_error"] * scale, 3, unit),
                          md.fmt(e["spread"] * scale, 3, unit), md.fmt(e["detection_limit"] * scale, 2, unit),
-                         f"{e['named_in']}/{len(e['values'])}", verdict])
+                         f"{e['named_in']}/{e.get('tested_in', len(e['values']))}/{e.get('fields', len(e['values']))}",
+                         verdict])
     est = md.table(est_rows, ["effect", "parameter", "mean over fields ± standard error", "spread between fields",
-                              "detection limit", "fields naming it", "verdict"])
+                              "detection limit",
+                              "fields naming it / testing it / given", "verdict"])
     merit_rows = []
     for key, label in (("design", "design (ideal process)"), ("measured_wafer", "measured wafer"),
                        ("corrected_wafer", "next wafer, corrected"),
@@ -69,7 +71,9 @@ def job_page(sheet: dict, folder: Path) -> Path:
                     f"(the remap alone: {md.fmt(rd['remap_only_central'][primary], 4)}; kept: {rd['kept']})."
                     + "".join(f" Note: {n}." for n in rd["notes"]) + "\n")
     conventions = "\n".join(f"- {k}: {v}" for k, v in sheet["conventions"].items()) + "\n"
-    parts = [f"# Job sheet for `{sheet['design']}`", summary, "## Per mask", job, conventions,
+    # The first lines: what the sheet could not use (a diagnosis a limit ended says nothing about what it did not try).
+    first = "".join(f"**{w}**\n\n" for w in sheet["warnings"] if w.startswith(("INCOMPLETE", "combined only")))
+    parts = [f"# Job sheet for `{sheet['design']}`", *([first] if first else []), summary, "## Per mask", job, conventions,
              "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,
              f"Corrected masks: `{sheet['masks_folder']}`; process spec for `doe tolerance`: "
              f"`{sheet['process_spec']}`.\n", md.json_link("job.json")]

@@ -87,6 +87,10 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     name = design_path or design.name
     fingerprint = design_fingerprint(design, design_path)
     fields = [read_diagnosis(p, design, fingerprint) for p in diagnoses]
+    if all(f.incomplete for f in fields):
+        raise DoeError("every diagnosis given is INCOMPLETE (a time limit ended it: "
+                       f"{', '.join(f.source for f in fields)}); they say nothing about the effects they did not try. "
+                       "Rerun doe diagnose without --wall-limit-s / --cpu-budget-s")
     depths = check_same_process(fields)
     if len(depths) != design.n_masks:
         raise DoeError(f"{name}: the diagnoses name {len(depths)} mask depth(s); this {design.n_levels}-level design "
@@ -112,6 +116,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     text = toml_text(table, header)
     build_spec(tomllib.loads(text), depths, "process_spec.toml")  # refuse to write what doe tolerance would refuse
     sheet = {
+        "incomplete_diagnoses": [f.source for f in fields if f.incomplete],
         "design": name, "design_fingerprint": fingerprint, "diagnoses": [f.source for f in fields],
         "nominal_depths_nm": [d * 1e9 for d in depths], "conventions": CONVENTIONS,
         "detection_limits": DETECTION_LIMITS, "significance_standard_errors": SIGNIFICANCE,

@@ -1,7 +1,10 @@
 """Systematic against random: the effects of several diagnosed fields combined per parameter.
 
 For every parameter of every fabrication effect the diagnoses could name, with ``v_i`` the
-value fitted on field ``i`` and ``s_i`` its standard error (n fields):
+value fitted on field ``i`` and ``s_i`` its standard error, over the n fields whose diagnosis
+tested the effect (:meth:`~metrology.correction.diagnoses.FieldDiagnosis.tested_effect`; a field
+that did not try it, because a limit ended its diagnosis or the effect was not a candidate,
+carries no information about it and has no vote):
 
 - ``mean`` = the plain mean of ``v_i`` (every field one vote: the correction is for all of them);
 - ``spread`` = the sample standard deviation of ``v_i`` (ddof 1): how much fields differ,
@@ -14,9 +17,9 @@ value fitted on field ``i`` and ``s_i`` its standard error (n fields):
 - ``chi2_per_dof`` = ``sum((v_i - mean)**2 / s_i**2) / (n - 1)``: above
   :data:`DISAGREEMENT_CHI2` the fields disagree beyond their uncertainties (a warning).
 
-A field whose diagnosis did not name an effect (or gives no value for a parameter) counts with
-the parameter's null value and the effect's detection limit as its uncertainty (the diagnosis
-would have named anything larger).
+A field whose diagnosis tested an effect and did not name it (or gives no value for a parameter)
+counts with the parameter's null value and the effect's detection limit as its uncertainty (the
+diagnosis would have named anything larger).
 
 A parameter is *systematic* when ``|mean| > SIGNIFICANCE * standard_error`` and
 ``|mean| >`` its detection limit (:data:`DETECTION_LIMITS`: the smallest change the fab's
@@ -76,6 +79,8 @@ class Estimate:
     values: list
     uncertainties: list
     named_in: int
+    tested_in: int
+    fields: int
     mean: float
     standard_error: float
     spread: float
@@ -105,7 +110,8 @@ def combine_fields(fields: Sequence[FieldDiagnosis]) -> list[Estimate]:
             # A microtrench's width is a shape, not a size: its depth carries the significance.
             p_limit = math.inf if effect == "microtrenching" and p.name.startswith("width") else limit
             vals, errs, n_named = [], [], 0
-            for f in fields:
+            tested = [f for f in fields if f.tested_effect(effect)]
+            for f in tested:
                 if p.name in f.params.get(effect, {}):
                     vals.append(f.params[effect][p.name])
                     err = f.uncertainties[effect].get(p.name, math.nan)
@@ -126,7 +132,7 @@ def combine_fields(fields: Sequence[FieldDiagnosis]) -> list[Estimate]:
             systematic = bool(size > SIGNIFICANCE * se and size > p_limit)
             knob = KNOBS.get(effect)
             out.append(Estimate(effect=effect, param=p.name, unit=p.unit, mask=parameter_mask(p.name), values=vals,
-                                uncertainties=errs, named_in=n_named, mean=mean, standard_error=se, spread=spread,
+                                uncertainties=errs, named_in=n_named, tested_in=len(tested), fields=len(fields), mean=mean, standard_error=se, spread=spread,
                                 excess_spread=excess, chi2_per_dof=chi2, detection_limit=p_limit,
                                 systematic=systematic, knob=knob, corrected=systematic and knob is not None,
                                 null=p.null))

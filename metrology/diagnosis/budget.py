@@ -1,15 +1,22 @@
-"""A diagnosis's time: the CPU clock its budget is counted on, and the deadline that ends it.
+"""A limit the user asked for on a diagnosis (``doe diagnose --wall-limit-s``, ``--cpu-budget-s``).
 
-The budget is CPU seconds (a shared machine's load does not stretch them as it does wall time)
-and, where a command promises a wall-clock limit, a wall-clock instant as well; whichever comes
-first ends the selection (:func:`metrology.diagnosis.engine.run_diagnosis`).
+There is no default limit: without one, a selection ends only by its own rules (the criterion,
+the fits' evaluation counts and tolerances, the screening by score), so the same file and options
+give the same names and parameters on an idle machine, beside another job or on a slower CPU.
+A limit is opt-in and load-dependent by nature: where it ends anything (a round of candidates, a
+fit under way, the backward pass, a rerun), :class:`Deadline` records it (``hit``) and the
+diagnosis says INCOMPLETE and lists the candidates it did not try
+(:meth:`~metrology.diagnosis.result.Diagnosis.to_dict`); ``doe diagnose`` then exits with
+:data:`~metrology.cli.diagnose.EXIT_INCOMPLETE`. Nothing forecasts what the time left could pay: a
+step either runs to its end or the limit cuts it.
+
+CPU seconds are this process's (its worker threads included) and its finished children's.
 """
 
 from __future__ import annotations
 
 import resource
 import time
-from dataclasses import dataclass
 
 __all__ = ["Deadline", "FitStop", "cpu_seconds"]
 
@@ -20,43 +27,40 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-@dataclass(frozen=True)
 class Deadline:
-    """Where a diagnosis's time ends: a CPU-clock instant (:func:`cpu_seconds`) and a wall-clock
-    one (``time.monotonic``), either None for no limit."""
+    """Where a user's limit ends a diagnosis: a CPU-clock instant (:func:`cpu_seconds`) and a
+    wall-clock one (``time.monotonic``), either None for none (the default: no limit at all).
 
-    cpu: float | None = None
-    wall: float | None = None
+    Attributes
+    ----------
+    cpu, wall : float or None
+    hit : str or None
+        ``"cpu"`` or ``"wall"`` once :meth:`past` found that limit passed (it then stays set): the
+        diagnosis it was asked for is incomplete.
+    """
+
+    def __init__(self, cpu: float | None = None, wall: float | None = None):
+        self.cpu, self.wall, self.hit = cpu, wall, None
 
     @classmethod
-    def after(cls, cpu_budget_s: float | None, wall: float | None = None) -> Deadline:
-        """``cpu_budget_s`` CPU seconds from now (None: no CPU limit), and the wall instant ``wall``."""
-        return cls(None if cpu_budget_s is None else cpu_seconds() + float(cpu_budget_s), wall)
+    def after(cls, cpu_budget_s: float | None = None, wall_limit_s: float | None = None) -> Deadline:
+        """``cpu_budget_s`` CPU seconds and ``wall_limit_s`` wall seconds from now (None: no such limit)."""
+        return cls(None if cpu_budget_s is None else cpu_seconds() + float(cpu_budget_s),
+                   None if wall_limit_s is None else time.monotonic() + float(wall_limit_s))
+
+    @property
+    def active(self) -> bool:
+        """Whether any limit was asked for."""
+        return self.cpu is not None or self.wall is not None
 
     def past(self) -> bool:
-        return ((self.cpu is not None and cpu_seconds() > self.cpu)
-                or (self.wall is not None and time.monotonic() > self.wall))
-
-    def affords(self, cpu_s: float, wall_s: float) -> bool:
-        """Whether ``cpu_s`` more CPU seconds and ``wall_s`` more wall seconds end before it."""
-        return self.refuses(cpu_s, wall_s) is None
-
-    def refuses(self, cpu_s: float, wall_s: float) -> str | None:
-        """Which limit ``cpu_s`` more CPU seconds or ``wall_s`` more wall seconds would pass:
-        ``"cpu"`` (the budget, asked first), ``"wall"``, or None where both can pay."""
-        if self.cpu is not None and cpu_seconds() + cpu_s > self.cpu:
-            return "cpu"
-        return "wall" if self.wall is not None and time.monotonic() + wall_s > self.wall else None
-
-    def spent_by(self) -> str | None:
-        """Which limit is past: ``"cpu"`` (the budget), ``"wall"`` (the wall clock) or None."""
-        if self.cpu is not None and cpu_seconds() > self.cpu:
-            return "cpu"
-        return "wall" if self.wall is not None and time.monotonic() > self.wall else None
-
-    def cpu_left(self) -> float | None:
-        """CPU seconds left (never negative); None without a CPU limit."""
-        return None if self.cpu is None else max(self.cpu - cpu_seconds(), 0.0)
+        """Whether a limit is passed (recorded in :attr:`hit`); always False without a limit."""
+        if self.hit is None:
+            if self.cpu is not None and cpu_seconds() > self.cpu:
+                self.hit = "cpu"
+            elif self.wall is not None and time.monotonic() > self.wall:
+                self.hit = "wall"
+        return self.hit is not None
 
 
 class FitStop:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -27,6 +26,7 @@ import scipy.ndimage as ndi
 from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
+from doedesign.progress import Progress
 from masks.process import design_centre, etch_key, mask_motion, surface_key, without_motion
 from metrology.diagnosis import budget as clock
 from metrology.diagnosis import engine as dg
@@ -66,9 +66,6 @@ RERUN_SHARE = 0.005
 # The instrument stage runs again once the fabrication effects named have brought the residual's
 # energy below this share of what it saw (:func:`diagnose_camera`): they dominated it.
 RESTAGE_SHARE = 0.5
-# A restart's time over the diagnosis's up to its first stage's end plus the pass's so far: it runs the
-# stage again and refits what is named (:func:`~metrology.diagnosis.engine.run_diagnosis`'s ``carried``).
-RESTAGE_COST = 1.25
 # Effects the camera model already holds (the blur is part of its kernel).
 SUBSUMED = ("instrument_blur",)
 
@@ -415,8 +412,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     threshold: float = dg.DEFAULT_THRESHOLD, max_steps: int = 6, window_px: int = 160,
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
                     screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None,
-                    cpu_budget_s: float | None = None, batwing: Sequence[float] | None = None,
-                    wall_deadline: float | None = None) -> dg.Diagnosis:
+                    limit: clock.Deadline | None = None,
+                    batwing: Sequence[float] | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -443,11 +440,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         once they hold most of the residual, the selection going on through a family that grew).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
-    cpu_budget_s, wall_deadline : float, optional
-        CPU seconds (workers included) for the selection, and a ``time.monotonic()`` instant: at
-        whichever comes first no further round or revision starts, and one under way stops
-        (:func:`~metrology.diagnosis.engine.run_diagnosis`). A rerun on re-admitted pixels or a restart
-        that what is left cannot pay is not started; a rerun cut short leaves the previous pass.
+    limit : Deadline, optional
+        A limit the user asked for (default none: every pass runs to its end). Past it no further
+        round or revision starts and one under way stops
+        (:func:`~metrology.diagnosis.engine.run_diagnosis`); a rerun on re-admitted pixels it cuts
+        short leaves the previous pass. Either way the diagnosis is incomplete.
 
     Returns
     -------
@@ -457,9 +454,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     from masks.process import ProcessParams
 
     # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
-    with threadpool_limits(limits=1, user_api="blas"):
-        cpu0, wall0 = clock.cpu_seconds(), time.monotonic()
-        deadline = clock.Deadline.after(cpu_budget_s, wall_deadline)
+    with threadpool_limits(limits=1, user_api="blas"), Progress(3, desc="camera diagnosis") as bar:
+        deadline = limit if limit is not None else clock.Deadline()
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)
@@ -507,30 +503,21 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 floor = min(noise, again, key=lambda e: e.sigma)
             return chosen, fitted, changes, floor
 
-        stage_cost = 0.0, 0.0
         if transfer is None:
+            bar.stage("instrument stage: the lateral transfer's family")
             extras, prior, instrument_stage, noise = stage()
-            stage_cost = clock.cpu_seconds() - cpu0, time.monotonic() - wall0
+        bar.update(1)
         done, carried = None, ()  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
-        skipped_restage = None  # the budget left when the stage was not run again for want of it
 
         def restage(model, steps):
-            nonlocal restaged, skipped_restage
+            nonlocal restaged
             # A large fabrication effect (a 0.4 um bias) hid the instrument's edge profile from the
             # stage: once the named ones hold most of what it saw, it runs again with them, and if it
             # now chooses the objective or the batwing, the selection goes on through them.
             fab = {k: v for k, v in model.items() if k in effects_by_name and effects_by_name[k].kind != "artefact"}
             if (restaged or not fab or all(extras.values())
                     or steps[-1].residual_rms_after ** 2 > RESTAGE_SHARE * steps[0].residual_rms_before ** 2):
-                return
-            # A budget that cannot pay a restart keeps its family (asked first: the screen costs a field's residual).
-            # A restart repeats the stage and the refits of this pass so far, not its screening.
-            cost = [RESTAGE_COST * (first + now - then) for first, now, then in
-                    zip(stage_cost, (clock.cpu_seconds(), time.monotonic()), pass0)]
-            if not deadline.affords(*cost):
-                log.info("instrument stage not run again: %s CPU s of the budget left", deadline.cpu_left())
-                restaged, skipped_restage = True, round(deadline.cpu_left() or 0.0, 1)
                 return
             # Nor where what they leave holds no edge profile shared by every mask that would pay for
             # one parameter: a screen, not a bound (the family's refit earned -1082, the profile -472).
@@ -547,26 +534,27 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 log.info("instrument stage again, with %s in the model: %s", sorted(fab), again[0])
                 raise _Restage(again, steps)
 
-        for _ in range(4):
+        for k in range(4):
+            bar.stage(f"selection, pass {k + 1}" + (f" (carried: {', '.join(s.effect for s in carried)})"
+                                                    if carried else "" if k == 0 else " (re-admitted pixels)"))
             problem, fit = make(keep, **extras)
             # The criterion alone decides: the floor is good to ~5 %, and a gradient of a few tenths
             # of a nanometre still earns its parameters after the residual has reached it.
-            pass0 = clock.cpu_seconds(), time.monotonic()
             try:
                 diag = dg.run_diagnosis(fit, threshold=threshold, max_steps=max_steps, domain="height",
                                         quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
-                                        cpu_budget_s=deadline.cpu_left(), wall_deadline=deadline.wall,
-                                        after_step=restage, carried=carried)
+                                        limit=deadline, after_step=restage, carried=carried)
             except _Restage as again:
                 (extras, prior, instrument_stage, noise), carried = again.args
                 diag = None
                 continue
             carried = ()  # a rerun on re-admitted pixels selects afresh
             if diag.stopped_early is not None:
-                if done is not None:  # a rerun cut short: the last finished selection stands
+                if done is not None:  # a rerun cut short: the last finished selection stands, incomplete
                     cut, (problem, fit, keep, diag) = diag.stopped_early, done
-                    diag.stopped_early = dict(cut, budget_cpu_s=cpu_budget_s, reason="time budget: the rerun on "
-                                              "re-admitted pixels was cut short; the previous pass stands",
+                    diag.tested = [c for c in diag.tested if c in diag.named]
+                    diag.stopped_early = dict(cut, reason="time limit: the rerun on re-admitted pixels was cut "
+                                              "short; the previous pass stands", untried=diag.untried,
                                               final_over_floor=diag.final_residual_rms / diag.noise_floor)
                 break
             done = (problem, fit, keep, diag)
@@ -575,14 +563,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                     - levelling_plane(r, problem.keep, problem.curvature), np.isfinite(crop))
             if np.count_nonzero(new_keep != keep) <= RERUN_SHARE * keep.size:
                 break
-            # A rerun is a whole selection again: one the budget left cannot pay is not started.
-            if (why := deadline.refuses(clock.cpu_seconds() - pass0[0], time.monotonic() - pass0[1])) is not None:
-                diag.stopped_early = dict(reason="time budget: the rerun on re-admitted pixels was not started "
-                                          "(it costs about a pass); this pass stands", budget_cpu_s=cpu_budget_s,
-                                          cpu_s=clock.cpu_seconds() - cpu0, limit=why,
-                                          final_over_floor=diag.final_residual_rms / diag.noise_floor)
-                break
             keep = new_keep
+        bar.update(1, "uncertainties")
         diag.map_step_m = problem.pixel_m
         if fit is not problem:
             # What the user reads is the whole window's (the counts stay the fitted tiles').
@@ -593,8 +575,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
             diag.placement["instrument"]["criterion_change"] = instrument_stage
-        if skipped_restage is not None:
-            diag.placement["instrument"]["stage_not_rerun_budget_left_cpu_s"] = skipped_restage
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
+        bar.update(1, ", ".join(diag.named) or "nothing named")
         return diag

@@ -15,6 +15,7 @@ from metrology.matching.transfer import LateralTransfer
 
 if TYPE_CHECKING:
     from doedesign.design import Design
+    from metrology.diagnosis.budget import Deadline
     from metrology.formats.measurement import Measurement
     from metrology.matching.compare import Comparison
 
@@ -25,9 +26,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
                                 candidates: Sequence[str] | None = None, threshold: float = dg.DEFAULT_THRESHOLD,
                                 window_px: int = 160, source: str = "measurement", force: bool = False,
                                 comparison: Comparison | None = None,
-                                transfer: LateralTransfer | None = None, cpu_budget_s: float | None = None,
-                                batwing: Sequence[float] | None = None,
-                                wall_deadline: float | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
+                                transfer: LateralTransfer | None = None, batwing: Sequence[float] | None = None,
+                                limit: Deadline | None = None) -> tuple[dg.Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement in the camera's frame (``doe diagnose --frame camera``
     and ``doe demo``): the comparison's registration starts the placement, the data stay as read.
 
@@ -51,8 +51,8 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         design, if already made (its camera-frame placement starts the fit).
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
-    cpu_budget_s, batwing, wall_deadline
-        As for :func:`diagnose_camera`.
+    batwing, limit
+        As for :func:`diagnose_camera` (no limit by default).
 
     Returns
     -------
@@ -61,6 +61,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         excluded pixels, registration correlation, nominal depths, match).
     """
     from doedesign.levels import design_levels
+    from doedesign.progress import Progress
     from masks.decompose import process_depths_m
     from metrology.matching.compare import compare_measurement
 
@@ -68,17 +69,20 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         raise DoeError(f"--window-px must be at least 16, got {window_px}")
     comp = comparison
     if comp is None:
-        try:
-            comp = compare_measurement(measurement, design, force=force, transfer=transfer)
-        except DoeError as exc:
-            raise DoeError(f"{source}: {exc}") from None
+        with Progress(1, desc="doe diagnose: comparison") as bar:
+            bar.stage("registration, levelling, the instrument's fit on the whole field")
+            try:
+                comp = compare_measurement(measurement, design, force=force, transfer=transfer)
+            except DoeError as exc:
+                raise DoeError(f"{source}: {exc}") from None
+            bar.update(1, "done")
     depths = process_depths_m(design, depths_m, source)
     # The comparison's placement was refined in the camera's frame (same measurement model).
     fit = comp.instrument_fit
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
                            screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
-                           cpu_budget_s=cpu_budget_s, batwing=batwing, wall_deadline=wall_deadline)
+                           batwing=batwing, limit=limit)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

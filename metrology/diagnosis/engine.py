@@ -19,8 +19,9 @@ Method
    measurement artefact is preferred among them. A backward pass then swaps or drops named
    effects that the final model no longer needs (forward-backward stepwise selection).
    A residual shift of the whole pattern (registration) is fitted in every height model.
-   An optional budget of CPU seconds, and a wall-clock deadline, end the selection early, and
-   the diagnosis says so.
+   Nothing else stops it: no default time limit or CPU budget decides what is tried or named.
+   A limit the user asks for (:class:`~metrology.diagnosis.budget.Deadline`) ends it where it is,
+   and the diagnosis says INCOMPLETE (:mod:`~metrology.diagnosis.result`).
 5. Parameter uncertainties: ``cov = s^2 (J^T J)^-1 A`` with ``J`` the Jacobian at the optimum
    (the fits and their uncertainties: :mod:`metrology.diagnosis.fitting`).
 
@@ -32,10 +33,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
-
 import numpy as np
 
 from doedesign.progress import Progress
@@ -45,6 +42,7 @@ from metrology.diagnosis.fitting import JAC_STEP, bic_eff, fit_effects, standard
 from metrology.diagnosis.parallel import WORKERS, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
+from metrology.diagnosis.result import Diagnosis, Step
 from metrology.diagnosis.revision import refit_kept, revise
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
@@ -85,142 +83,6 @@ MIN_POWER_SHARE = 0.05
 # and within which the backward pass tries it in the named one's place (one fit at the end): a true
 # gradient on a 512 px point field screened 3.3 % behind the loading named, and replaces it there.
 CLOSE_SHARE, ALTERNATIVE_SHARE = 0.02, 0.1
-
-
-# -- the generic fitting loop ------------------------------------------------------------------
-@dataclass
-class Step:
-    """One named effect of a diagnosis."""
-
-    effect: str
-    kind: str
-    description: str
-    params: dict
-    uncertainties: dict
-    units: dict
-    residual_rms_before: float
-    residual_rms_after: float
-    criterion_change: float
-    candidates: dict
-    ambiguous_with: list = field(default_factory=list)
-    revised: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"effect": self.effect, "kind": self.kind, "description": self.description,
-                "measurement_artefact": self.kind == "artefact",
-                "params": self.params, "uncertainties": self.uncertainties, "units": self.units,
-                "residual_rms_before": self.residual_rms_before, "residual_rms_after": self.residual_rms_after,
-                "criterion_change": self.criterion_change, "candidates": self.candidates,
-                "ambiguous_with": self.ambiguous_with, "revised": self.revised}
-
-
-@dataclass
-class Diagnosis:
-    """Result of :func:`diagnose_heights` or :func:`diagnose_psf`.
-
-    Attributes
-    ----------
-    domain : {"height", "psf"}
-    steps : list of Step
-        Named effects in the order found, each with the parameters of the final joint fit.
-    model : dict
-        Effect name -> fitted parameter values (final joint fit).
-    noise_floor : float
-    initial_residual_rms, final_residual_rms : float
-    unexplained : bool
-        Whether a significant structured residual remains (binned residual model earns its
-        parameters under the same criterion).
-    unexplained_where : dict or None
-        When ``unexplained``: where the residual departs from the noise (which mask's edges,
-        levels, part of the field, spatial frequencies; :func:`~metrology.diagnosis.locate.locate_residual`).
-    partial_matches : list of dict
-        Fabrication effects the loop chose that explain only part of a residual they overlap
-        (the residual on their own footprint stays above the floor): not named, listed here.
-    breakdown_initial, breakdown_final : dict
-        Residual broken down by what may explain it (see :func:`residual_breakdown`).
-    residual_maps : list of ndarray
-        Residual map before the first step and after each step (row 0 at the top).
-    stopped_early : dict or None
-        Why the selection stopped before the criterion did (``reason``, with the residual over
-        the noise floor and the CPU seconds spent): the time budget was spent.
-    below_resolution : dict or None
-        The candidate that earned its parameters but would explain under
-        :data:`MIN_POWER_SHARE` of the floor's power (``effect``, ``criterion_change``,
-        ``floor_power_share``): not named, and the selection ended there.
-    """
-
-    domain: str
-    steps: list
-    model: dict
-    noise_floor: float
-    corr_area_px: float
-    n_samples: int
-    n_eff: float
-    initial_residual_rms: float
-    final_residual_rms: float
-    unexplained: bool
-    structure_criterion: float
-    units: str
-    breakdown_initial: dict = field(default_factory=dict)
-    breakdown_final: dict = field(default_factory=dict)
-    residual_maps: list = field(default_factory=list)
-    map_step_m: float | None = None
-    unexplained_where: dict | None = None
-    partial_matches: list = field(default_factory=list)
-    stopped_early: dict | None = None
-    below_resolution: dict | None = None
-
-    @property
-    def named(self) -> list[str]:
-        """Names of the effects found, in order."""
-        return [s.effect for s in self.steps]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"domain": self.domain, "units": self.units,
-                "steps": [s.to_dict() for s in self.steps],
-                "effects_found": self.named,
-                "measurement_artefacts": [s.effect for s in self.steps if s.kind == "artefact"],
-                "model": {k: np.asarray(v).tolist() for k, v in self.model.items()},
-                "noise_floor": self.noise_floor, "corr_area_px": self.corr_area_px,
-                "n_samples": self.n_samples, "n_eff": self.n_eff,
-                "initial_residual_rms": self.initial_residual_rms,
-                "final_residual_rms": self.final_residual_rms,
-                "unexplained": self.unexplained, "structure_criterion": self.structure_criterion,
-                "unexplained_where": self.unexplained_where, "partial_matches": self.partial_matches,
-                "stopped_early": self.stopped_early, "below_resolution": self.below_resolution,
-                "breakdown_initial": self.breakdown_initial, "breakdown_final": self.breakdown_final}
-    def plot(self, out_dir: str | Path) -> list[Path]:
-        """Write ``residual_steps.png`` (residual map before and after each step) and
-        ``breakdown.png`` (residual by edge distance, level, density, position, frequency).
-
-        Returns
-        -------
-        list of Path
-        """
-        from metrology.diagnosis.plots import plot_breakdown, plot_steps
-
-        if len(self.residual_maps) == len(self.steps) + 1:
-            titles = ["ideal model"] + [f"+ {s.effect}" for s in self.steps]
-            rms = [self.initial_residual_rms] + [s.residual_rms_after for s in self.steps]
-        else:  # the backward pass revised the steps: show the ideal and the final model
-            titles = ["ideal model", "final: " + ", ".join(self.named)]
-            rms = [self.initial_residual_rms, self.final_residual_rms]
-        return [plot_steps(self.residual_maps, titles, rms, self.domain, Path(out_dir) / "residual_steps.png"),
-                plot_breakdown(self.breakdown_initial, self.breakdown_final, self.domain,
-                               Path(out_dir) / "breakdown.png")]
-
-    def save(self, out_dir: str | Path, inputs: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Write the figures (:meth:`plot`), ``report.json`` (:meth:`to_dict` with ``inputs``
-        and ``plots``) and the page a person reads, ``report.md``, into ``out_dir``; return the report."""
-        from doedesign.fileio import json_ready, write_json
-        from metrology.report_pages import diagnose_page
-
-        report = self.to_dict()
-        report["inputs"] = dict(inputs or {})
-        report["plots"] = [p.name for p in self.plot(out_dir)]
-        write_json(Path(out_dir) / "report.json", report)
-        diagnose_page(json_ready(report), Path(out_dir))
-        return report
 
 
 def _screen_one(rd, name):
@@ -310,19 +172,17 @@ def _step(problem, name, r_before, r_after, change, scores, ambiguous):
                 candidates={k: float(v) for k, v in scores.items()}, ambiguous_with=ambiguous)
 
 
-def _cut_short(budget_s, what, candidates):
-    """``stopped_early`` of a selection whose round the budget cut short in ``what``."""
-    log.info("diagnosis stopped: time budget spent in %s of %s", what, candidates)
-    return {"reason": f"time budget: the round was cut short in {what} of {', '.join(sorted(candidates))} "
-                      "(best so far), and nothing is named from it", "budget_cpu_s": budget_s,
-            "cut_short": sorted(candidates)}
+def _cut_short(what, candidates):
+    """``stopped_early`` of a selection whose round the user's limit cut short in ``what``."""
+    log.info("diagnosis stopped: the time limit ended %s of %s", what, candidates)
+    return {"reason": f"time limit: the round was cut short in {what} of {', '.join(sorted(candidates))} "
+                      "(best so far), and nothing is named from it", "cut_short": sorted(candidates)}
 
 
 def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6, domain: str = "height",
                   candidates: Sequence[str] | None = None, screen_iter: int = SCREEN_ITER,
                   stop_at_floor: bool = True, quick_screen: bool = False,
-                  prior: dict[str, np.ndarray] | None = None, cpu_budget_s: float | None = None,
-                  wall_deadline: float | None = None,
+                  prior: dict[str, np.ndarray] | None = None, limit: Deadline | None = None,
                   after_step: Callable[[dict[str, np.ndarray], list[Step]], None] | None = None,
                   carried: Sequence[Step] = ()) -> Diagnosis:
     """The greedy model-building loop on a prepared problem (see the module docstring).
@@ -355,15 +215,11 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         A model of the same data from an earlier pass (e.g. before the robust rule re-admitted
         pixels, or the instrument stage's joint fit): the nuisances and each candidate start
         from its values instead of the null ones. The selection itself is made afresh.
-    cpu_budget_s : float, optional
-        CPU seconds (:func:`~metrology.diagnosis.budget.cpu_seconds`, workers included) the
-        selection may spend: past them no further round of candidates and no further revision
-        starts, a round or revision under way stops at its fit's next evaluation and names nothing
-        from it, and the diagnosis says so (``stopped_early``). Default: no budget (the criterion
-        alone stops).
-    wall_deadline : float, optional
-        A ``time.monotonic()`` instant that ends the selection as the budget does (a command's
-        wall-clock limit); default none.
+    limit : Deadline, optional
+        A limit the user asked for (default none: the criterion alone stops): past it no further
+        round of candidates and no further revision starts, a round or revision under way stops at
+        its fit's next evaluation and names nothing from it, and the diagnosis is incomplete
+        (``stopped_early``, with the candidates not tried).
     after_step : callable, optional
         Called with the model (nuisances included) and the steps so far after each named step;
         a caller that learns from it that the problem itself must change (the camera's
@@ -379,11 +235,13 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     Diagnosis
     """
     cpu0 = clock.cpu_seconds()
-    deadline = Deadline.after(cpu_budget_s, wall_deadline)
+    deadline = limit if limit is not None else Deadline()
     stopped = small = None
     nuisance = list(getattr(problem, "nuisance", {}))
     screen = getattr(problem, "screening", None) or problem
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
+    tested = []  # the candidates the round that ended the selection by the criterion scored
+    entered = set()  # every candidate the selection named at some point (revised or withheld later)
     model = {}
     if nuisance:
         model, _, _ = fit_effects(problem, {n: (prior or {}).get(n, problem.effects[n].start_values())
@@ -425,8 +283,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         start = {**model, old.effect: (prior or {}).get(old.effect, problem.effects[old.effect].start_values())}
         fitted, rss_new, errs = _converge(problem, screen, start, free, budget)
         if budget.fired:
-            stopped = _cut_short(cpu_budget_s, "its refit (carried from before the instrument stage ran again)",
-                                 [old.effect])
+            stopped = _cut_short("its refit (carried from before the instrument stage ran again)", [old.effect])
             break
         new_crit = bic_eff(rss_new, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
         share = _power_share(problem, r, rss_new)
@@ -435,6 +292,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             break
         model, errors = fitted, errs
         r_new = problem.residual(model)
+        entered.add(old.effect)
         steps.append(_step(problem, old.effect, r, r_new, new_crit - crit, old.candidates, list(old.ambiguous_with)))
         alternatives[old.effect] = [c for c in _close(old.candidates, old.effect, threshold, ALTERNATIVE_SHARE)
                                     if c != old.effect]
@@ -446,8 +304,8 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         if not pending:
             break
         if deadline.past():
-            stopped = {"reason": "time budget: no further candidates were tried", "budget_cpu_s": cpu_budget_s}
-            log.info("diagnosis stopped: time budget spent after %d step(s)", len(steps))
+            stopped = {"reason": "time limit: no further candidates were tried"}
+            log.info("diagnosis stopped: the time limit was reached after %d step(s)", len(steps))
             break
         scores = {}
         fits = {}
@@ -484,9 +342,10 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         best = min(scores, key=scores.get)
         log.info("candidates: %s", {k: round(v, 1) for k, v in sorted(scores.items(), key=lambda kv: kv[1])})
         if budget.fired:
-            stopped = _cut_short(cpu_budget_s, "its screening", [best])
+            stopped = _cut_short("its screening", [best])
             break
         if scores[best] > -threshold:
+            tested = list(scores)
             break
         # Candidates close to the best are fitted to convergence and compared again; those
         # within the threshold of the best cannot be told apart by the data. Among them a
@@ -498,16 +357,18 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
             refits[c] = _converge(problem, screen, fits[c], list(model) + [c], budget)
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         if budget.fired:
-            stopped = _cut_short(cpu_budget_s, "its fit to convergence", close)
+            stopped = _cut_short("its fit to convergence", close)
             break
         best = min(close, key=scores.get)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
+            tested = list(scores)
             break
         share = _power_share(problem, r, refits[best][1])
         if share < MIN_POWER_SHARE:
             small = {"effect": best, "criterion_change": float(scores[best]), "floor_power_share": share}
             log.info("%s would explain %.2f %% of the floor's power: below the model's resolution, not named",
                      best, 100 * share)
+            tested = list(scores)
             break
         tied = [c for c in close if scores[c] <= scores[best] + threshold]
         artefacts = [c for c in tied if problem.effects[c].kind == "artefact"]
@@ -518,13 +379,14 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         model, rss_new, errors = refits[best]
         new_crit = bic_eff(rss_new, n, n_eff, k_now + problem.effects[best].n_params)
         r_new = problem.residual(model)
+        entered.add(best)
         steps.append(_step(problem, best, r, r_new, new_crit - crit, scores, ambiguous))
         maps.append(problem.residual_map(model))
         r, crit = r_new, new_crit
         if after_step is not None:
             after_step(model, steps)
-    if stopped is not None:
-        stopped["limit"] = deadline.spent_by()  # which of them: "cpu" (the budget) or "wall"
+    if stopped is None and early is None and _rms(r) <= problem.noise.sigma and stop_at_floor:
+        tested = list(names)  # at the floor: nothing is left for any candidate to explain
     if steps:
         model, errors, crit = revise(problem, model, errors, steps, alternatives, nuisance, n, n_eff, threshold,
                                       deadline)
@@ -590,11 +452,17 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                                 "the instrument's lateral transfer, which its model's family (pixel fill factor, "
                                 "Gaussian blur, NA-limited objective, batwing) cannot close; no fabrication "
                                 "effect is named")
+    if stopped is None and deadline.hit is not None:  # the limit ended the backward pass or a refit
+        stopped = {"reason": "time limit: the selection finished, but the revision or refit after it was cut short"}
+    if stopped is not None:
+        tested = []  # an incomplete diagnosis tested only what it named
+        stopped = dict(stopped, limit=deadline.hit, untried=[c for c in names if c not in model and c not in entered],
+                       final_over_floor=_rms(r) / problem.noise.sigma, cpu_s=clock.cpu_seconds() - cpu0)
+    tested = [c for c in names if c in tested or c in model or c in entered]
     return Diagnosis(domain=domain, steps=steps, model=model, noise_floor=problem.noise.sigma,
                      corr_area_px=problem.noise.corr_area_px, n_samples=n, n_eff=n_eff,
                      initial_residual_rms=initial_rms, final_residual_rms=_rms(r),
                      unexplained=unexplained, structure_criterion=struct, units=problem.units,
                      breakdown_initial=breakdown_initial, breakdown_final=breakdown_final,
                      residual_maps=maps, unexplained_where=where, partial_matches=partial, below_resolution=small,
-                     stopped_early=None if stopped is None else dict(
-                         stopped, final_over_floor=_rms(r) / problem.noise.sigma, cpu_s=clock.cpu_seconds() - cpu0))
+                     stopped_early=stopped, candidates=names, tested=tested)

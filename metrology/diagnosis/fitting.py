@@ -16,7 +16,7 @@ evaluations 0.5 % above the cost ``trf`` reached in 8.
 
 Tolerances are in the information criterion's units, which decide: a fit ends where a step
 lowers the criterion by less than :data:`CRITERION_TOL`, or :data:`CRAWL_STEPS` steps together by
-less than :data:`CRAWL_TOL`. A diagnosis's time budget (``stop``) ends one under way.
+less than :data:`CRAWL_TOL`. A limit the user asked for (``stop``) ends one under way.
 """
 
 from __future__ import annotations
@@ -94,8 +94,8 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
         Central differences (else forward ones: half the evaluations, for a short screening fit
         whose score is conservative anyway); default ``problem.kinks``.
     stop : callable, optional
-        Asked before each evaluation and each Jacobian once the start is evaluated (a diagnosis's
-        spent time budget): when it says true, the fit ends at its best evaluation so far, its
+        Asked before each evaluation and each Jacobian once the start is evaluated (a limit the
+        user asked for, spent): when it says true, the fit ends at its best evaluation so far, its
         standard errors NaN.
     precise : bool
         A measurement's fit (an instrument's calibration, then held in every diagnosis): a

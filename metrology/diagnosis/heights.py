@@ -22,6 +22,7 @@ from metrology.matching.window import busiest_window
 if TYPE_CHECKING:
     from doedesign.design import Design
     from masks.process_params import ProcessParams
+    from metrology.diagnosis.budget import Deadline
     from metrology.diagnosis.engine import Diagnosis
     from metrology.formats.measurement import Measurement
 
@@ -188,7 +189,7 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
                      region: tuple[int, int, int, int] | None = None, region_px: int = 40,
                      depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                      threshold: float = DEFAULT_THRESHOLD, max_steps: int = 6,
-                     stop_at_floor: bool = True, cpu_budget_s: float | None = None) -> Diagnosis:
+                     stop_at_floor: bool = True, limit: Deadline | None = None) -> Diagnosis:
     """Find, name and fit the effects that explain a measured height map.
 
     Parameters
@@ -217,8 +218,8 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
     max_steps : int
     stop_at_floor : bool
         Stop when the residual reaches the noise floor (default) or only on the criterion.
-    cpu_budget_s : float, optional
-        CPU seconds the selection may spend (:func:`~metrology.diagnosis.engine.run_diagnosis`).
+    limit : Deadline, optional
+        A limit the user asked for (:func:`~metrology.diagnosis.engine.run_diagnosis`; default none).
 
     Returns
     -------
@@ -245,7 +246,7 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
     problem = HeightProblem(levels, pitch_m, meas, step_m, window, base,
                             effects_for("height", candidates, n_masks=base.n_masks))
     diag = run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="height",
-                         stop_at_floor=stop_at_floor, cpu_budget_s=cpu_budget_s)
+                         stop_at_floor=stop_at_floor, limit=limit)
     diag.map_step_m = problem.step_m
     return diag
 
@@ -253,7 +254,7 @@ def diagnose_heights(design_levels: np.ndarray, pitch_m: float, measured_height_
 def diagnose_measurement(design: Design, measurement: Measurement, region_px: int = 40, upsample: int = 5,
                          depths_m: Sequence[float] | None = None, candidates: Sequence[str] | None = None,
                          threshold: float = DEFAULT_THRESHOLD, source: str = "measurement",
-                         force: bool = False) -> tuple[Diagnosis, dict[str, Any]]:
+                         force: bool = False, limit: Deadline | None = None) -> tuple[Diagnosis, dict[str, Any]]:
     """Diagnose a profilometer measurement of a design: prepare, register, choose the window.
 
     The comparison's preparation (despiked, levelled jointly on the registered levels,
@@ -277,6 +278,8 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
         Name of the measurement in error messages (its file).
     force : bool
         Diagnose even when the field does not show the design (see :mod:`metrology.matching.match`).
+    limit : Deadline, optional
+        A limit the user asked for (:func:`diagnose_heights`; default none).
 
     Returns
     -------
@@ -311,7 +314,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
     depths = process_depths_m(design, depths_m, source)
     diag = diagnose_heights(design_levels(design), design.pitch_m, fine, design.pitch_m / upsample,
                             region=region, region_px=size, depths_m=depths, candidates=candidates,
-                            threshold=threshold)
+                            threshold=threshold, limit=limit)
     return diag, {"region_design_px": list(region), "upsample": upsample,
                   "registration_ncc": getattr(reg, "match_ncc", None), "nominal_depths_m": depths,
                   "match": comp.match}

@@ -38,7 +38,7 @@ PARTIAL_MIN_PX = 50
 # footprint's excess power over the floor. An effect beside another it does not model leaves the
 # rest of that one: a depth error fitted to a depth nonlinearity explains 94.6 % (1.62x the floor
 # on its footprint). A real effect beside pixels its pass left out explains nearly all: a 0.5 um
-# CSI overlay whose rerun on re-admitted pixels the time budget did not pay, 99.9 % (1.33x); it
+# CSI overlay whose rerun on re-admitted pixels a time limit cut short, 99.9 % (1.33x); it
 # was withheld and the report stood at 11x the floor.
 PARTIAL_EXPLAINED = 0.99
 _TILE_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),

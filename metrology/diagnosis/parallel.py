@@ -42,7 +42,7 @@ def in_worker() -> bool:
     return getattr(_local, "inside", False)
 
 
-def parallel_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int = WORKERS,
+def parallel_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int | None = None,
                  ordered: bool = True) -> Iterator[Any]:
     """Yield ``fn(item)`` for every item, computed in up to ``workers`` threads.
 
@@ -52,8 +52,9 @@ def parallel_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int = 
         Any callable (closures included); it must be safe to call from several threads at once
         on the objects it shares (the diagnosis's caches are locked).
     items : iterable
-    workers : int
-        1, or called from a worker, or a single item: computed here, in order.
+    workers : int, optional
+        Default :data:`WORKERS` (read at the call). 1, or called from a worker, or a single item:
+        computed here, in order. The results do not depend on it (each piece is computed alone).
     ordered : bool
         Yield in the items' order (else as they finish).
 
@@ -64,7 +65,7 @@ def parallel_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int = 
         others are not started).
     """
     items = list(items)
-    workers = min(int(workers), len(items))
+    workers = min(int(WORKERS if workers is None else workers), len(items))
     if workers <= 1 or in_worker():
         for item in items:
             yield fn(item)

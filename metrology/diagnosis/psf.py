@@ -26,6 +26,7 @@ from metrology.matching.window import window_sums
 
 if TYPE_CHECKING:
     from doedesign.camera import Camera
+    from metrology.diagnosis.budget import Deadline
     from doedesign.design import Design
     from doedesign.materials import Material
     from metrology.diagnosis.effects import Effect
@@ -325,7 +326,7 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
                  wavelengths_m: Sequence[float] | np.ndarray, views: Sequence[str] = ("coded",),
                  depth_m: float | None = None, candidates: Sequence[str] | None = None,
                  threshold: float = DEFAULT_THRESHOLD, max_steps: int = 5, doe_oversample: int = 1,
-                 device: str = "cpu") -> Diagnosis:
+                 device: str = "cpu", limit: Deadline | None = None) -> Diagnosis:
     """Find, name and fit the effects that explain a measured PSF stack.
 
     Parameters
@@ -346,6 +347,8 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
         Effects to try (default every registered PSF-domain effect).
     device : {"cpu", "gpu", "auto"}
         Where the model's PSFs are rendered (:mod:`doedesign.engine.backend`).
+    limit : Deadline, optional
+        A limit the user asked for (:func:`~metrology.diagnosis.engine.run_diagnosis`; default none).
 
     Returns
     -------
@@ -363,4 +366,4 @@ def diagnose_psf(design: Design, camera: Camera, measured_stack: np.ndarray,
     problem = PsfProblem(printed_height_m(design), design.pitch_m, camera, stack, views, wavelengths_m, depth,
                          effects_for("psf", candidates), material=design.material, doe_oversample=doe_oversample,
                          device=device)
-    return run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="psf")
+    return run_diagnosis(problem, threshold=threshold, max_steps=max_steps, domain="psf", limit=limit)

@@ -1,9 +1,8 @@
 """After the forward selection: the backward pass that swaps or drops named effects, and the refit
 of what stays once effects are withheld.
 
-Both run after the time the selection was given may be spent, so both stop at its deadline
-(:class:`~metrology.diagnosis.budget.Deadline`): a ``doe diagnose`` wall-clock limit holds by
-construction, with only the report's own work after it.
+Both stop at a limit the user asked for (:class:`~metrology.diagnosis.budget.Deadline`, which
+records that it ended them: the diagnosis is then incomplete); without one they run to their end.
 """
 
 from __future__ import annotations
@@ -80,9 +79,7 @@ def refit_kept(problem: Problem, kept: dict[str, np.ndarray], errors: dict[str, 
     """The model ``kept`` (what stays once effects are withheld) refitted, and its uncertainties.
 
     Past ``deadline`` the fit stops where it is (at once, if already past): the kept parameters
-    then stand as the joint fit left them, with that fit's uncertainties (``errors``). A withheld
-    partial match after a selection that spent its time took 5 s more of refit on a CSI field
-    (60.9 s against a 60 s limit).
+    then stand as the joint fit left them, with that fit's uncertainties (``errors``).
     """
     if not kept:
         return {}, {}

@@ -143,22 +143,26 @@ def test_compare_and_diagnose_pages_read_as_reports(tmp_path):
 
 
 def test_an_empty_diagnosis_claims_agreement_only_when_the_residual_is_noise(tmp_path):
-    """Nothing named at 17x the floor (a budget stop, partial matches dropped) is no agreement."""
+    """Nothing named at 17x the floor (a user's limit stopped it, partial matches dropped) is no agreement."""
     base = {"steps": [], "initial_residual_rms": 62e-9, "final_residual_rms": 62e-9, "noise_floor": 3.7e-9,
             "inputs": {"measured": "m.datx", "design": "d.npz"}}
     stuck = {**base, "unexplained": True, "partial_matches": [{"effect": "linewidth_bias"}],
              "unexplained_where": {"summary": "at the edges of mask 3"},
-             "stopped_early": {"reason": "time budget: no further candidates were tried", "final_over_floor": 17.0}}
+             "stopped_early": {"reason": "time limit: no further candidates were tried", "final_over_floor": 17.0,
+                               "limit": "wall"},
+             "summary": "INCOMPLETE: the limit asked for (--wall-limit-s) ended the diagnosis; not tried: etch_depth"}
     text = "\n".join(pages.diagnose_sections(stuck, tmp_path))
     assert "agrees with the ideal model" not in text and "does not agree with the ideal model" in text
-    assert "--cpu-budget-s" in text and "doe calibrate instrument" in text
+    assert "Rerun without `--wall-limit-s`" in text
+    # The summary's first line says INCOMPLETE, and what was not tried.
+    assert text.split("\n")[1].startswith("- INCOMPLETE:") and "not tried: etch_depth" in text.split("\n")[1]
     judged = {**stuck, "partial_matches": [{"effect": "etch_depth", "residual_on_footprint_over_floor": 1.62,
                                             "footprint_excess_explained": 0.946, "footprint_px": 900}]}
     text = "\n".join(pages.diagnose_sections(judged, tmp_path))
     assert "etch_depth (1.62x the floor there, 95 % of its excess explained)" in text
     quiet = {**base, "unexplained": False, "final_residual_rms": 3.6e-9}
     text = "\n".join(pages.diagnose_sections(quiet, tmp_path))
-    assert "agrees with the ideal model" in text and "--cpu-budget-s" not in text
+    assert "agrees with the ideal model" in text and "Rerun without" not in text
 
 
 def test_a_candidate_below_the_models_resolution_is_said_not_named(tmp_path):

@@ -1,18 +1,20 @@
-"""A camera diagnosis whose rerun on re-admitted pixels the CPU budget cuts short keeps the
-finished pass (it once reported nothing named at 17x the floor after naming the right effects),
-and a handful of re-admitted pixels does not start a rerun."""
+"""The rerun on re-admitted pixels: without a limit (the default) it always runs to its end, so
+whether it runs depends on the data alone; one that a user's limit cuts short keeps the finished
+pass, marked incomplete (it once reported nothing named at 17x the floor after naming the right
+effects); and a handful of re-admitted pixels does not start a rerun."""
 
 from dataclasses import replace
 
 import numpy as np
 
 import metrology.diagnosis.camera as cam
+from metrology.diagnosis.budget import Deadline
 from metrology.matching.instrument import Placement
 
 import filegen
 
 
-def _diagnose(monkeypatch, run, later_keep, budget=1e6):
+def _diagnose(monkeypatch, run, later_keep, limit=None):
     """The overlay case diagnosed with ``run`` in place of the selection and ``later_keep(first,
     keep)`` choosing the pixels the robust rule keeps after the first pass."""
     case = filegen.make_case(["mask_overlay"], 11, design_px=40, field_px=130)
@@ -28,36 +30,55 @@ def _diagnose(monkeypatch, run, later_keep, budget=1e6):
     monkeypatch.setattr(cam.dg, "run_diagnosis", run)
     monkeypatch.setattr(cam, "robust_valid", valid)
     return cam.diagnose_camera(case.levels, filegen.PITCH_M, case.height_m, placement,
-                               candidates=["mask_overlay", "etch_depth"], window_px=96, cpu_budget_s=budget)
+                               candidates=["mask_overlay", "etch_depth"], window_px=96, limit=limit)
 
 
 def _more_than_the_share(first, keep):
-    """More than RERUN_SHARE of the pixels dropped: the fit reruns."""
-    keep = keep.copy()
+    """The first pass's pixels with more than RERUN_SHARE of them dropped (the same ones every
+    time: the rerun's own rule then finds nothing more to change)."""
+    keep = first.copy()
     drop = np.argwhere(keep)[::50][:int(2 * cam.RERUN_SHARE * keep.size)]
     keep[tuple(drop.T)] = False
     return keep
 
 
-def test_a_rerun_cut_short_by_the_budget_leaves_the_finished_pass(monkeypatch):
+def test_a_rerun_cut_short_by_a_users_limit_leaves_the_finished_pass_marked_incomplete(monkeypatch):
     real_run = cam.dg.run_diagnosis
     runs = []
 
     def run(*args, **kw):
-        runs.append(kw.get("cpu_budget_s"))
+        runs.append(kw.get("limit"))
         diag = real_run(*args, **kw)
         if len(runs) == 1:
             return diag
-        # The second pass as a spent budget leaves it: stopped before its first round.
+        # The second pass as a spent limit leaves it: stopped before its first round.
         nuisance = {k: v for k, v in diag.model.items() if k == cam.CAMERA.name}
-        return replace(diag, steps=[], model=nuisance, stopped_early={
-            "reason": "time budget: no further candidates were tried", "budget_cpu_s": 0.0})
+        return replace(diag, steps=[], model=nuisance, tested=[], stopped_early={
+            "reason": "time limit: no further candidates were tried", "limit": "wall"})
+
+    limit = Deadline.after(wall_limit_s=1e6)
+    diag = _diagnose(monkeypatch, run, _more_than_the_share, limit)
+    assert len(runs) == 2 and runs[0] is limit  # the command's own limit, not a copy with less left
+    assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
+    assert "previous pass stands" in diag.stopped_early["reason"] and diag.incomplete
+    # What the finished pass named stands; what it found absent is not claimed.
+    assert diag.tested == ["mask_overlay"] and diag.untried == ["etch_depth"] == diag.stopped_early["untried"]
+    assert diag.to_dict()["summary"].startswith("INCOMPLETE")
+    assert diag.final_residual_rms < 1.3 * diag.noise_floor
+
+
+def test_without_a_limit_the_rerun_runs_to_its_end(monkeypatch):
+    real_run = cam.dg.run_diagnosis
+    runs = []
+
+    def run(*args, **kw):
+        runs.append(kw.get("limit"))
+        return real_run(*args, **kw)
 
     diag = _diagnose(monkeypatch, run, _more_than_the_share)
-    assert len(runs) == 2
+    assert len(runs) == 2 and not runs[0].active
     assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
-    assert "previous pass stands" in diag.stopped_early["reason"]
-    assert diag.stopped_early["budget_cpu_s"] == 1e6
+    assert not diag.incomplete and diag.tested == ["mask_overlay", "etch_depth"]
     assert diag.final_residual_rms < 1.3 * diag.noise_floor
 
 
@@ -77,25 +98,3 @@ def test_a_handful_of_readmitted_pixels_does_not_rerun_the_selection(monkeypatch
     diag = _diagnose(monkeypatch, run, three_dropped)
     assert len(runs) == 1
     assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
-
-
-def test_a_rerun_the_budget_left_cannot_pay_is_not_started(monkeypatch):
-    # A rerun is a whole selection again: with less of the budget left than the first pass took, it
-    # would only be cut short (a trenching case spent 41 CPU s so), so it does not start. The CPU
-    # clock is a fake one that each pass advances by 100 s: 150 s of budget leave 50.
-    real_run = cam.dg.run_diagnosis
-    clock = [0.0]
-    runs = []
-
-    def run(*args, **kw):
-        runs.append(kw.get("cpu_budget_s"))
-        diag = real_run(*args, **kw)
-        clock[0] += 100.0
-        return diag
-
-    monkeypatch.setattr(cam.clock, "cpu_seconds", lambda: clock[0])
-    diag = _diagnose(monkeypatch, run, _more_than_the_share, budget=150.0)
-    assert runs == [150.0]
-    assert "not started" in diag.stopped_early["reason"]
-    assert [s.effect for s in diag.steps if s.kind != "artefact"] == ["mask_overlay"]
-    assert diag.final_residual_rms < 1.3 * diag.noise_floor

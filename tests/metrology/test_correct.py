@@ -252,3 +252,47 @@ def test_the_demo_fab_follows_the_job_sheet():
     assert np.abs(nxt.linewidth_bias).max() < 1e-15
     assert nxt.etch_depth == pytest.approx(DEPTHS, rel=1e-12)
     assert hidden.mask_overlay[3, 0] == 0.4e-6  # the measured wafer's process is left as it was
+
+
+def test_a_field_that_did_not_test_an_effect_has_no_vote_on_it():
+    # Field c's diagnosis was not given mask_overlay as a candidate: it says nothing about it, and
+    # the overlay is the mean of the two that tested it (not dragged towards zero by a third).
+    named = [FieldDiagnosis(k, {"mask_overlay": {"dx_mask1_m": v}}, {"mask_overlay": {"dx_mask1_m": 1e-9}}, DEPTHS)
+             for k, v in (("a", 0.40e-6), ("b", 0.42e-6))]
+    blind = FieldDiagnosis("c", {}, {}, DEPTHS, tested=["etch_depth"])
+    absent = FieldDiagnosis("c", {}, {}, DEPTHS, tested=["etch_depth", "mask_overlay"])
+    dx = {e.param: e for e in combine_fields(named + [blind])}["dx_mask1_m"]
+    assert dx.mean == pytest.approx(0.41e-6) and dx.tested_in == 2 and dx.fields == 3 and len(dx.values) == 2
+    dx = {e.param: e for e in combine_fields(named + [absent])}["dx_mask1_m"]
+    assert dx.mean == pytest.approx(0.82e-6 / 3) and dx.tested_in == 3  # tested and absent: a vote for zero
+
+
+def test_a_field_cut_by_a_wall_limit_leaves_the_job_sheet_of_the_complete_ones_and_warns(tmp_path):
+    from doedesign.camera import Camera
+
+    # The third field: a real file of the design, diagnosed with a limit that ends it at once.
+    case = filegen.make_case(["mask_overlay"], 3, design_px=32, field_px=100)
+    cam = Camera(aperture_diameter_m=None, focus_distance_m=np.inf, window_shape=(64, 64), axis_pixel=(32, 32),
+                 doe_side="full")
+    path, measured = case.write(tmp_path / "wafer", metadata={"camera": cam.to_dict()})
+    design = Design.load(path)
+    cut = tmp_path / "cut"
+    assert main(["diagnose", "--design", str(path), "--measured", str(measured), "--window-px", "64",
+                 "--out", str(cut), "--wall-limit-s", "0.001"]) == 3
+    assert json.loads((cut / "report.json").read_text())["summary"].startswith("INCOMPLETE")
+    complete = [_field(tmp_path, "f0", design, path, 0.41e-6, 0.30e-6, 0.050, 0.031),
+                _field(tmp_path, "f1", design, path, 0.39e-6, 0.31e-6, 0.052, 0.029)]
+    two = _correct(path, complete, tmp_path / "two")
+    three = _correct(path, complete + [cut], tmp_path / "three")
+    assert three["masks"] == two["masks"] and three["corrected"] == two["corrected"]
+    assert [e["mean"] for e in three["estimates"]] == [e["mean"] for e in two["estimates"]]
+    assert {e["tested_in"] for e in three["estimates"]} == {2} and {e["fields"] for e in three["estimates"]} == {3}
+    # Said first: in job.json and on the page, below its title.
+    assert three["incomplete_diagnoses"] == [str(cut)] and not two["incomplete_diagnoses"]
+    assert three["warnings"][0].startswith(f"INCOMPLETE diagnosis {cut}")
+    assert "combined only over the fields whose diagnosis tested them" in three["warnings"][1]
+    page = (tmp_path / "three" / "report.md").read_text().splitlines()
+    assert next(line for line in page[1:] if line.strip()).startswith("**INCOMPLETE diagnosis")
+    # Only incomplete diagnoses: refused, nothing written.
+    code = main(["correct", "--design", str(path), "--diagnosis", str(cut), "--out", str(tmp_path / "none")])
+    assert code == 2 and not (tmp_path / "none" / "job.json").exists()

@@ -11,6 +11,7 @@ import pytest
 
 from doedesign.cli import main
 from metrology.diagnosis import PsfProblem, bic_eff, diagnose_heights, estimate_noise, run_diagnosis
+from metrology.diagnosis.budget import Deadline
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.synthetic import (
     HEIGHT_EFFECTS,
@@ -109,17 +110,20 @@ def test_null_height_case_names_nothing(seed):
     assert diag.noise_floor == pytest.approx(case.noise_rms, rel=0.15)
 
 
-def test_a_spent_time_budget_stops_the_selection_and_says_so():
+def test_a_spent_time_limit_stops_the_selection_and_says_so():
     # The case of test_single_hidden_height_effect's overlay (named there without a budget).
     seed = 1000 + HEIGHT_EFFECTS.index("mask_overlay")
-    case, diag = _diagnose_height_case(["mask_overlay"], seed, cpu_budget_s=0.0)
-    assert diag.named == []
+    case, diag = _diagnose_height_case(["mask_overlay"], seed, limit=Deadline.after(0.0))
+    assert diag.named == [] and diag.incomplete
     stop = diag.to_dict()["stopped_early"]
-    assert stop["reason"].startswith("time budget")
+    assert stop["reason"].startswith("time limit") and stop["limit"] == "cpu"
     assert stop["final_over_floor"] > RESIDUAL_TOL
+    assert set(stop["untried"]) == set(diag.candidates) and "mask_overlay" in stop["untried"]
     assert diag.unexplained
-    _, free = _diagnose_height_case(["mask_overlay"], seed, cpu_budget_s=1e6)
-    assert free.named == ["mask_overlay"] and free.stopped_early is None
+    # Without a limit (the default) it runs to the criterion's end and has tested every candidate.
+    _, free = _diagnose_height_case(["mask_overlay"], seed)
+    assert free.named == ["mask_overlay"] and free.stopped_early is None and not free.incomplete
+    assert free.tested == free.candidates and free.to_dict()["summary"].startswith("complete")
 
 
 def test_missing_effect_is_reported_unexplained():

@@ -1,4 +1,4 @@
-"""The time budget stops a fit under way, and nothing is named from a fit it stopped; a fit to
+"""A user's time limit stops a fit under way, and nothing is named from a fit it stopped; a fit to
 convergence ends where further steps cannot change a decision (criterion units)."""
 
 import numpy as np
@@ -121,10 +121,14 @@ def test_no_effect_is_named_from_a_refit_the_budget_cut_short(monkeypatch):
     monkeypatch.setattr(budget, "cpu_seconds", lambda: clock[0])
     monkeypatch.setattr(dg, "fit_effects", fit)
     diag = diagnose_heights(d["levels"], d["pitch_m"], d["measured_height_m"], d["step_m"], region_px=32,
-                            cpu_budget_s=100.0)
+                            limit=budget.Deadline.after(100.0))
     assert diag.named == []
-    stop = diag.to_dict()["stopped_early"]
-    assert "cut short" in stop["reason"] and stop["cut_short"] == ["mask_overlay"]
+    report = diag.to_dict()
+    stop = report["stopped_early"]
+    assert "cut short" in stop["reason"] and stop["cut_short"] == ["mask_overlay"] and stop["limit"] == "cpu"
+    # Incomplete: it tested nothing (it named nothing), so every candidate is listed as not tried.
+    assert report["incomplete"] and report["summary"].startswith("INCOMPLETE")
+    assert report["tested"] == [] and "mask_overlay" in report["untried"] == stop["untried"]
     assert diag.unexplained
 
 

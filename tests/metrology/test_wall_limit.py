@@ -1,56 +1,140 @@
-"""The wall clock ends a diagnosis as its CPU budget does (``doe diagnose --wall-limit-s``): the
-issue's 60 s a field is a wall-clock promise, and on two cores a case that spends the whole CPU
-budget ran to 61-63 s."""
+"""No clock decides a diagnosis: with no limit (the default) the same file gives the same names
+and parameters on an idle machine and beside a CPU hog, with one worker thread or two; a limit
+the user asks for (``doe diagnose --wall-limit-s``) ends it, and the run says INCOMPLETE in its
+summary's first line, lists the candidates not tried and exits with its own status."""
 
 import json
+import subprocess
+import sys
 from types import SimpleNamespace
 
+import pytest
+
 from doedesign.cli import main
+from metrology.cli.diagnose import EXIT_INCOMPLETE
 from metrology.diagnosis import budget
 from metrology.diagnosis.budget import Deadline
 
 import filegen
 
 
-def _clocks(monkeypatch, cpu, wall):
+def _strict(text):
+    """The report as strict JSON: NaN or infinity refused."""
+    def refuse(name):
+        raise ValueError(f"non-strict JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def _case(tmp_path):
+    case = filegen.make_case(["mask_overlay"], 3, design_px=32, field_px=100)
+    return case.write(tmp_path)
+
+
+def _diagnose(design, measured, out, *extra):
+    code = main(["diagnose", "--design", str(design), "--measured", str(measured), "--frame", "camera",
+                 "--window-px", "64", "--out", str(out), *extra])
+    return code, _strict((out / "report.json").read_text())
+
+
+def test_a_limit_records_which_clock_ended_it_and_none_never_ends(monkeypatch):
+    cpu, wall = [0.0], [1000.0]
     monkeypatch.setattr(budget, "cpu_seconds", lambda: cpu[0])
     monkeypatch.setattr(budget, "time", SimpleNamespace(monotonic=lambda: wall[0]))
-
-
-def test_whichever_limit_comes_first_ends_it(monkeypatch):
-    cpu, wall = [0.0], [1000.0]
-    _clocks(monkeypatch, cpu, wall)
-    d = Deadline.after(50.0, wall=1030.0)
-    assert d.cpu == 50.0 and not d.past() and d.spent_by() is None
-    assert d.affords(40.0, 20.0) and not d.affords(60.0, 20.0) and not d.affords(40.0, 40.0)
-    # Which clock refuses a cost (a forecast: the rerun not started says which option would pay).
-    assert d.refuses(40.0, 20.0) is None and d.refuses(60.0, 20.0) == "cpu" and d.refuses(40.0, 40.0) == "wall"
+    d = Deadline.after(50.0, 30.0)
+    assert d.active and not d.past() and d.hit is None
     wall[0] = 1031.0  # the wall clock first, with CPU seconds left
-    assert d.past() and d.spent_by() == "wall" and d.cpu_left() == 50.0
-    wall[0], cpu[0] = 1000.0, 51.0
-    assert d.past() and d.spent_by() == "cpu" and d.cpu_left() == 0.0
-    assert not Deadline().past() and Deadline().affords(1e9, 1e9) and Deadline().cpu_left() is None
+    assert d.past() and d.hit == "wall"
+    wall[0] = 1000.0  # once ended, it stays ended: what it cut is cut
+    assert d.past() and d.hit == "wall"
+    cpu[0] = 51.0
+    c = Deadline(cpu=50.0)
+    assert c.past() and c.hit == "cpu"
+    cpu[0], wall[0] = 1e12, 1e12
+    assert not Deadline().active and not Deadline().past() and Deadline.after().hit is None
 
 
-def test_a_spent_wall_clock_stops_the_selection_and_the_report_says_which(tmp_path, monkeypatch):
-    # A wall clock already past the command's limit (a fake one): the CPU budget is untouched, yet
-    # no candidate is tried, the report says the wall clock ended it, and the command still writes
-    # its report (status 0), the residual judged as it stands.
-    case = filegen.make_case(["mask_overlay"], 3, design_px=32, field_px=100)
-    design, measured = case.write(tmp_path)
-    monkeypatch.setattr(budget, "time", SimpleNamespace(monotonic=lambda: float("inf")))
-    out = tmp_path / "diag"
-    assert main(["diagnose", "--design", str(design), "--measured", str(measured), "--frame", "camera",
-                 "--window-px", "64", "--out", str(out), "--cpu-budget-s", "1000"]) == 0
-    report = json.loads((out / "report.json").read_text())
+def _signature(report):
+    """What a diagnosis decided: the names, every fitted parameter and the placement's."""
+    steps = {s["effect"]: s["params"] for s in report["steps"]}
+    placement = report["inputs"]["placement"]
+    numbers = {k: v for k, v in placement.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    return [s["effect"] for s in report["steps"]], steps, numbers, report["final_residual_rms"]
+
+
+def _close(a, b, rtol=1e-6):
+    assert a[0] == b[0]
+    for effect in a[1]:
+        for k, v in a[1][effect].items():
+            assert v == pytest.approx(b[1][effect][k], rel=rtol, abs=1e-18), (effect, k)
+    for k, v in a[2].items():
+        assert v == pytest.approx(b[2][k], rel=rtol, abs=1e-12), k
+    assert a[3] == pytest.approx(b[3], rel=rtol)
+
+
+def test_the_same_file_gives_the_same_answer_idle_and_beside_a_cpu_hog_with_one_worker(tmp_path, monkeypatch,
+                                                                                      capsys):
+    design, measured = _case(tmp_path)
+    monkeypatch.setenv("DOE_PROGRESS", "1")
+    code, idle = _diagnose(design, measured, tmp_path / "idle")
+    assert code == 0 and not idle["incomplete"] and idle["summary"].startswith("complete")
+    assert "mask_overlay" in idle["effects_found"]
+    # The long work showed its stage and each candidate as it was scored.
+    bars = capsys.readouterr().err
+    for shown in ("comparison", "instrument stage", "selection, pass 1", "diagnosis step 1", "mask_overlay"):
+        assert shown in bars, shown
+    monkeypatch.setenv("DOE_PROGRESS", "0")
+    # Beside a busy process (both cores contended) and with the fits' worker threads cut to one:
+    # the same names and parameters, to 1e-6 relative.
+    import metrology.diagnosis.engine as engine
+    import metrology.diagnosis.fitting as fitting
+    import metrology.diagnosis.parallel as parallel
+
+    for module in (engine, fitting, parallel):
+        monkeypatch.setattr(module, "WORKERS", 1)
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        code, busy = _diagnose(design, measured, tmp_path / "busy")
+    finally:
+        hog.kill()
+        hog.wait()
+    assert code == 0 and not busy["incomplete"]
+    _close(_signature(idle), _signature(busy))
+
+
+def test_a_tiny_wall_limit_says_incomplete_lists_the_untried_and_exits_with_its_own_status(tmp_path, capsys):
+    design, measured = _case(tmp_path)
+    out = tmp_path / "cut"
+    code, report = _diagnose(design, measured, out, "--wall-limit-s", "0.001")
+    assert code == EXIT_INCOMPLETE and code not in (0, 2)
+    assert report["incomplete"] and report["summary"].startswith("INCOMPLETE")
+    assert "--wall-limit-s" in report["summary"]
     stop = report["stopped_early"]
-    assert stop["limit"] == "wall" and stop["reason"].startswith("time budget")
+    assert stop["limit"] == "wall"
+    # Nothing was named, so nothing was tried: every candidate is listed, in the summary too.
     assert [s["effect"] for s in report["steps"] if not s["measurement_artefact"]] == []
-    assert report["unexplained"]
-    assert "--wall-limit-s" in (out / "report.md").read_text()
+    assert report["tested"] == [] and report["untried"] == report["candidates"] == stop["untried"]
+    assert "mask_overlay" in report["untried"] and "mask_overlay" in report["summary"]
+    page = (out / "report.md").read_text()
+    first = next(line for line in page.splitlines() if line.startswith("- "))
+    assert first.startswith("- INCOMPLETE:") and "mask_overlay" in first
+    # The command's own line says it too; the folder holds the whole report and nothing partial.
+    said = json.loads(capsys.readouterr().out)
+    assert said["incomplete"] and said["summary"] == report["summary"]
+    assert sorted(p.name for p in out.iterdir()) == ["breakdown.png", "report.json", "report.md",
+                                                     "residual_steps.png"]
 
 
-def test_the_wall_limit_is_checked_like_any_number(tmp_path, capsys):
+def test_the_limits_are_opt_in_checked_like_any_number_and_documented(tmp_path, capsys):
     assert main(["diagnose", "--design", "d.npz", "--measured", "m.datx", "--wall-limit-s", "-3",
                  "--out", str(tmp_path / "o")]) == 2
     assert "--wall-limit-s" in capsys.readouterr().err
+    from metrology.cli import diagnose
+
+    import argparse
+    parser = argparse.ArgumentParser()
+    diagnose.register(parser.add_subparsers())
+    args = parser.parse_args(["diagnose", "--design", "d", "--measured", "m", "--out", "o"])
+    assert args.wall_limit_s is None and args.cpu_budget_s is None
+    with pytest.raises(SystemExit):
+        parser.parse_args(["diagnose", "--help"])
+    assert f"exits with status {EXIT_INCOMPLETE}" in " ".join(capsys.readouterr().out.split())
