@@ -65,7 +65,7 @@ def run_compare(args: argparse.Namespace) -> int:
     ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
-    meas = read_measurement(args.measurement, pixel_size_m=pixel)
+    meas = read_measurement(args.measurement, pixel_size_m=pixel).square_pixels()
     meas = apply_calibration(meas, cal, str(args.measurement))
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design),

@@ -5,26 +5,20 @@ Formats: Nanosurf ``.nid``, Bruker NanoScope ``.spm`` / ``.di``, NT-MDT ``.mdt``
 Gwyddion ``.gwy``. ISO 25178-72 ``.x3p`` is read by :mod:`metrology.formats.x3p` (x3pio) and
 stylus line scans by :mod:`metrology.formats.profile`.
 
-Libraries compared (licence; wheel without a compiler on CPython 3.11; CPU time and peak
-Python memory for a 2000 x 2000 float64 map, measured by ``tests/metrology/test_surface_libs.py``'s
-helpers on this machine; a truncated file):
+Libraries compared (licence; wheel without a compiler on CPython 3.11.7; CPU time and peak
+traced Python memory reading a 2000 x 2000 float64 x3p written by x3pio, measured once on this
+machine; failure on a truncated file as tests/metrology/test_surface_libs.py checks it):
 
-=================  ==========  ===================  ====================  ==========================
-library            licence     installs (3.11.7)    2000 x 2000 read      truncated / corrupt file
-=================  ==========  ===================  ====================  ==========================
-SurfaceTopography  MIT         yes (manylinux)      x3p 0.5 s, 1.0x map   its own ``CorruptFile`` or
-                   (igor2 dep                                             a bare ``struct.error`` /
-                   is LGPL-3)                                             ``ValueError``: caught here
-x3pio 2.0          MIT         yes (pure Python)    x3p 0.3 s, 1.0x map   ``X3pFormatError`` naming
-                                                                          the part (checksums too)
-NSFopen 2.2        MIT         yes (26 MB wheel:    nid only              ``KeyError`` / numpy
-                               example data)                              errors; reads the whole
-                                                                          file into pandas
-gwyfile 0.3        MIT         yes (pure Python)    gwy only              ``ValueError`` / struct
-nanoscope 1.2      Apache-2.0  no: Requires-Python  not measured          not measured
-                               <= 3.11.4
-surfalize 0.19     GPL-3       (refused: GPL)       not used              not used
-=================  ==========  ===================  ====================  ==========================
+- SurfaceTopography 1.27 (MIT; its dependency igor2 is LGPL-3, used unmodified): manylinux
+  wheel, 0.42 s CPU, peak 3.0x the 32 MB map; truncated files raise its own errors or bare
+  struct / value errors (caught here), but a ``.nid`` cut inside its data frames is read
+  without error (a known gap, xfail in the tests).
+- x3pio 2.0 (MIT, pure Python): 0.27 s CPU, peak 3.4x; ``X3pFormatError`` /
+  ``X3pChecksumError`` on damage.
+- NSFopen 2.2 (MIT; a 26 MB wheel with example data, pulls pandas) and gwyfile 0.3 (MIT, pure
+  Python): install; one format each, speed and failure modes not measured; not dependencies.
+- nanoscope 1.2 (Apache-2.0): does not install (Requires-Python <= 3.11.4).
+- surfalize 0.19 (GPL-3): refused by licence.
 
 SurfaceTopography (ContactEngineering, a maintained library for surface metrology) reads every
 format listed here, gives each channel's grid size and physical size from the header before
