@@ -41,6 +41,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,7 @@ def to_metres(path: str | Path, unit: object, what: str) -> float:
     return UNITS_M[unit]
 
 
-def open_reader(path: str | Path, fmt: str):
+def open_reader(path: str | Path, fmt: str) -> Any:
     """SurfaceTopography's reader on ``path`` (header parsed, heights not read yet)."""
     from SurfaceTopography.IO import open_topography
 
@@ -86,7 +87,7 @@ def _one_line(exc: BaseException) -> str:
     return text[:300]
 
 
-def height_channel(path: str | Path, reader, channel: int | str | None = None):
+def height_channel(path: str | Path, reader: Any, channel: int | str | None = None) -> Any:
     """The channel holding heights: ``channel`` (index or name) when given, else the first
     whose name says topography / height / Z and whose unit is a length, else the first
     channel with a length unit."""
