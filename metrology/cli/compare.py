@@ -40,6 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "at 2-3x the time and memory")
     p.add_argument("--no-psf", action="store_true", help="skip the PSF comparison")
     p.add_argument("--no-render", action="store_true", help="skip the 3-D rendering")
+    p.add_argument("--x3p", action="store_true",
+                   help="also write levelled.x3p and residual.x3p (ISO 25178-72) into --out")
     p.add_argument("--force", action="store_true",
                    help="compare even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -65,13 +67,13 @@ def run_compare(args: argparse.Namespace) -> int:
     ensure_output_dir(args.out)  # before any work: a bad --out costs nothing
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
-    meas = read_measurement(args.measurement, pixel_size_m=pixel)
+    meas = read_measurement(args.measurement, pixel_size_m=pixel).square_pixels()
     meas = apply_calibration(meas, cal, str(args.measurement))
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design),
                               wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,
                               psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render,
-                              force=args.force, transfer=transfer)
+                              force=args.force, transfer=transfer, x3p=args.x3p)
     print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
                                        "height_error_rms_nm", "render3d")}
                | {"report": str(Path(args.out) / "report.json")})

@@ -163,7 +163,7 @@ def _heights(design, path, args, candidates):
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
-    measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
+    measurement = apply_calibration(read_measurement(path).square_pixels(), args.calibration, str(path))
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
                                         upsample=args.upsample, depths_m=_depths(args),
                                         candidates=candidates, threshold=args.threshold, source=str(path),
@@ -177,7 +177,7 @@ def _camera(design, path, args, candidates):
     from metrology.formats.readers import read_measurement
 
     depths = _depths(args)
-    measurement = apply_calibration(read_measurement(path), args.calibration, str(path))
+    measurement = apply_calibration(read_measurement(path).square_pixels(), args.calibration, str(path))
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,

@@ -49,17 +49,23 @@ class Measurement:
         Surface height in metres, z up; NaN marks invalid pixels (no data). Row 0 is
         the top row of the camera image, as stored in the file (camera order).
     pixel_size_m : float
-        Lateral sampling (metres per pixel, square pixels) on the part.
+        Lateral sampling (metres per pixel) on the part along the columns (x, the fast axis);
+        the row pitch too when ``pixel_size_y_m`` is None (square pixels).
     metadata : dict
         Provenance; keys present when the file has them: ``source_file``, ``format``,
         ``wavelength_m``, ``magnification``, ``objective``, ``numerical_aperture``,
         ``timestamp`` (ISO 8601, UTC), ``comment``, ``part_name``, ``phase_origin``
         ``(cn_org_x, cn_org_y)`` (camera pixel of column 0 / row 0), and format details.
+    pixel_size_y_m : float or None
+        Row pitch (metres, along y) when it differs from ``pixel_size_m`` (an x3p file of
+        0.128 x 0.315 um pixels); None for square pixels. Read as the file gives it, never
+        refused; :meth:`square_pixels` resamples the rows for code that assumes one pitch.
     """
 
     height_m: np.ndarray
     pixel_size_m: float
     metadata: dict = field(default_factory=dict)
+    pixel_size_y_m: float | None = None
 
     def __post_init__(self):
         self.height_m = np.asarray(self.height_m, dtype=np.float64)
@@ -69,6 +75,40 @@ class Measurement:
         if self.pixel_size_m <= 0:
             raise DoeError(f"pixel_size_m must be positive, got {self.pixel_size_m}")
         self.metadata = dict(self.metadata)
+        if self.pixel_size_y_m is not None:
+            self.pixel_size_y_m = finite_float(self.pixel_size_y_m, "pixel_size_y_m")
+            if self.pixel_size_y_m <= 0:
+                raise DoeError(f"pixel_size_y_m must be positive, got {self.pixel_size_y_m}")
+            if abs(self.pixel_size_y_m - self.pixel_size_m) <= 1e-9 * self.pixel_size_m:
+                self.pixel_size_y_m = None
+
+    @property
+    def pitches_m(self) -> tuple[float, float]:
+        """(row pitch along y, column pitch along x) in metres."""
+        return (self.pixel_size_y_m or self.pixel_size_m, self.pixel_size_m)
+
+    def square_pixels(self) -> "Measurement":
+        """This measurement on square pixels of the column pitch (itself when already square).
+
+        The rows are resampled by linear interpolation along y (a pixel next to a NaN stays
+        NaN). Registration, levelling and the comparison take one pixel pitch; ``doe compare``
+        and ``doe diagnose`` call this after reading, and the report keeps both file pitches
+        (``metadata["file_pitches_m"]``).
+        """
+        if self.pixel_size_y_m is None:
+            return self
+        from doedesign.budget import check_memory
+        from scipy.ndimage import map_coordinates
+
+        rows, cols = self.height_m.shape
+        pitch_y, pitch_x = self.pitches_m
+        new_rows = max(1, int(round((rows - 1) * pitch_y / pitch_x)) + 1)
+        check_memory(3 * new_rows * cols * 8, "resampling the rows to square pixels")
+        y = np.arange(new_rows) * (pitch_x / pitch_y)
+        yy, xx = np.meshgrid(np.minimum(y, rows - 1), np.arange(cols), indexing="ij")
+        height = map_coordinates(self.height_m, [yy, xx], order=1, mode="nearest", cval=np.nan)
+        meta = {**self.metadata, "file_pitches_m": [pitch_y, pitch_x], "file_shape": [rows, cols]}
+        return Measurement(height, pitch_x, meta)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -101,6 +141,7 @@ class Measurement:
             "kind": "measurement",
             "shape": list(self.shape),
             "pixel_size_m": self.pixel_size_m,
+            "pixel_size_y_m": self.pitches_m[0],
             "invalid_fraction": float(1.0 - valid.size / self.height_m.size),
             "height_min_m": hmin,
             "height_max_m": hmax,

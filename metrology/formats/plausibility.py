@@ -187,6 +187,8 @@ def check_measurement(path: str | Path, meas: Measurement, pixel_overridden: boo
     if not pixel_overridden and meta.get("lateral_res_m"):
         check_value(path, "lateral_res_m", meta["lateral_res_m"], "pixel_size_m")
     check_value(path, "pixel size (m)", meas.pixel_size_m, "pixel_size_m")
+    if meas.pixel_size_y_m is not None:
+        check_value(path, "row pixel size (m)", meas.pixel_size_y_m, "pixel_size_m")
     valid = np.isfinite(meas.height_m)
     if not valid.any():
         raise MeasurementFileError(f"{path}: no valid pixel ({meas.height_m.size} pixels, all marked no data)")

@@ -1,7 +1,10 @@
 """Read any supported profilometer file into a :class:`~metrology.formats.measurement.Measurement`.
 
 Formats: MetroPro ``.dat``, Mx ``.datx``, Zygo ASCII ``.xyz`` and ``.asc``, Mx profile
-``.csv``, ``.npy`` / ``.npz`` height maps in metres and TIFF images. The format is
+``.csv``, ``.npy`` / ``.npz`` height maps in metres, TIFF images, ISO 25178-72 ``.x3p``
+(:mod:`metrology.formats.x3p`) and the AFM / optical-profiler formats of
+:mod:`metrology.formats.surface_libs` (``.nid``, ``.spm``, ``.di``, ``.mdt``, ``.plu``,
+``.sur``, ``.opd``, ``.opdx``, ``.vk4``, ``.gwy``). The format is
 taken from the file's magic bytes when it has one, else from the extension.
 
 Every reader keeps the file's pixel order: row 0 is the first row stored, which for
@@ -25,6 +28,8 @@ import numpy as np
 from doedesign.fileio import check_input_file, load_npy, parse_json, read_npz
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
 from metrology.formats.plausibility import check_claimed_pixels, check_measurement, pixel_size
+from metrology.formats.surface_libs import LIB_EXTENSIONS, read_surface_lib
+from metrology.formats.x3p import read_x3p
 from metrology.formats.zygo_ascii import read_asc, read_xyz
 from metrology.formats.zygo_dat import MAGIC, read_dat
 from metrology.formats.zygo_datx import HDF5_SIGNATURE, read_datx
@@ -34,9 +39,11 @@ __all__ = ["CSV_UNITS_M", "EXTENSIONS", "FORMATS", "detect_format", "read_array"
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("dat", "datx", "xyz", "asc", "csv", "npy", "npz", "tiff")
+FORMATS = ("dat", "datx", "xyz", "asc", "csv", "npy", "npz", "tiff", "x3p") + tuple(
+    sorted({e.lstrip(".") for e in LIB_EXTENSIONS}))
 EXTENSIONS = {".dat": "dat", ".datx": "datx", ".xyz": "xyz", ".asc": "asc", ".csv": "csv",
-              ".npy": "npy", ".npz": "npz", ".tif": "tiff", ".tiff": "tiff"}
+              ".npy": "npy", ".npz": "npz", ".tif": "tiff", ".tiff": "tiff", ".x3p": "x3p",
+              **{e: e.lstrip(".") for e in LIB_EXTENSIONS}}
 # Units a CSV column header may name in brackets; micrometres when none is given.
 CSV_UNITS_M = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6, "nm": 1e-9}
 _TIFF_RESOLUTION_UNIT_M = {2: 0.0254, 3: 0.01}
@@ -63,7 +70,7 @@ def detect_format(path: str | Path) -> str:
     elif head.startswith(b"\x93NUMPY"):
         by_magic = "npy"
     elif head.startswith(b"PK"):
-        by_magic = "npz"
+        by_magic = "x3p" if by_ext == "x3p" else "npz"
     elif head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
         by_magic = "tiff"
     if by_magic and by_ext and by_magic != by_ext:
@@ -104,7 +111,8 @@ def read_measurement(path: str | Path, format: str | None = None, pixel_size_m: 
     path = check_input_file(path, MeasurementFileError)
     fmt = format or detect_format(path)
     readers = {"dat": read_dat, "datx": read_datx, "xyz": read_xyz, "asc": read_asc,
-               "csv": read_profile_csv, "npy": read_array, "npz": read_array, "tiff": read_tiff}
+               "csv": read_profile_csv, "npy": read_array, "npz": read_array, "tiff": read_tiff,
+               "x3p": read_x3p, **{e.lstrip("."): read_surface_lib for e in LIB_EXTENSIONS}}
     if fmt not in readers:
         raise MeasurementFileError(f"{path}: unknown format '{fmt}' (known: {', '.join(FORMATS)})")
     try:

@@ -34,7 +34,8 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
                      measurement_source: str = "measurement", design_source: str = "design",
                      wavelengths_m: ArrayLike | None = None, psf_oversample: int = 1,
                      psf: bool = True, render: bool = True, force: bool = False,
-                     comparison: Comparison | None = None, transfer: LateralTransfer | None = None) -> dict:
+                     comparison: Comparison | None = None, transfer: LateralTransfer | None = None,
+                     x3p: bool = False) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
@@ -58,6 +59,9 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         The :func:`~metrology.matching.compare.compare_measurement` result, if already made.
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed in the camera-frame fit.
+    x3p : bool
+        Also write ``levelled.x3p`` (the levelled measurement) and ``residual.x3p`` (measured
+        minus design), ISO 25178-72, row 0 first, through :func:`metrology.formats.x3p.write_x3p`.
 
     Returns
     -------
@@ -96,6 +100,14 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
             if not failure:
                 figures.append("surface3d.png")
         report["figures"] = figures
+        if x3p:
+            from metrology.formats.x3p import write_x3p
+
+            pitch = measurement.pixel_size_m  # the file's pitch: the maps are in the camera frame
+            write_x3p(out / "levelled.x3p", comp.height_m, pitch, comment=f"levelled {measurement_source}")
+            write_x3p(out / "residual.x3p", comp.error_design_m, pitch,
+                      comment=f"{measurement_source} minus design {design_source}")
+            report["x3p"] = ["levelled.x3p", "residual.x3p"]
         write_json(out / "report.json", report)
         compare_page(json_ready(report), out)
     return report
