@@ -149,3 +149,26 @@ def test_dose_and_bad_input():
         ProximityOptics(GAP, (365e-9,), (0.5, 0.5))
     with pytest.raises(DoeError, match="threshold"):
         print_coverage(np.ones((4, 4)), 0.25e-6, ProximityOptics(GAP), 1.5)
+
+
+def test_process_model_prints_through_the_gap():
+    """simulate_surface with a gap: a lone 5.4 um pixel of mask 3 prints smaller (relative to its
+    drawn area) than a 6 x 6 pixel block, the long edges near their place at the in-place dose;
+    gap 0 is the ideal surface bit for bit."""
+    from masks.process import ProcessParams, simulate_surface
+
+    levels = np.zeros((24, 24), int)
+    levels[4, 4] = 8
+    levels[10:16, 10:16] = 8
+    ideal = simulate_surface(levels, PITCH, ProcessParams.ideal(), step_m=0.5e-6)
+    params = ProcessParams.ideal().copy(proximity_gap=GAP, resist_threshold=0.274)
+    printed = simulate_surface(levels, PITCH, params, step_m=0.5e-6)
+    u = printed.upsample
+    cov = printed.masks_printed[3]
+    lone = cov[3 * u:6 * u, 3 * u:6 * u].sum() / u ** 2
+    block = cov[9 * u:17 * u, 9 * u:17 * u].sum() / (36 * u ** 2)
+    assert lone < 0.95 and block == pytest.approx(1.0, abs=0.06) and lone < block - 0.05
+    same = simulate_surface(levels, PITCH, ProcessParams.ideal().copy(proximity_gap=0.0), step_m=0.5e-6)
+    np.testing.assert_array_equal(same.height_m, ideal.height_m)
+    with pytest.raises(DoeError, match="exclusive"):
+        ProcessParams.ideal().copy(proximity_gap=GAP, proximity_blur=1e-6)
