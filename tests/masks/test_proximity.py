@@ -172,3 +172,23 @@ def test_process_model_prints_through_the_gap():
     np.testing.assert_array_equal(same.height_m, ideal.height_m)
     with pytest.raises(DoeError, match="exclusive"):
         ProcessParams.ideal().copy(proximity_gap=GAP, proximity_blur=1e-6)
+
+
+def test_tolerance_spec_varies_gap_dose_and_collimation():
+    from masks.process import ProcessParams
+    from masks.tolerance.spec import build_spec
+
+    depths = np.array([75e-9, 150e-9, 300e-9, 600e-9])
+    spec = build_spec({"proximity_gap": {"mean_um": 30, "sigma_um": 3},
+                       "resist_threshold": {"dist": "uniform", "low": -0.02, "high": 0.02},
+                       "collimation_half_angle": {"dist": "uniform", "low_deg": 1.5, "high_deg": 2.5}}, depths, "t")
+    values, _ = spec.draw(7, 0)
+    assert spec.params[1].ppf(0.0) == pytest.approx(-0.02)  # a dose offset may lower the threshold
+    base = ProcessParams.ideal(depths_m=depths).copy(resist_threshold=0.274)
+    params = spec.params_for(values, base)
+    assert params.proximity_gap == pytest.approx(values["proximity_gap_um"])
+    assert 20e-6 < params.proximity_gap < 40e-6
+    assert abs(params.resist_threshold - 0.274) <= 0.02 + 1e-12
+    assert math.radians(3.5) <= params.collimation_half_angle <= math.radians(4.5)  # base 2 deg + 1.5..2.5
+    with pytest.raises(DoeError, match="plausible"):
+        build_spec({"proximity_gap": {"mean_um": 500}}, depths, "t")
