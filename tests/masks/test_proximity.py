@@ -192,3 +192,23 @@ def test_tolerance_spec_varies_gap_dose_and_collimation():
     assert math.radians(3.5) <= params.collimation_half_angle <= math.radians(4.5)  # base 2 deg + 1.5..2.5
     with pytest.raises(DoeError, match="plausible"):
         build_spec({"proximity_gap": {"mean_um": 500}}, depths, "t")
+
+
+def test_print_check_reports_what_the_gap_prints():
+    """Fine random structure (about one edge per pixel) loses more field overlap through 30 um than
+    through 10 um; the contact print is perfect; isolated pixels are found and lost at a low dose."""
+    from masks.print_check import print_check
+    from masks.process import ProcessParams
+
+    rng = np.random.default_rng(5)
+    levels = rng.integers(0, 16, (32, 32))
+    contact = print_check(levels, PITCH, ProcessParams.ideal(), step_m=0.6e-6)
+    assert contact["field_overlap"] == pytest.approx(1.0, abs=1e-9)
+    assert all(m["area_ratio"] == pytest.approx(1.0) for m in contact["masks"])
+    near = print_check(levels, PITCH, ProcessParams.ideal().copy(proximity_gap=10e-6, resist_threshold=0.3), 0.6e-6)
+    far = print_check(levels, PITCH, ProcessParams.ideal().copy(proximity_gap=30e-6, resist_threshold=0.3), 0.6e-6)
+    assert far["field_overlap"] < near["field_overlap"] < 1.0
+    assert far["masks"][0]["isolated_pixels"] > 0
+    low = print_check(levels, PITCH, ProcessParams.ideal().copy(proximity_gap=30e-6, resist_threshold=0.6), 0.6e-6)
+    assert all(m["edge_placement_um"] < -0.5 for m in low["masks"])  # a low dose shrinks every opening
+    assert low["masks"][0]["isolated_lost"] >= far["masks"][0]["isolated_lost"]
