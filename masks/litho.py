@@ -24,7 +24,7 @@ from doedesign.engine.backend import Array, Backend, select_backend
 
 __all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "grown_mask",
            "interpolate_separable",
-           "inverse_motion", "move", "upsample_mask"]
+           "inverse_motion", "move", "threshold_coverage", "upsample_mask"]
 
 # Trench-foot distance maps kept between calls (one per mask of a model; on a whole 512 px
 # camera field some 75 MB each).
@@ -304,14 +304,33 @@ def expose(coverage: Array, blur_px: float, threshold: float, upsample: int = 1,
     # (edges within ~0.01 sigma); odd ones were measured several times worse.
     blocks = [k for k in range(2, upsample + 1, 2) if upsample % k == 0 and k <= blur_px / 2]
     be = backend_of(backend)
+    return threshold_coverage(blurred(coverage, blur_px, max(blocks, default=1), be), threshold, 0.0, be)
+
+
+def threshold_coverage(aerial: Array, threshold: float, grow_px: float = 0.0,
+                       backend: Backend | None = None) -> Array:
+    """Printed coverage of a resist that clears where ``aerial`` exceeds ``threshold``.
+
+    ``0.5 + grow_px + (aerial - threshold) / |grad aerial|``, clipped to 0..1: the fraction of
+    each pixel on the cleared side of the locally straight contour (its signed distance in
+    pixels), with the contour moved outward along its normal by ``grow_px`` pixels (an isotropic
+    undercut: convex corners round). Exact for a straight edge when ``grow_px`` is within the
+    image's linear range. The one threshold rule of :func:`expose` and
+    :func:`masks.proximity.print_coverage`; ``aerial`` is overwritten.
+
+    Returns
+    -------
+    ndarray of float32
+    """
+    be = backend_of(backend)
     xp = be.xp
-    aerial = blurred(coverage, blur_px, max(blocks, default=1), be)
+    aerial = xp.astype(aerial, xp.float32, copy=False)
     slope = xp.hypot(_gradient(aerial, 0, xp), _gradient(aerial, 1, xp))
     # A flat aerial image far from the threshold prints as 0 or 1 whatever the guard.
     _elementwise_at(be, "maximum", slope, (...,), float(np.float32(1e-6)))
     aerial -= float(np.float32(threshold))
     aerial /= slope
-    aerial += 0.5
+    aerial += float(np.float32(0.5 + grow_px))
     # Clipped to 0..1 (array_api_compat's clip masks element by element: slow on a large image).
     _elementwise_at(be, "maximum", aerial, (...,), 0.0)
     _elementwise_at(be, "minimum", aerial, (...,), 1.0)

@@ -16,7 +16,9 @@ edges), because metrology and diagnosis fit these parameters with least squares.
 
 Approximations, in words:
 
-- the contact-gap aerial image is a Gaussian blur (the real one is a Fresnel pattern
+- with ``proximity_gap > 0`` each mask prints through the gap by :mod:`masks.proximity`
+  (scalar diffraction, the lamp's lines, collimation, resist threshold and blur, chromium
+  undercut); otherwise the contact-gap aerial image is a Gaussian blur (the real one is a Fresnel pattern
   with ripples; a Gaussian of sigma ~ sqrt(lambda g) / 2 captures shrinkage and corner
   rounding, not the ripples);
 - linewidth bias grows every opening edge by the same amount with a square structuring
@@ -53,14 +55,14 @@ import numpy as np
 from doedesign.engine.backend import Array, Backend
 from doedesign.errors import DoeError
 
-from . import litho
+from . import litho, proximity
 from .decompose import mask_bit
 from .effects import EFFECTS
 from .moments import moment_corrected
 from .process_params import ProcessParams, finite_float
 
 __all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
-           "design_centre", "mask_etch", "mask_motion", "simulate_surface", "surface_key",
+           "design_centre", "mask_etch", "mask_motion", "proximity_optics", "simulate_surface", "surface_key",
            "without_motion"]
 
 log = logging.getLogger(__name__)
@@ -257,7 +259,9 @@ def etch_key(params: ProcessParams, mask: int) -> tuple:
     return (params.n_masks, j, float(params.etch_depth[j]), tuple(params.mask_overlay[j]),
             float(params.linewidth_bias[j]), float(params.mask_rotation[j]), tuple(params.microtrenching[j]),
             params.proximity_blur, params.resist_threshold, params.etch_loading,
-            params.loading_radius if params.etch_loading else None, tuple(params.etch_gradient))
+            params.loading_radius if params.etch_loading else None, tuple(params.etch_gradient),
+            params.proximity_gap, params.collimation_half_angle if params.proximity_gap else None,
+            params.resist_blur if params.proximity_gap else None, params.cr_undercut if params.proximity_gap else None)
 
 
 def surface_key(params: ProcessParams) -> tuple:
@@ -265,6 +269,12 @@ def surface_key(params: ProcessParams) -> tuple:
     ``roughness`` and no ``seed``, the noise is fresh each call: the key cannot tell)."""
     return (tuple(etch_key(params, j) for j in range(params.n_masks)), params.sidewall_slope, params.roughness,
             params.seed)
+
+
+def proximity_optics(params: ProcessParams) -> proximity.ProximityOptics:
+    """The exposure of ``params``' proximity printing (gap, collimation, resist blur; the Hg lines)."""
+    return proximity.ProximityOptics(params.proximity_gap, collimation_half_angle_rad=params.collimation_half_angle,
+                                     resist_blur_m=params.resist_blur)
 
 
 def design_centre(shape: tuple[int, int]) -> tuple[float, float]:
@@ -306,14 +316,20 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
     trench_m, trench_width_m = params.microtrenching[j]
     trenched = trench_m > 0 and params.etch_depth[j] > 0
     coverage = printed = None
-    if not moments or params.proximity_blur > 0 or trenched:
+    gap = params.proximity_gap > 0
+    if not moments or params.proximity_blur > 0 or trenched or gap:
         coverage = litho.move(grown, shift_fine, rotation, centre_fine, be)
-        coverage = printed = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
+        if gap:
+            coverage = proximity.print_coverage(coverage, step, proximity_optics(params), params.resist_threshold,
+                                                params.cr_undercut, be)
+        else:
+            coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
+        printed = coverage
     if moments:
         # The grown edges' moments, then a move that keeps them (a linear one leaves a biased and
         # shifted edge in two partial pixels, which the rule cannot read); an exposure prints its
         # own edges from the blurred image.
-        if params.proximity_blur > 0:
+        if params.proximity_blur > 0 or gap:
             printed = moment_corrected(coverage, be)
         else:
             printed = litho.move(moment_corrected(grown, be), shift_fine, rotation, centre_fine, be, order=3)
@@ -379,7 +395,9 @@ def _margin_px(params, pitch_m, region, centre_design, masks=slice(None)):
     overlay = np.hypot(ovl[:, 0], ovl[:, 1]) + rotation * radius_m
     trench = _TRENCH_REACH * np.max(trenches[:, 1] * (trenches[:, 0] > 0))
     reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias[masks]))
-             + _TRUNCATE * params.proximity_blur + params.sidewall_slope + trench)
+             + _TRUNCATE * params.proximity_blur + params.sidewall_slope + trench
+             + (proximity.reach_m(proximity_optics(params), 1e-9) + params.cr_undercut
+                if params.proximity_gap > 0 else 0.0))
     return _MARGIN_PX + int(math.ceil(reach / pitch_m))
 
 

@@ -67,6 +67,17 @@ class ProcessParams:
         edges inside the opening, ``depth_m * exp(-s / width_m)`` at distance ``s`` from a
         straight edge, at the mask's etch depth (it scales with the local etch depth, so
         with loading and gradient). None = no trenches.
+    proximity_gap : float
+        Mask-to-resist gap (m) of proximity printing (:mod:`masks.proximity`: angular spectrum,
+        Hg g/h/i lines, collimation, resist blur, threshold ``resist_threshold``, chromium
+        undercut); 0 = contact (the mask as drawn, or the Gaussian ``proximity_blur``). The two
+        are exclusive.
+    collimation_half_angle : float
+        Illumination half-angle (rad) of proximity printing, 0..10 deg (default 2 deg).
+    resist_blur : float
+        Resist blur sigma (m) of proximity printing, 0..1 um (default 0.1 um).
+    cr_undercut : float
+        Lateral wet-etch undercut of the chromium hard mask (m, >= 0) in proximity printing.
     etch_gradient : ndarray, shape (2,)
         ``[x_per_m, y_per_m]``: relative etch-depth change per metre along x and y from the
         field centre, the same for every mask: ``depth_j(r) = d_j (1 + g . r)``
@@ -86,6 +97,10 @@ class ProcessParams:
     mask_rotation: np.ndarray | None = None
     microtrenching: np.ndarray | None = None
     etch_gradient: np.ndarray | None = None
+    proximity_gap: float = 0.0
+    collimation_half_angle: float = math.radians(2.0)
+    resist_blur: float = 0.1e-6
+    cr_undercut: float = 0.0
 
     def __post_init__(self) -> None:
         self.etch_depth = _float_array(self.etch_depth, "etch_depth")
@@ -128,10 +143,18 @@ class ProcessParams:
             raise DoeError(f"process parameter etch_gradient must be [x_per_m, y_per_m], "
                            f"got shape {self.etch_gradient.shape}")
         for name in ("proximity_blur", "resist_threshold", "sidewall_slope", "etch_loading",
-                     "loading_radius", "roughness"):
+                     "loading_radius", "roughness", "proximity_gap", "collimation_half_angle", "resist_blur",
+                     "cr_undercut"):
             setattr(self, name, finite_float(getattr(self, name), f"process parameter {name}"))
         if np.any(self.etch_depth < 0):
             raise DoeError(f"process parameter etch_depth must be >= 0 m, got {self.etch_depth.tolist()}")
+        for name, hi in (("proximity_gap", 200e-6), ("collimation_half_angle", math.radians(10)),
+                         ("resist_blur", 1e-6), ("cr_undercut", 5e-6)):
+            if not 0 <= getattr(self, name) <= hi:
+                raise DoeError(f"process parameter {name} must lie in [0, {hi:g}], got {getattr(self, name)}")
+        if self.proximity_gap > 0 and self.proximity_blur > 0:
+            raise DoeError("process parameters proximity_gap and proximity_blur are exclusive (the blur is "
+                           "the contact print's stand-in for the gap)")
         for name in ("proximity_blur", "sidewall_slope", "roughness"):
             if getattr(self, name) < 0:
                 raise DoeError(f"process parameter {name} must be >= 0 m, got {getattr(self, name)}")
@@ -199,6 +222,10 @@ class ProcessParams:
             "mask_rotation": self.mask_rotation.tolist(),
             "microtrenching": self.microtrenching.tolist(),
             "etch_gradient": self.etch_gradient.tolist(),
+            "proximity_gap": self.proximity_gap,
+            "collimation_half_angle": self.collimation_half_angle,
+            "resist_blur": self.resist_blur,
+            "cr_undercut": self.cr_undercut,
         }
 
     @classmethod

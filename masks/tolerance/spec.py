@@ -16,6 +16,11 @@ TOML schema (every table optional; lengths in the unit named by the key)::
     dist = "uniform"
     low_um = 0.0
     high_um = 0.5
+    [proximity_gap]         # one value per run: mask-to-resist gap of proximity printing
+    mean_um = 30            # (wafer bow: sigma_um); masks.proximity prints through it
+    sigma_um = 3
+    [resist_threshold]      # added to the nominal clearing level (dose_to_clear / dose), a number
+    [collimation_half_angle]  # added to the nominal illumination half-angle (2 deg), in deg
     [sidewall_slope]        # width of the etched step ramp (um)
     [etch_loading]          # fractional depth loss per unit open fraction (plain number)
     [roughness]             # rms (nm)
@@ -38,6 +43,7 @@ it does not depend on which worker or scheduler computes it.
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -73,7 +79,13 @@ EFFECTS = {
     "sidewall_slope": (False, False, _LEN_UM, "um", True),
     "etch_loading": (False, False, {"": 1.0}, "", True),
     "roughness": (False, False, {"nm": 1e-9}, "nm", True),
+    "proximity_gap": (False, False, _LEN_UM, "um", True),
+    "resist_threshold": (False, False, {"": 1.0}, "", False),
+    "collimation_half_angle": (False, False, {"deg": math.pi / 180}, "deg", False),
 }
+# Fields of the proximity print that are no effect of masks.effects: their plausible ranges.
+_FIELD_BOUNDS = {"proximity_gap": (0.0, 200e-6), "resist_threshold": (0.0, 1.0),
+                 "collimation_half_angle": (0.0, math.radians(10))}
 # Per-mask / whole-run arrays of the process model set component by component.
 _ARRAYS = {
     "microtrenching": (True, False, {"nm": 1e-9, "um": 1e-6}, "", True),
@@ -83,7 +95,7 @@ EFFECTS.update(_ARRAYS)
 # Effects with several components: component -> report unit (its keys use that unit).
 COMPONENTS = {"mask_overlay": {"dx": "um", "dy": "um"}, "microtrenching": {"depth": "nm", "width": "um"},
               "etch_gradient": {"x": "percent_per_mm", "y": "percent_per_mm"}}
-REPORT_SCALE = {"nm": 1e9, "um": 1e6, "urad": 1e6, "percent_per_mm": 0.1, "": 1.0}
+REPORT_SCALE = {"nm": 1e9, "um": 1e6, "urad": 1e6, "percent_per_mm": 0.1, "deg": 180 / math.pi, "": 1.0}
 DISTRIBUTIONS = {"normal": ("mean", "sigma"), "uniform": ("low", "high"), "fixed": ("value",)}
 DEFAULT_SPEC = {
     "etch_depth": {"sigma_rel": 0.02},
@@ -377,9 +389,13 @@ def _check_plausible(param, keys, a, b, where):
     Offsets and bounds may reach the largest magnitude the range allows, a sigma its whole
     width: a sigma of 1e6 um is no process and would make the model allocate absurd grids.
     """
-    name, index = _BOUNDED_BY.get((param.effect, param.component), (param.effect, 0))
-    bound = effect_spec(name).params[index]
-    reach, width = max(abs(bound.lower), abs(bound.upper)), bound.upper - bound.lower
+    if param.effect in _FIELD_BOUNDS:
+        lower, upper = _FIELD_BOUNDS[param.effect]
+    else:
+        name, index = _BOUNDED_BY.get((param.effect, param.component), (param.effect, 0))
+        bound = effect_spec(name).params[index]
+        lower, upper = bound.lower, bound.upper
+    reach, width = max(abs(lower), abs(upper)), upper - lower
     for key, value in zip(keys, (a, b)):
         limit = width if key == "sigma" else reach
         if abs(value) > limit:

@@ -224,7 +224,8 @@ def test_every_process_effect_can_be_toleranced():
     from masks.process import ProcessParams
     from masks.tolerance.spec import EFFECTS as SPEC_EFFECTS
 
-    assert set(MODEL_EFFECTS) == set(SPEC_EFFECTS)
+    # Every effect, plus the proximity print's fields (gap, threshold, collimation).
+    assert set(SPEC_EFFECTS) == set(MODEL_EFFECTS) | {"proximity_gap", "resist_threshold", "collimation_half_angle"}
     spec = build_spec({"microtrenching": {"masks": [3], "sigma_nm": 3, "mean_um": 0.5},
                        "etch_gradient": {"sigma_percent_per_mm": 0.5}}, DEPTHS, "t")
     by = {p.name: p for p in spec.params}
