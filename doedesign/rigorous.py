@@ -59,7 +59,7 @@ import numpy as np
 from .budget import check_memory
 from .errors import DoeError
 
-__all__ = ["DEFAULT_TERMS", "FEATURE_MIN_WAVELENGTHS", "DEPTH_MAX_FEATURES", "INCIDENCES", "POLARIZATIONS",
+__all__ = ["DEFAULT_TERMS", "DEFAULT_TOLERANCE", "score_design", "FEATURE_MIN_WAVELENGTHS", "DEPTH_MAX_FEATURES", "INCIDENCES", "POLARIZATIONS",
            "RigorousResult", "compare", "relief_layers", "rigorous_efficiencies", "smallest_feature_m",
            "thin_element_efficiencies", "validity"]
 
@@ -69,6 +69,9 @@ DEFAULT_TERMS = 200
 INCIDENCES = ("substrate", "air")
 POLARIZATIONS = ("te", "tm", "unpolarised")
 MAX_LAYERS = 64
+# Largest difference (absolute efficiency, rigorous over its transmitted total against thin
+# element) that passes without a warning.
+DEFAULT_TOLERANCE = 0.02
 # Thin-element validity limits: smallest feature at least this many wavelengths, and etch depth at
 # most this many smallest features. Set from the measured 16-level blazed grating (see
 # benchmarks/bench_rigorous.py): its first order departs from the thin-element value by more
@@ -359,3 +362,45 @@ def validity(smallest_feature: float, depth_m: float, wavelengths_m) -> dict:
             .format(FEATURE_MIN_WAVELENGTHS, DEPTH_MAX_FEATURES))
     return dict(feature_over_wavelength=fw, depth_over_feature=df, feature_min_wavelengths=FEATURE_MIN_WAVELENGTHS,
                 depth_max_features=DEPTH_MAX_FEATURES, holds=holds, statement=text)
+
+
+def score_design(height_m: np.ndarray, pitch_m: float, material: str, wavelengths_m, n_terms: int = DEFAULT_TERMS,
+                 polarization: str = "unpolarised", incidence: str = "substrate",
+                 tolerance: float = DEFAULT_TOLERANCE, formulation: str = "jones_direct_fourier") -> dict:
+    """Rigorous and thin-element efficiencies of one period of a design, with the verdict.
+
+    Parameters
+    ----------
+    height_m : ndarray (rows, cols)
+        One period of the element (row 0 at the top).
+    pitch_m : float
+    material : str
+        Registry name (:mod:`doedesign.materials`): the relief's and substrate's index.
+    wavelengths_m : sequence of float
+    n_terms, polarization, incidence, formulation
+        See :func:`rigorous_efficiencies` and :func:`compare`.
+    tolerance : float
+        Largest difference in any order's efficiency that passes without a warning.
+
+    Returns
+    -------
+    dict
+        ``validity`` (:func:`validity`), ``comparison`` (:func:`compare`), ``warnings`` (one line per
+        wavelength where the two models disagree by more than ``tolerance``) and the settings.
+    """
+    from .materials import get_material
+
+    mat = get_material(material)
+    wls = np.atleast_1d(np.asarray(wavelengths_m, dtype=np.float64))
+    result = rigorous_efficiencies(height_m, pitch_m, wls, mat.n, n_terms, incidence, formulation)
+    thin = thin_element_efficiencies(height_m, wls, mat.n, result.orders)
+    comp = compare(result, thin, polarization)
+    depth = float(np.max(height_m) - np.min(height_m))
+    feature = smallest_feature_m(height_m, pitch_m)
+    warnings = [f"at {w['wavelength_nm']:.1f} nm the rigorous and thin-element efficiencies differ by "
+                f"{w['max_difference']:.3f} (more than {tolerance:g}) in some order"
+                for w in comp["wavelengths"] if w["max_difference"] > tolerance]
+    return dict(period_px=list(np.shape(height_m)), pitch_m=float(pitch_m), material=material,
+                n_terms=result.n_terms, incidence=incidence, formulation=result.settings["formulation"],
+                layers=result.settings["layers"], tolerance=float(tolerance), depth_m=depth,
+                validity=validity(feature, depth, wls), comparison=comp, warnings=warnings)
