@@ -52,9 +52,11 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .budget import check_memory
 from .errors import DoeError
@@ -64,6 +66,9 @@ __all__ = ["DEFAULT_TERMS", "DEFAULT_TOLERANCE", "score_design", "FEATURE_MIN_WA
            "thin_element_efficiencies", "validity"]
 
 log = logging.getLogger(__name__)
+
+#: A refractive index, or a function of the wavelength (m) giving one.
+IndexLike = complex | float | Callable[[float], complex]
 
 DEFAULT_TERMS = 200
 INCIDENCES = ("substrate", "air")
@@ -165,8 +170,8 @@ def _expansion(fmmax, shape, n_terms):
                                     truncation=fmmax.Truncation.CIRCULAR)
 
 
-def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m, index, n_terms: int = DEFAULT_TERMS,
-                          incidence: str = "substrate", formulation: str = "jones_direct_fourier",
+def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m: ArrayLike, index: IndexLike,
+                          n_terms: int = DEFAULT_TERMS, incidence: str = "substrate", formulation: str = "jones_direct_fourier",
                           index_gap: complex = 1.0) -> RigorousResult:
     """Transmitted efficiencies of one period of a surface relief, by the Fourier modal method.
 
@@ -270,7 +275,8 @@ def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m, i
                           dict(incidence=incidence, formulation=form.name.lower(), layers=len(patterns)))
 
 
-def thin_element_efficiencies(height_m: np.ndarray, wavelengths_m, index, orders: np.ndarray) -> np.ndarray:
+def thin_element_efficiencies(height_m: np.ndarray, wavelengths_m: ArrayLike, index: IndexLike,
+                              orders: np.ndarray) -> np.ndarray:
     """Thin-element efficiencies ``(w, k)`` of one period at the given ``orders`` (p, q).
 
     Each pixel a flat phase ``2 pi (n - 1) h / lambda`` (the PSF engine's pixel model): order
@@ -334,7 +340,7 @@ def smallest_feature_m(height_m: np.ndarray, pitch_m: float, periodic: bool = Tr
     return float((best or 1) * pitch_m)
 
 
-def validity(smallest_feature: float, depth_m: float, wavelengths_m) -> dict:
+def validity(smallest_feature: float, depth_m: float, wavelengths_m: ArrayLike) -> dict:
     """Where the thin-element model holds: feature over wavelength and depth over feature.
 
     Parameters
@@ -364,7 +370,7 @@ def validity(smallest_feature: float, depth_m: float, wavelengths_m) -> dict:
                 depth_max_features=DEPTH_MAX_FEATURES, holds=holds, statement=text)
 
 
-def score_design(height_m: np.ndarray, pitch_m: float, material: str, wavelengths_m, n_terms: int = DEFAULT_TERMS,
+def score_design(height_m: np.ndarray, pitch_m: float, material: str, wavelengths_m: ArrayLike, n_terms: int = DEFAULT_TERMS,
                  polarization: str = "unpolarised", incidence: str = "substrate",
                  tolerance: float = DEFAULT_TOLERANCE, formulation: str = "jones_direct_fourier") -> dict:
     """Rigorous and thin-element efficiencies of one period of a design, with the verdict.

@@ -53,3 +53,16 @@ def test_rigorous_command_refuses_bad_input_in_one_line(binary_design, tmp_path)
     assert not (tmp_path / "o" / "report.json").exists()
     r = _doe("rigorous", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o2"))
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_design_report_states_where_the_thin_element_model_holds(tmp_path):
+    out = tmp_path / "d.npz"
+    r = subprocess.run([sys.executable, "-c", "import sys; from doedesign.cli import main; sys.exit(main())",
+                        "design", "bayer", "--size", "32", "--iterations", "3", "--out", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    thin = json.loads((tmp_path / "report.json").read_text())["thin_element_validity"]
+    # 5.4 um pixels at the longest Bayer wavelength, etched at most 1.1 um: inside the limits
+    assert thin["holds"] is True
+    assert thin["feature_over_wavelength"] == pytest.approx(5.4e-6 / 656e-9, rel=0.05)
+    assert json.loads(r.stdout)["thin_element_model"] == thin["statement"]
