@@ -35,10 +35,13 @@ glass fills the pixels whose surface is at or above the slice's top. The light a
 normal incidence either through the substrate (``incidence="substrate"``: glass, relief, air,
 the usual DOE in front of a lens) or from the air side (``"air"``: air, relief, glass, as the
 invrs-gym diffractive splitter is posed). Transmitted efficiencies are the Poynting flux in each
-propagating order over the incident flux; ``te`` is the electric field along the rows (x,
-columns direction), ``tm`` along the columns (y); ``unpolarised`` their mean. For a 1-D grating
-(one row) whose lines run along y, ``te`` is the field along the grooves... see
-:data:`POLARIZATIONS`.
+propagating order over the incident flux. ``te``: the electric field along y (up the columns),
+which for a 1-D grating along x (one row) is along its lines (checked against the
+effective-medium film in the tests); ``tm``: along x; ``unpolarised``: their mean. The relief is
+repeated pixel by pixel onto the finer grid fmmax needs for the chosen terms (the same geometry).
+
+Hand-written here: only the slicing of a height map into layers and the order bookkeeping;
+the eigenmodes, scattering matrices and fluxes are fmmax's.
 
 The thin-element model (:func:`thin_element_efficiencies`) is the PSF engine's pixel model
 (:mod:`doedesign.engine.psf`): each pixel a flat phase step, so order ``(p, q)`` carries
