@@ -69,6 +69,8 @@ def plot(table, path):
     ax.plot(p, [r["tm_rel"] for r in table], "s-", label="rigorous TM (relative)")
     ax.axhline(table[0]["thin"], color="k", ls="--", label="thin element sinc$^2$(1/16)")
     ax.set_xscale("log")
+    ax.set_xticks(p, [str(v) for v in p])
+    ax.minorticks_off()
     ax.set_xlabel("period (wavelengths)")
     ax.set_ylabel("first-order efficiency")
     ax.set_title("16-level blazed grating, fused silica, 550 nm")

@@ -120,8 +120,11 @@ def test_validity_statement_and_smallest_feature():
     assert smallest_feature_m(h, 1e-6) == pytest.approx(3e-6)
     ok = validity(5.4e-6, 1.125e-6, [486e-9, 656e-9])
     assert ok["holds"] and ok["feature_over_wavelength"] == pytest.approx(5.4 / 0.656)
-    bad = validity(1.8e-6, 1.125e-6, [486e-9, 656e-9])
-    assert not bad["holds"] and "outside" in bad["statement"]
+    # limits from the blazed-grating benchmark: 2 wavelengths of feature, 1 feature of depth
+    assert validity(1.8e-6, 1.125e-6, [486e-9, 656e-9])["holds"]  # the paper's 1.8 um pixels: 2.7 wavelengths
+    narrow = validity(1.2e-6, 1.125e-6, [486e-9, 656e-9])
+    assert not narrow["holds"] and "outside" in narrow["statement"]
+    assert not validity(5.4e-6, 6e-6, [550e-9])["holds"]  # deeper than wide
 
 
 def test_bad_requests_are_one_line_errors():
