@@ -251,14 +251,19 @@ def cmd_design(args: argparse.Namespace) -> int:
     out = Path(args.out)
     report_path = out.parent / "report.json"
     # The design and its report are one result: the folder says INCOMPLETE until both are written.
+    from ..rigorous import smallest_feature_m, validity
+
+    h = run.design.height_m
+    thin = validity(smallest_feature_m(h, pitch), float(h.max() - h.min()), target.wavelengths_m)
     with output_run(out.parent, f"doe design {args.target}"):
         run.design.save(out)
-        write_json(report_path, {"design": str(out), **run.report})
+        write_json(report_path, {"design": str(out), **run.report, "thin_element_validity": thin})
     from .common import print_json
 
     summary = {"design": str(out), "report": str(report_path), "target": target.name,
                "run_time_s": round(run.report["run_time_s"], 2),
-               "efficiency_continuous": run.report["continuous"]["efficiency"]}
+               "efficiency_continuous": run.report["continuous"]["efficiency"],
+               "thin_element_model": thin["statement"]}
     if "quantized" in run.report:
         summary["efficiency_quantized"] = run.report["quantized"]["efficiency"]
     final = run.report["quantized" if "quantized" in run.report else "continuous"]["bound"]
