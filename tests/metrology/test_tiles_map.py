@@ -120,3 +120,30 @@ def test_same_map_with_one_two_and_four_workers(tmp_path):
                 scheduler="processes", workers=workers, tiles_per_task=1)
         runs.append(load_jsonl(out / "tiles.jsonl"))
     assert runs[0] == runs[1] == runs[2]
+
+
+def test_map_corrections_name_aligner_scale_and_radial_warning(tmp_path):
+    from metrology.mapping.correction import map_corrections, read_map_report
+
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-4e-3, 4e-3, (2, 25))
+    s = np.full(25, 1e-9)
+    noise = lambda: 0.5e-9 * rng.standard_normal(25)  # noqa: E731
+    zero = fit_overlay_model(x, y, noise(), noise(), s, s)
+    mag = fit_overlay_model(x, y, 10e-6 * x + noise(), 10e-6 * y + noise(), s, s)
+    moved = fit_overlay_model(x, y, 50e-9 - 10e-6 * y + noise(), 10e-6 * x + noise(), s, s)
+    e = -0.03 * (x ** 2 + y ** 2) / 4.3e-3 ** 2 + 1e-4 * rng.standard_normal(25)
+    report = {"n_tiles": 25, "models": {"overlay_mask1": zero, "overlay_mask2": mag, "overlay_mask3": moved,
+                                        "depth_all": fit_depth_model(x, y, e, np.full(25, 1e-4), 4.3e-3)}}
+    (tmp_path / "r.json").write_text(json.dumps(report))
+    out = map_corrections(read_map_report(tmp_path / "r.json"))
+    by_mask = {m["mask"]: m for m in out["masks"]}
+    assert by_mask[1] == {"mask": 1, "aligner_offset_m": [0.0, 0.0], "aligner_rotation_rad": 0.0, "mask_scale": 1.0}
+    assert by_mask[2]["mask_scale"] == pytest.approx(1 - 10e-6, abs=0.3e-6)
+    assert by_mask[3]["aligner_offset_m"][0] == pytest.approx(-50e-9, rel=0.05)
+    assert by_mask[3]["aligner_rotation_rad"] == pytest.approx(-10e-6, rel=0.05)
+    assert any("mask 2" in w and "ppm" in w for w in out["warnings"])
+    assert any("etch depth -3.0" in w for w in out["warnings"])
+    (tmp_path / "bad.json").write_text("[1]")
+    with pytest.raises(Exception, match="not a doe map report"):
+        read_map_report(tmp_path / "bad.json")
