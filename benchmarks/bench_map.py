@@ -31,7 +31,7 @@ def _row(figure, value, unit, notes="", limit=None):
 
 
 def run(quick: bool = False) -> list[dict]:
-    from metrology.mapping.tiles_map import diagnose_tile, run_map
+    from metrology.diagnosis.tiles_map import diagnose_tile, run_map
 
     rows = []
     n = 200

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     ensure_output_dir(args.out)
     map_report = None
     if getattr(args, "map", None):
-        from metrology.mapping.correction import read_map_report
+        from metrology.diagnosis.map_correction import read_map_report
 
         map_report = read_map_report(args.map)
     if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples or args.redesign_for):
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
                     redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured")
     if map_report is not None:
         from doedesign.fileio import write_json
-        from metrology.mapping.correction import map_corrections
+        from metrology.diagnosis.map_correction import map_corrections
 
         from_map = map_corrections(map_report)
         write_json(f"{args.out}/map_corrections.json", from_map)

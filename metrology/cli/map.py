@@ -46,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
     from doedesign.levels import design_levels
     from masks.tolerance.scheduler import parse_address
     from metrology.cli.diagnose import parse_effects
-    from metrology.mapping.report import assemble, write_report
-    from metrology.mapping.tiles_map import open_map, run_map
+    from metrology.diagnosis.map_report import assemble, write_report
+    from metrology.diagnosis.tiles_map import open_map, run_map
 
     out = ensure_output_dir(args.out)
     if "://" in args.scheduler:

@@ -7,9 +7,9 @@ import pytest
 
 from doedesign.cli import main
 from doedesign.design import Design
-from metrology.mapping.models import fit_depth_model, fit_overlay_model
-from metrology.mapping.report import assemble
-from metrology.mapping.tiles_map import load_jsonl, map_tiles, run_map
+from metrology.diagnosis.map_models import fit_depth_model, fit_overlay_model
+from metrology.diagnosis.map_report import assemble
+from metrology.diagnosis.tiles_map import load_jsonl, map_tiles, run_map
 
 from elementgen import DEPTHS_M, PITCH_M, element_levels, measure
 
@@ -123,7 +123,7 @@ def test_same_map_with_one_two_and_four_workers(tmp_path):
 
 
 def test_map_corrections_name_aligner_scale_and_radial_warning(tmp_path):
-    from metrology.mapping.correction import map_corrections, read_map_report
+    from metrology.diagnosis.map_correction import map_corrections, read_map_report
 
     rng = np.random.default_rng(5)
     x, y = rng.uniform(-4e-3, 4e-3, (2, 25))

@@ -22,7 +22,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-__all__ = ["MAP_EFFECTS", "MIN_VALID_SHARE", "diagnose_tile", "map_tiles", "open_map", "run_map"]
+__all__ = ["MAP_EFFECTS", "MIN_VALID_SHARE", "diagnose_tile", "load_jsonl", "map_tiles", "open_map", "run_map"]
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ MAP_EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias")
 MIN_VALID_SHARE = 0.25
 
 
-def open_map(path: str | Path):
+def open_map(path: str | Path) -> Any:
     """The height map (m) of ``path`` as a lazily read array: ``.npy`` memory-mapped, ``.h5`` /
     ``.hdf5`` the dataset ``height_m`` (its chunks read on slicing). Only the header is read."""
     from doedesign.fileio import check_input_file

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metrology.mapping.models import fit_depth_model, fit_overlay_model
+from metrology.diagnosis.map_models import fit_depth_model, fit_overlay_model
 
 __all__ = ["assemble", "write_report"]
 
