@@ -147,3 +147,23 @@ def test_map_corrections_name_aligner_scale_and_radial_warning(tmp_path):
     (tmp_path / "bad.json").write_text("[1]")
     with pytest.raises(Exception, match="not a doe map report"):
         read_map_report(tmp_path / "bad.json")
+
+
+def test_hdf5_map_is_read_by_tile(tmp_path):
+    import h5py
+
+    from metrology.diagnosis.tiles_map import diagnose_tile, open_map
+
+    levels = element_levels(120)
+    m = measure(levels, 2, [(40, 80, 40, 80)], {"shift_m": {1: (60e-9, 0.0)}})
+    with h5py.File(tmp_path / "map.h5", "w") as f:
+        f.create_dataset("height_m", data=m, chunks=(40, 40), compression="gzip")
+    arr = open_map(tmp_path / "map.h5")
+    assert isinstance(arr, h5py.Dataset)  # not read into memory
+    rec = diagnose_tile(levels, PITCH_M, str(tmp_path / "map.h5"), 2, {"id": "t", "region": [40, 80, 40, 80]},
+                        list(DEPTHS_M), EFFECTS, 10.0)
+    dx, err = rec["params"]["dx_mask1_m"]
+    assert rec["status"] == "ok" and abs(dx - 60e-9) < max(3 * err, 6e-9)
+    (tmp_path / "map.txt").write_text("1 2 3")
+    with pytest.raises(Exception, match="must be .npy or .h5"):
+        open_map(tmp_path / "map.txt")
