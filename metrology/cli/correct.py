@@ -60,6 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--redesign-samples", type=Number(int, 0, 1000), default=0, metavar="K",
                    help="draws of the measured spreads the re-design averages over, beside the fitted "
                         "process (default 0)")
+    p.add_argument("--map", metavar="REPORT.json",
+                   help="a doe map report: the aligner offset and rotation per mask, a mask scale correction for "
+                        "a magnification and a warning for a radial etch depth, in OUT/map_corrections.json")
     p.set_defaults(func=run)
 
 
@@ -73,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
     from metrology.correction.redesign import DEFAULT_ITERATIONS
 
     ensure_output_dir(args.out)
+    map_report = None
+    if getattr(args, "map", None):
+        from metrology.diagnosis.map_correction import read_map_report
+
+        map_report = read_map_report(args.map)
     if not args.redesign and (args.redesign_iterations is not None or args.redesign_samples or args.redesign_for):
         raise DoeError("--redesign-iterations, --redesign-samples and --redesign-for need --redesign")
     try:
@@ -84,6 +92,13 @@ def run(args: argparse.Namespace) -> int:
                     min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
                     redesign_iterations=(args.redesign_iterations or DEFAULT_ITERATIONS) if args.redesign else None,
                     redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured")
+    if map_report is not None:
+        from doedesign.fileio import write_json
+        from metrology.diagnosis.map_correction import map_corrections
+
+        from_map = map_corrections(map_report)
+        write_json(f"{args.out}/map_corrections.json", from_map)
+        sheet["warnings"] = list(sheet["warnings"]) + from_map["warnings"]
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",
