@@ -18,7 +18,9 @@ levels : int (rows, cols), optional
 aperture : bool (rows, cols), optional
     The clear region (True where light passes).
 metadata : str
-    JSON object: name, target, camera parameters, tool version, ``format_version``.
+    JSON object: name, target, camera parameters, tool version, ``format_version``;
+    optional ``surround`` (``open``, ``opaque`` or ``repeat``: what surrounds the design inside
+    the lens aperture, :mod:`doedesign.surround`; default ``open``).
 """
 
 from __future__ import annotations
@@ -241,6 +243,7 @@ class Design:
                              "used": used.tolist(), "pixels": counts.tolist()}
         if self.aperture is not None:
             out["aperture_fraction"] = float(self.aperture.mean())
+        out["surround"] = self.metadata.get("surround", "open (default)")
         return out
 
 
@@ -255,6 +258,13 @@ def _check_metadata(path, metadata):
     if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_CHARS:
         shown = repr(name) if not isinstance(name, str) else f"{len(name)} characters"
         raise DesignFileError(f"{path}: metadata name must be text of 1 to {MAX_NAME_CHARS} characters, got {shown}")
+    if "surround" in metadata:
+        from .surround import check_surround
+
+        try:
+            check_surround(metadata["surround"], f"{path}: metadata surround")
+        except DoeError as exc:
+            raise DesignFileError(str(exc)) from None
     if "camera" in metadata and not isinstance(metadata["camera"], dict):
         raise DesignFileError(f"{path}: metadata camera must be an object, got {type(metadata['camera']).__name__}")
 
