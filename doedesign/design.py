@@ -20,7 +20,7 @@ aperture : bool (rows, cols), optional
 metadata : str
     JSON object: name, target, camera parameters, tool version, ``format_version``;
     optional ``surround`` (``open``, ``opaque`` or ``repeat``: what surrounds the design inside
-    the lens aperture, :mod:`doedesign.surround`; default ``open``).
+    the lens aperture, :data:`doedesign.camera.SURROUNDS`; default ``open``).
 """
 
 from __future__ import annotations
@@ -259,7 +259,7 @@ def _check_metadata(path, metadata):
         shown = repr(name) if not isinstance(name, str) else f"{len(name)} characters"
         raise DesignFileError(f"{path}: metadata name must be text of 1 to {MAX_NAME_CHARS} characters, got {shown}")
     if "surround" in metadata:
-        from .surround import check_surround
+        from .camera import check_surround
 
         try:
             check_surround(metadata["surround"], f"{path}: metadata surround")

@@ -11,7 +11,7 @@ from ..budget import check_memory, psf_bytes
 from ..design import Design
 from ..engine.psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 from ..progress import Progress
-from ..surround import DEFAULT_SURROUND, SURROUNDS, describe_surround, resolve_surround
+from ..camera import DEFAULT_SURROUND, SURROUNDS, describe_surround, resolve_surround
 from .common import Number, NumberList, add_camera_options, add_device_option, camera_from_args
 
 __all__ = ["cmd_psf", "register"]

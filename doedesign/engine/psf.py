@@ -40,10 +40,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 from threadpoolctl import threadpool_limits
 
-from ..camera import Camera
+from ..camera import DEFAULT_SURROUND, Camera, check_surround
 from ..errors import DoeError, SamplingError
 from ..materials import get_material
-from ..surround import DEFAULT_SURROUND, check_surround
 from .backend import Array, Backend, select_backend
 from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
 from .reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
@@ -107,7 +106,7 @@ class PSFEngine:
         the light through the unobstructed half-aperture, so blocked light is lost light.
     surround : {"open", "opaque", "repeat"}
         What the coded view's half-aperture holds around the design
-        (:mod:`doedesign.surround`): open glass (default), chrome, or the design (heights and
+        (:data:`doedesign.camera.SURROUNDS`): open glass (default), chrome, or the design (heights and
         ``aperture``) tiled with the central tile on the design. The uncoded view is the bare
         lens either way.
     device : {"cpu", "gpu", "auto"} or Backend
@@ -605,8 +604,8 @@ def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: Arr
                 progress: Progress | None = None, threads: int = 1, surround: str | None = None) -> PSFResult:
     """PSFs of a :class:`~doedesign.design.Design` through ``camera`` (default: the seed camera);
     ``threads`` wavelengths side by side (:meth:`PSFEngine.psf`); ``surround`` (default: the
-    design file's, else open) as :func:`doedesign.surround.resolve_surround` decides."""
-    from ..surround import resolve_surround
+    design file's, else open) as :func:`doedesign.camera.resolve_surround` decides."""
+    from ..camera import resolve_surround
 
     camera = camera or Camera()
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths_m, depths_m,

@@ -32,7 +32,7 @@ class PSFResult:
     energy_in_window : ndarray (views, depths, wavelengths)
         ``psf.sum((-2, -1))``: the part of that light the window holds.
     surround : str or None
-        What surrounded the design inside the lens aperture (:mod:`doedesign.surround`); None
+        What surrounded the design inside the lens aperture (:data:`doedesign.camera.SURROUNDS`); None
         for a file written before the convention was recorded (computed as ``open``).
     coded_clear_fraction : float or None
         Share of the coded view's light that its clear region passes (the design's
@@ -77,7 +77,7 @@ class PSFResult:
 
     def summary(self) -> dict:
         """Dictionary for ``doe inspect``: shape, views, wavelengths, energies and the surround."""
-        from ..surround import describe_surround
+        from ..camera import describe_surround
 
         return {"kind": "psf", "shape": list(self.psf.shape[-2:]), "views": list(self.views),
                 "wavelengths_nm": [float(v) * 1e9 for v in self.wavelengths_m],
