@@ -4,9 +4,11 @@ is refused before it allocates, in one line naming the limit and the size asked 
 traceback, no output), and a MemoryError that no estimate foresaw becomes the same kind of line.
 """
 
+import io
 import resource
 import subprocess
 import sys
+import zipfile
 
 import numpy as np
 import pytest
@@ -68,8 +70,25 @@ def test_the_budget_counts_the_address_space_limit():
         resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
+def _big_design(path, n):
+    """A valid design file of n x n zero heights, its height map streamed into the zip (fast deflate)."""
+    small = _design(path.with_name("small.npz"), 8, levels=False)
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (n, n)})
+    zeros = bytes(8 * n * 64)
+    with zipfile.ZipFile(small) as src, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name in src.namelist():
+            if name != "height_m.npy":
+                zf.writestr(name, src.read(name))
+        with zf.open("height_m.npy", "w", force_zip64=True) as fh:
+            fh.write(header.getvalue())
+            for _ in range(n // 64):
+                fh.write(zeros)
+    return path
+
+
 def test_masks_of_an_8000_px_design(tmp_path):
-    design = _design(tmp_path / "big.npz", 8000, levels=False)
+    design = _big_design(tmp_path / "big.npz", 8000)
     proc = _limited(["masks", design, "--out", tmp_path / "m"], tmp_path)
     _refused(proc, tmp_path / "m", "8000 x 8000")
 
