@@ -6,8 +6,12 @@ camera window in its metadata, a ``--window`` option) estimates the bytes its wo
 its peak and calls :func:`check_memory` first. The limit is a share of the memory the machine
 has available now (``psutil``, a dask dependency; a cgroup's ``memory.max`` where one is set),
 so a request that could only end in a MemoryError, in swapping or in the kernel's OOM killer
-is refused as one line instead. ``DOE_MEMORY_LIMIT`` (bytes, or with a K, M, G or T suffix)
-sets the limit explicitly (a batch job's allocation).
+is refused as one line instead. The limits the process itself runs under count too: the
+address-space and data-segment limits (``RLIMIT_AS``, ``RLIMIT_DATA``: ``ulimit -v``, a batch
+queue's memory limit), less what the process has already mapped (``VmSize`` / ``VmData`` of
+``/proc/self/status``), since an allocation beyond them fails however much memory the machine
+has. ``DOE_MEMORY_LIMIT`` (bytes, or with a K, M, G or T suffix) sets the share limit
+explicitly (a batch job's allocation); the process limits still apply under it.
 
 The estimates are sums of the arrays each computation holds (sizes from shapes, counted
 with Python integers so that absurd claims do not overflow); the PSF engine's and the mask
@@ -28,7 +32,7 @@ if TYPE_CHECKING:
     from .camera import Camera
 
 __all__ = ["LIMIT_ENV", "available_bytes", "check_memory", "format_bytes", "mask_export_bytes",
-           "memory_limit_bytes", "psf_bytes"]
+           "measurement_bytes", "memory_limit_bytes", "memory_message", "process_limits", "psf_bytes"]
 
 LIMIT_ENV = "DOE_MEMORY_LIMIT"
 # Share of the available memory one run may plan to hold (the rest: Python, libraries, other work).
@@ -65,8 +69,43 @@ def available_bytes() -> int:
     return free if cgroup is None else min(free, cgroup)
 
 
-def memory_limit_bytes() -> int:
-    """The most one run may plan to allocate: ``DOE_MEMORY_LIMIT``, else :data:`SHARE` of the available."""
+def _status_kb(field: str) -> int | None:
+    """A ``kB`` field of ``/proc/self/status`` in bytes (None where there is none)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def process_limits() -> list[tuple[int, str]]:
+    """``(bytes still allowed, name)`` for each address-space or data limit this process runs under.
+
+    The room left is the soft limit less what the process has mapped already (``VmSize`` for
+    ``RLIMIT_AS``, ``VmData`` for ``RLIMIT_DATA``): a new array has to fit in what remains.
+    """
+    try:
+        import resource
+    except ImportError:  # not a POSIX system
+        return []
+    out = []
+    for name, field in (("RLIMIT_AS", "VmSize"), ("RLIMIT_DATA", "VmData")):
+        kind = getattr(resource, name, None)
+        if kind is None:
+            continue
+        soft, _ = resource.getrlimit(kind)
+        if soft == resource.RLIM_INFINITY or soft < 0:
+            continue
+        used = _status_kb(field) or 0
+        out.append((max(int(soft) - used, 0), f"{name} {format_bytes(soft)}, {format_bytes(used)} of it mapped "
+                                              f"already"))
+    return out
+
+
+def _share_limit() -> int:
+    """``DOE_MEMORY_LIMIT``, else :data:`SHARE` of the available memory."""
     text = os.environ.get(LIMIT_ENV, "").strip().upper().removesuffix("B")
     if text:
         number, unit = (text[:-1], text[-1]) if text[-1] in _SUFFIX else (text, "")
@@ -80,20 +119,63 @@ def memory_limit_bytes() -> int:
     return int(SHARE * available_bytes())
 
 
+def _limit() -> tuple[int, str]:
+    """The tightest limit and what sets it."""
+    limit = _share_limit()
+    source = f"{LIMIT_ENV}" if os.environ.get(LIMIT_ENV, "").strip() else f"{SHARE:.0%} of the memory available now"
+    for room, name in process_limits():
+        if SHARE * room < limit:
+            limit, source = int(SHARE * room), f"{SHARE:.0%} of the room left under the process's {name}"
+    return limit, source
+
+
+def memory_limit_bytes() -> int:
+    """The most one run may plan to allocate: ``DOE_MEMORY_LIMIT``, else :data:`SHARE` of the
+    available memory, and no more than :data:`SHARE` of the room under :func:`process_limits`."""
+    return _limit()[0]
+
+
 def check_memory(nbytes: int, what: str) -> None:
-    """Refuse ``what`` when its estimated peak ``nbytes`` exceeds :func:`memory_limit_bytes`.
+    """Refuse ``what`` when its estimated peak ``nbytes`` exceeds the tightest limit the run is under.
+
+    The limits: :func:`memory_limit_bytes` (:data:`SHARE` of the available memory, or
+    ``DOE_MEMORY_LIMIT``) and the room left under each of :func:`process_limits`.
 
     Raises
     ------
     DoeError
         One line naming ``what``, the estimate and the limit.
     """
-    limit = memory_limit_bytes()
+    limit, source = _limit()
     if nbytes > limit:
-        source = f"{LIMIT_ENV}" if os.environ.get(LIMIT_ENV, "").strip() else \
-            f"{SHARE:.0%} of the memory available now"
         raise DoeError(f"{what} would need about {format_bytes(nbytes)} of memory, over the limit of "
                        f"{format_bytes(limit)} ({source})")
+
+
+def memory_message(exc: MemoryError) -> str:
+    """One line for a :class:`MemoryError` that no estimate foresaw: the size asked, the limits."""
+    shape = getattr(exc, "shape", None)
+    dtype = getattr(exc, "dtype", None)
+    asked = ""
+    if shape is not None and dtype is not None:  # numpy's _ArrayMemoryError carries both
+        try:
+            asked = f" of {format_bytes(math.prod(int(v) for v in shape) * dtype.itemsize)} (an array " \
+                    f"{' x '.join(str(int(v)) for v in shape)} of {dtype})"
+        except (TypeError, ValueError, AttributeError):
+            asked = ""
+    limits = [f"{SHARE:.0%} of the memory available now is {format_bytes(SHARE * available_bytes())}"]
+    limits += [f"{format_bytes(room)} left under {name}" for room, name in process_limits()]
+    return f"out of memory: an allocation{asked} failed ({'; '.join(limits)}); give a smaller input or more memory"
+
+
+def measurement_bytes(shape: Sequence[int]) -> int:
+    """Peak bytes of comparing or diagnosing a measured field of ``shape`` (camera pixels).
+
+    About 30 float64 maps of the field (the reading, spike removal, levelling, edge
+    gradients, the read-out and the fits' residuals and models): an allowance from the
+    arrays these steps hold, not a measured slope.
+    """
+    return 30 * 8 * int(shape[0]) * int(shape[1])
 
 
 def psf_bytes(camera: Camera, pitch_m: float, shape: Sequence[int], n_wavelengths: int, n_depths: int,

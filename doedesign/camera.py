@@ -4,18 +4,31 @@ Geometry (all in one frame, viewed along the light): the DOE array is centred on
 axis, row 0 at the top and column 0 at the left; the sensor window uses the same (row, col)
 orientation with the axis at ``axis_pixel``. No image inversion is applied, so a phase that
 increases toward higher column steers light toward higher sensor column.
+
+What surrounds a design inside the lens aperture is one stated convention (:data:`SURROUNDS`).
+A design is usually smaller than the camera's clear aperture (a 1 mm element in an 8.64 mm
+lens), and the light it meets in the rest of the DOE's half-aperture changes the answer: an
+all-closed ``aperture`` on a small design still passes most of the light when the rest is open.
+``open`` (the default, the behaviour before the choice was named) is unetched glass with no
+phase; ``opaque`` is chrome, so only the design's own clear region passes light; ``repeat``
+tiles the design (its heights and its ``aperture``) across the half-aperture, the central tile
+where the design sits. The convention comes from a command's ``--surround`` option, else from
+the design file's metadata field ``surround``, else ``open`` (:func:`resolve_surround`); it is
+written into every PSF file and shown by ``doe inspect``.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from .errors import DoeError
 
-__all__ = ["Camera", "MAX_WINDOW_PX", "SIDES"]
+__all__ = ["Camera", "DEFAULT_SURROUND", "MAX_WINDOW_PX", "SIDES", "SURROUNDS", "check_surround",
+           "describe_surround", "resolve_surround"]
 
 SIDES = ("left", "right", "full")
 # Largest sensor window simulated (pixels per side): 8192^2 float64 per wavelength and view is
@@ -156,3 +169,31 @@ def _view_weights(grid_shape, pitch_m, diameter_m, side, oversample):
     out = np.stack([coded, uncoded])
     out.setflags(write=False)
     return out
+
+
+SURROUNDS = ("open", "opaque", "repeat")
+DEFAULT_SURROUND = "open"
+_TEXT = {"open": "open glass (unetched, no phase) around the design inside the lens aperture",
+         "opaque": "opaque (chrome) around the design: only its own clear region passes light",
+         "repeat": "the design repeated (heights and aperture tiled) across the lens aperture"}
+
+
+def check_surround(value: object, where: str = "surround") -> str:
+    """``value`` if it names a convention, else a one-line :class:`~doedesign.errors.DoeError`."""
+    if not isinstance(value, str) or value not in SURROUNDS:
+        raise DoeError(f"{where}: {value!r} is not a surround convention; use one of {', '.join(SURROUNDS)}")
+    return value
+
+
+def resolve_surround(option: str | None, metadata: Mapping | None = None, source: str = "design") -> tuple[str, str]:
+    """The convention and where it came from (``"option"``, ``"design file"`` or ``"default"``)."""
+    if option is not None:
+        return check_surround(option, "--surround"), "option"
+    if metadata and "surround" in metadata:
+        return check_surround(metadata["surround"], f"{source}: metadata surround"), "design file"
+    return DEFAULT_SURROUND, "default"
+
+
+def describe_surround(value: str) -> str:
+    """One sentence for reports and ``doe inspect``."""
+    return _TEXT[check_surround(value)]

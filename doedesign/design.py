@@ -18,11 +18,13 @@ levels : int (rows, cols), optional
 aperture : bool (rows, cols), optional
     The clear region (True where light passes).
 metadata : str
-    JSON object: name, target, camera parameters, tool version, ``format_version``, and two
-    optional fields of the level structure: ``n_levels`` (2, 4, 8, 16 or 32 levels, made by
-    log2(n_levels) binary masks; default 16) and ``mask_depths_m`` (the etch depth of each
-    mask, shallowest bit first; default ``2**j`` level steps). A file without them is a
-    16-level design, as every file written before they existed.
+    JSON object: name, target, camera parameters, tool version, ``format_version``, and
+    optional fields: ``n_levels`` (2, 4, 8, 16 or 32 levels, made by log2(n_levels) binary
+    masks; default 16), ``mask_depths_m`` (the etch depth of each mask, shallowest bit first;
+    default ``2**j`` level steps) and ``surround`` (``open``, ``opaque`` or ``repeat``: what
+    surrounds the design inside the lens aperture, :data:`doedesign.camera.SURROUNDS`; default
+    ``open``). A file without ``n_levels`` is a 16-level design, as every file written before
+    it existed.
 """
 
 from __future__ import annotations
@@ -274,6 +276,7 @@ class Design:
                              "used": used.tolist(), "pixels": counts.tolist()}
         if self.aperture is not None:
             out["aperture_fraction"] = float(self.aperture.mean())
+        out["surround"] = self.metadata.get("surround", "open (default)")
         return out
 
 
@@ -304,6 +307,13 @@ def _check_metadata(path, metadata):
     if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_CHARS:
         shown = repr(name) if not isinstance(name, str) else f"{len(name)} characters"
         raise DesignFileError(f"{path}: metadata name must be text of 1 to {MAX_NAME_CHARS} characters, got {shown}")
+    if "surround" in metadata:
+        from .camera import check_surround
+
+        try:
+            check_surround(metadata["surround"], f"{path}: metadata surround")
+        except DoeError as exc:
+            raise DesignFileError(str(exc)) from None
     if "camera" in metadata and not isinstance(metadata["camera"], dict):
         raise DesignFileError(f"{path}: metadata camera must be an object, got {type(metadata['camera']).__name__}")
 

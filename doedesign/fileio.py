@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 __all__ = ["atomic_path", "dumps_json", "json_ready", "read_npz", "save_figure", "write_json", "write_npz",
            "check_input_file", "check_output_path", "ensure_output_dir", "ensure_output_file", "load_npy",
            "make_temporary", "output_run", "parse_json", "parse_toml", "read_json", "read_text_file", "read_toml",
-           "safe_file_name", "shown_path"]
+           "npz_shape", "safe_file_name", "shown_path"]
 
 TEMP_SUFFIX = ".part"
 INCOMPLETE_MARKER = "INCOMPLETE"
@@ -449,6 +449,22 @@ def _check_npz_members(path, error):
                             f"{MAX_INPUT_ARRAY_BYTES / 1e9:.3g} GB input limit")
             with zf.open(info) as fh:
                 check_npy_header(fh, info.file_size, where, error)
+
+
+def npz_shape(path: str | Path, name: str) -> tuple[int, ...] | None:
+    """The shape member ``name`` of an ``.npz`` claims, read from its header alone (nothing
+    inflated), so a size check can refuse a file before it is loaded; None where the file or
+    member cannot be read that way (the loader then reports it)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            info = zf.getinfo(f"{name}.npy")
+            with zf.open(info) as fh:
+                shape, _ = check_npy_header(fh, info.file_size, f"{path}: array '{name}'")
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, DoeError):
+        return None
+    return tuple(int(v) for v in shape)
 
 
 def load_npy(path: str | Path, error: type[Exception] | None = None) -> np.ndarray:

@@ -85,8 +85,10 @@ def _int_list(text, what):
 
 def run_masks(args: argparse.Namespace) -> int:
     """Run ``doe masks``: write the verified GDS (and plate), preview and report."""
+    from doedesign.budget import check_memory, mask_export_bytes
     from doedesign.cli.common import print_json
     from doedesign.design import Design
+    from doedesign.fileio import npz_shape
 
     from .element import write_element
 
@@ -95,6 +97,9 @@ def run_masks(args: argparse.Namespace) -> int:
     vertex_limits(formats, max_vertices)  # a limit GDSII cannot hold costs nothing
     ensure_output_dir(args.out)  # before loading and exporting: a bad --out costs nothing
     depths = None if args.depths_nm is None else [d * 1e-9 for d in args.depths_nm]
+    shape = npz_shape(args.design, "height_m")  # refused from the header, before the map is inflated
+    if shape is not None and len(shape) == 2:
+        check_memory(mask_export_bytes(shape), f"{args.design}: the masks of a {shape[0]} x {shape[1]} px design")
     report = write_element(
         Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=None if args.layers is None else _int_list(args.layers, "layers"),

@@ -6,7 +6,8 @@ Each package plugs its own subcommands in through the ``doe.commands`` entry-poi
 names no package above ``doedesign``. Only the named command's entry point is loaded (its
 imports are the start-up cost of every run); ``doe``, ``doe --help`` and a name that is no
 command load them all, so the help lists every command. User mistakes
-(:class:`~doedesign.errors.DoeError`) print one line and exit 2.
+(:class:`~doedesign.errors.DoeError`) print one line and exit 2; so does a ``MemoryError``
+that no size check foresaw (the size asked and the limits the process runs under).
 """
 
 from __future__ import annotations
@@ -100,6 +101,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except DoeError as exc:
         print(f"doe {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # numpy's _ArrayMemoryError too: what no estimate foresaw
+        from ..budget import memory_message
+
+        print(f"doe {args.command}: error: {memory_message(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("doe: interrupted", file=sys.stderr)

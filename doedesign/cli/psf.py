@@ -11,6 +11,7 @@ from ..budget import check_memory, psf_bytes
 from ..design import Design
 from ..engine.psf import DEFAULT_THREADS, PSFEngine, parse_wavelengths_nm
 from ..progress import Progress
+from ..camera import DEFAULT_SURROUND, SURROUNDS, describe_surround, resolve_surround
 from .common import Number, NumberList, add_camera_options, add_device_option, camera_from_args
 
 __all__ = ["cmd_psf", "register"]
@@ -34,8 +35,12 @@ def cmd_psf(args: argparse.Namespace) -> int:
                            threads=args.threads),
                  f"{args.design}: the PSFs of this {design.shape[0]} x {design.shape[1]} px design "
                  f"({design.pitch_m:.3g} m pitch) on a {args.window} px window")
+    surround, origin = resolve_surround(args.surround, design.metadata, str(args.design))
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths, depths,
-                       doe_oversample=args.doe_oversample, aperture=design.aperture, device=args.device)
+                       doe_oversample=args.doe_oversample, aperture=design.aperture, device=args.device,
+                       surround=surround)
+    log.info("surround: %s (%s): %s; the coded view's clear region passes %.4g of its light", surround, origin,
+             describe_surround(surround), engine.clear_fraction)
     steps = 2 * engine.depths_m.size * wavelengths.size
     with Progress(steps, desc="psf") as bar:
         result = engine.psf(design.height_m, progress=bar, threads=args.threads)
@@ -58,6 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--doe-oversample", type=Number(int, 1, 16), default=1, help="pupil samples per DOE pixel for strong defocus")
     p.add_argument("--threads", type=Number(int, 1, 64), default=DEFAULT_THREADS,
                    help=f"wavelengths computed side by side (default {DEFAULT_THREADS}: the cores, at most 4)")
+    p.add_argument("--surround", choices=SURROUNDS, default=None,
+                   help="what surrounds the design inside the lens aperture: open (unetched glass), opaque "
+                        "(chrome: only the design's clear region passes light) or repeat (the design tiled); "
+                        f"default the design file's metadata surround, else {DEFAULT_SURROUND} (a design "
+                        "smaller than the aperture then passes the light of the open rest even where its "
+                        "aperture is all closed). Written into the PSF file")
     p.add_argument("--out", required=True, help="output PSF .npz")
     p.add_argument("--png", help="optional PNG montage")
     add_device_option(p)

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from threadpoolctl import threadpool_limits
 
-from ..camera import Camera
+from ..camera import DEFAULT_SURROUND, Camera, check_surround
 from ..errors import DoeError, SamplingError
 from ..materials import get_material
 from .backend import Array, Backend, select_backend
@@ -104,6 +104,11 @@ class PSFEngine:
         The element's clear region (a design's ``aperture``: False where its chrome blocks the
         light). It masks the coded view's pupil samples over the design; PSFs stay fractions of
         the light through the unobstructed half-aperture, so blocked light is lost light.
+    surround : {"open", "opaque", "repeat"}
+        What the coded view's half-aperture holds around the design
+        (:data:`doedesign.camera.SURROUNDS`): open glass (default), chrome, or the design (heights and
+        ``aperture``) tiled with the central tile on the design. The uncoded view is the bare
+        lens either way.
     device : {"cpu", "gpu", "auto"} or Backend
         Where the transforms run (:mod:`doedesign.engine.backend`): the same functions on NumPy
         or CuPy. Heights go in and PSFs and gradients come out as NumPy arrays either way.
@@ -113,7 +118,7 @@ class PSFEngine:
                  material: str | Material = "fused_silica", wavelengths_m: ArrayLike = (550e-9,),
                  depths_m: ArrayLike | None = None, doe_oversample: int = 1, precision: str = "double",
                  lag_cache: dict | None = None, aperture: ArrayLike | None = None,
-                 device: str | Backend = "cpu") -> None:
+                 device: str | Backend = "cpu", surround: str = DEFAULT_SURROUND) -> None:
         if not (np.isfinite(pitch_m) and pitch_m > 0):
             raise DoeError(f"DOE pitch must be positive, got {pitch_m}")
         self.backend = select_backend(device)
@@ -137,6 +142,7 @@ class PSFEngine:
         self.q = int(doe_oversample)
         if self.q < 1:
             raise DoeError("doe_oversample must be a positive integer")
+        self.surround = check_surround(surround)
         self.grid_shape = camera.pupil_grid_shape(self.shape, self.pitch_m)
         self.step_m = self.pitch_m / self.q
         weights = camera.view_weights(self.grid_shape, self.pitch_m, self.q)
@@ -145,9 +151,11 @@ class PSFEngine:
         # Light is counted against the unobstructed half-aperture, before the element's chrome.
         unobstructed = {name: float(np.sum(weights[i] ** 2)) for i, name in enumerate(VIEWS)}
         clear = weights
-        if aperture is not None:
+        if aperture is not None or self.surround != "open":
             clear = np.array(weights)
             clear[0] *= self._aperture_mask(aperture)
+        # The share of the coded view's light its clear region passes (1 for a bare lens).
+        self.clear_fraction = float(np.sum(clear[0] ** 2)) / unobstructed["coded"]
         self._views = {}
         for i, name in enumerate(VIEWS):
             amp = weights[i]
@@ -172,15 +180,30 @@ class PSFEngine:
 
     # -- geometry -----------------------------------------------------------------------------
     def _aperture_mask(self, aperture):
-        """The element's clear region on the pupil samples (open outside the design)."""
-        ap = np.asarray(aperture)
+        """The element's clear region on the pupil samples, its surround by :attr:`surround`."""
+        ap = np.ones(self.shape, dtype=bool) if aperture is None else np.asarray(aperture)
         if ap.shape != self.shape or ap.dtype != bool:
             raise DoeError(f"aperture must be a boolean array of the design's shape {self.shape}, "
                            f"got {ap.dtype} {ap.shape}")
         q, (oy, ox) = self.q, self._offset
-        mask = np.ones((self.grid_shape[0] * q, self.grid_shape[1] * q))
-        mask[oy * q:(oy + self.shape[0]) * q, ox * q:(ox + self.shape[1]) * q] = np.repeat(np.repeat(ap, q, 0), q, 1)
-        return mask
+        if self.surround == "repeat":
+            grid = self._tiled(ap, np)
+        else:
+            grid = np.full(self.grid_shape, self.surround == "open")
+            grid[oy:oy + self.shape[0], ox:ox + self.shape[1]] = ap
+        return np.repeat(np.repeat(grid.astype(float), q, 0), q, 1)
+
+    def _tiles(self):
+        """Tile counts and the start of the grid in the tiled map (the central tile on the design)."""
+        (g0, g1), (n0, n1), (oy, ox) = self.grid_shape, self.shape, self._offset
+        s0, s1 = (-oy) % n0, (-ox) % n1
+        return (-(-(g0 + s0) // n0), -(-(g1 + s1) // n1)), (s0, s1)
+
+    def _tiled(self, values, xp):
+        """``values`` (design shape) repeated over the pupil grid, design pixel (0, 0) at the offset."""
+        (r0, r1), (s0, s1) = self._tiles()
+        g0, g1 = self.grid_shape
+        return xp.tile(values, (r0, r1))[s0:s0 + g0, s1:s1 + g1]
 
     def _sample_radius2(self):
         rows, cols = self.grid_shape[0] * self.q, self.grid_shape[1] * self.q
@@ -238,10 +261,12 @@ class PSFEngine:
         amp = self._amp_dev[view]
         phase = xp.zeros(amp.shape, dtype=xp.float64)
         if view == "coded":
-            q, (oy, ox) = self.q, self._offset
+            q, (oy, ox), shape = self.q, self._offset, self.shape
+            if self.surround == "repeat":
+                height_m, (oy, ox), shape = self._tiled(height_m, xp), (0, 0), self.grid_shape
             # Design pixels covering the box (the grid around the design is unetched, height 0).
-            d0, d1 = max(r0 // q - oy, 0), min(-(-r1 // q) - oy, self.shape[0])
-            e0, e1 = max(c0 // q - ox, 0), min(-(-c1 // q) - ox, self.shape[1])
+            d0, d1 = max(r0 // q - oy, 0), min(-(-r1 // q) - oy, shape[0])
+            e0, e1 = max(c0 // q - ox, 0), min(-(-c1 // q) - ox, shape[1])
             part = height_m[d0:d1, e0:e1]
             if q > 1:
                 part = xp.repeat(xp.repeat(part, q, axis=0), q, axis=1)
@@ -379,7 +404,8 @@ class PSFEngine:
         out = self.psf_stack(height_m, views, progress, threads)
         return PSFResult(psf=self.backend.to_host(out), views=tuple(views), wavelengths_m=self.wavelengths_m.copy(),
                          depths_m=self.depths_m.copy(), pixel_pitch_m=self.camera.pixel_pitch_m,
-                         axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling))
+                         axis_pixel=self.camera.axis_pixel, sampling=dict(self.sampling), surround=self.surround,
+                         coded_clear_fraction=self.clear_fraction)
 
     def psf_stack(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
                   threads: int = 1) -> Array:
@@ -509,6 +535,12 @@ class PSFEngine:
         grad[r0:r1, c0:c1] = grad_pupil
         if self.q > 1:
             grad = xp.sum(xp.reshape(grad, (self.grid_shape[0], self.q, self.grid_shape[1], self.q)), axis=(1, 3))
+        if self.surround == "repeat":  # every tile's samples are the design's heights
+            (t0, t1), (s0, s1) = self._tiles()
+            (n0, n1), (g0, g1) = self.shape, self.grid_shape
+            tiled = xp.zeros((t0 * n0, t1 * n1), dtype=xp.float64)
+            tiled[s0:s0 + g0, s1:s1 + g1] = grad
+            return xp.sum(xp.reshape(tiled, (t0, n0, t1, n1)), axis=(0, 2))
         oy, ox = self._offset
         return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
 
@@ -569,10 +601,14 @@ class PSFEngine:
 
 def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9),
                 depths_m: ArrayLike | None = None, doe_oversample: int = 1, views: Sequence[str] = VIEWS,
-                progress: Progress | None = None, threads: int = 1) -> PSFResult:
+                progress: Progress | None = None, threads: int = 1, surround: str | None = None) -> PSFResult:
     """PSFs of a :class:`~doedesign.design.Design` through ``camera`` (default: the seed camera);
-    ``threads`` wavelengths side by side (:meth:`PSFEngine.psf`)."""
+    ``threads`` wavelengths side by side (:meth:`PSFEngine.psf`); ``surround`` (default: the
+    design file's, else open) as :func:`doedesign.camera.resolve_surround` decides."""
+    from ..camera import resolve_surround
+
     camera = camera or Camera()
     engine = PSFEngine(camera, design.pitch_m, design.shape, design.material, wavelengths_m, depths_m,
-                       doe_oversample, aperture=design.aperture)
+                       doe_oversample, aperture=design.aperture,
+                       surround=resolve_surround(surround, design.metadata, design.source_path or design.name)[0])
     return engine.psf(design.height_m, views=views, progress=progress, threads=threads)

@@ -31,6 +31,12 @@ class PSFResult:
         Row 0 is the top of the window; the axis is at ``axis_pixel``.
     energy_in_window : ndarray (views, depths, wavelengths)
         ``psf.sum((-2, -1))``: the part of that light the window holds.
+    surround : str or None
+        What surrounded the design inside the lens aperture (:data:`doedesign.camera.SURROUNDS`); None
+        for a file written before the convention was recorded (computed as ``open``).
+    coded_clear_fraction : float or None
+        Share of the coded view's light that its clear region passes (the design's
+        ``aperture`` and the surround): the most the coded PSF can hold.
     """
 
     psf: np.ndarray
@@ -40,6 +46,8 @@ class PSFResult:
     pixel_pitch_m: float
     axis_pixel: tuple = (256, 256)
     sampling: dict = field(default_factory=dict)
+    surround: str | None = None
+    coded_clear_fraction: float | None = None
 
     @property
     def energy_in_window(self) -> np.ndarray:
@@ -62,7 +70,22 @@ class PSFResult:
             path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
             depths_m=np.asarray(self.depths_m), pixel_pitch_m=np.float64(self.pixel_pitch_m),
             energy_in_window=self.energy_in_window, axis_pixel=np.asarray(self.axis_pixel),
-            sampling=np.str_(dumps_json(self.sampling, indent=None)))
+            sampling=np.str_(dumps_json(self.sampling, indent=None)),
+            **({} if self.surround is None else {"surround": np.str_(self.surround)}),
+            **({} if self.coded_clear_fraction is None
+               else {"coded_clear_fraction": np.float64(self.coded_clear_fraction)}))
+
+    def summary(self) -> dict:
+        """Dictionary for ``doe inspect``: shape, views, wavelengths, energies and the surround."""
+        from ..camera import describe_surround
+
+        return {"kind": "psf", "shape": list(self.psf.shape[-2:]), "views": list(self.views),
+                "wavelengths_nm": [float(v) * 1e9 for v in self.wavelengths_m],
+                "depths_m": [float(v) for v in self.depths_m], "pixel_pitch_m": float(self.pixel_pitch_m),
+                "energy_in_window": {v: self.energy_in_window[i].tolist() for i, v in enumerate(self.views)},
+                "surround": self.surround or "not recorded (computed as open)",
+                "surround_means": describe_surround(self.surround or "open"),
+                "coded_clear_fraction": self.coded_clear_fraction}
 
     @classmethod
     def load(cls, path: str | Path) -> PSFResult:
@@ -74,7 +97,10 @@ class PSFResult:
             raise DoeError(f"{path}: psf must be (views, depths, wavelengths, rows, cols), got shape {psf.shape}")
         return cls(psf=psf, views=tuple(str(v) for v in data["views"]), wavelengths_m=data["wavelengths_m"],
                    depths_m=data["depths_m"], pixel_pitch_m=float(data["pixel_pitch_m"]),
-                   axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))))
+                   axis_pixel=tuple(int(v) for v in data.get("axis_pixel", (256, 256))),
+                   surround=str(data["surround"]) if "surround" in data else None,
+                   coded_clear_fraction=float(data["coded_clear_fraction"]) if "coded_clear_fraction" in data
+                   else None)
 
 
 def read_psf_arrays(path: str | Path, required: Iterable[str], what: str = "PSF file") -> dict[str, np.ndarray]:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from doedesign.budget import check_memory, format_bytes, psf_bytes
+from doedesign.camera import describe_surround, resolve_surround
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import output_run, write_json
@@ -52,7 +53,8 @@ def build_evaluator(design: Design, spec: ToleranceSpec, source: str = "design",
     base = nominal_process(nominal_depths(design))
     ev = Evaluator(levels=levels.astype(np.int16), pitch_m=design.pitch_m, material=design.material, camera=camera,
                    wavelengths_m=wls, depths_m=depths, spec=spec, base=base, metrics=None, oversample=int(oversample),
-                   process_upsample=process_upsample, device=device)
+                   process_upsample=process_upsample, device=device,
+                   surround=resolve_surround(None, design.metadata, source)[0])
     check_memory(evaluation_bytes(ev), f"{source}: one tolerance sample of this {design.shape[0]} x "
                  f"{design.shape[1]} px design ({ev.wavelengths_m.size} wavelengths, {ev.depths_m.size} depths)")
     t0 = time.perf_counter()
@@ -78,6 +80,7 @@ def sampling_description(ev: Evaluator) -> dict:
             "psf_grid_m": ev.pitch_m / ev.oversample, "process_grid_m": ev.pitch_m / u,
             "wavelengths_nm": (ev.wavelengths_m * 1e9).tolist(),
             "depths_m": [float(d) if np.isfinite(d) else "inf" for d in ev.depths_m], "views": ["coded"],
+            "surround": ev.surround, "surround_means": describe_surround(ev.surround),
             "description": (f"process model on the whole element at {u} samples per design pixel "
                             f"({ev.pitch_m / u * 1e6:.3g} um), area-averaged to {ev.oversample} per pixel for the "
                             f"PSF engine; coded view, {ev.wavelengths_m.size} wavelengths, {ev.depths_m.size} "

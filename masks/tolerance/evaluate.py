@@ -51,6 +51,7 @@ class Evaluator:
     oversample: int = 2
     process_upsample: int | None = None
     device: str = "cpu"  # where samples are computed (doedesign.engine.backend)
+    surround: str = "open"  # around the design inside the lens aperture (doedesign.camera.SURROUNDS)
 
     def __post_init__(self):
         self._local = threading.local()
@@ -71,7 +72,7 @@ class Evaluator:
             q = self.oversample
             shape = (self.levels.shape[0] * q, self.levels.shape[1] * q)
             engine = PSFEngine(self.camera, self.pitch_m / q, shape, self.material, self.wavelengths_m,
-                               self.depths_m, device=self.device)
+                               self.depths_m, device=self.device, surround=self.surround)
             self._local.engine = engine
         return engine
 

@@ -53,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_compare(args: argparse.Namespace) -> int:
+    from doedesign.budget import check_memory, measurement_bytes
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.engine.psf import parse_wavelengths_nm
@@ -68,6 +69,8 @@ def run_compare(args: argparse.Namespace) -> int:
     design = Design.load(args.design)
     pixel = args.pixel_size_um * 1e-6 if args.pixel_size_um is not None else None
     meas = read_measurement(args.measurement, pixel_size_m=pixel).square_pixels()
+    rows, cols = meas.height_m.shape
+    check_memory(measurement_bytes((rows, cols)), f"{args.measurement}: comparing this {rows} x {cols} px field")
     meas = apply_calibration(meas, cal, str(args.measurement))
     report = write_comparison(meas, design, args.out, measurement_source=str(args.measurement),
                               design_source=str(args.design),

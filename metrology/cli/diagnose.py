@@ -158,12 +158,21 @@ def load_effects_file(path: str | Path) -> None:
         raise DoeError(f"{path}: the effects file failed: {type(exc).__name__}: {exc}") from None
 
 
+def _check_field(measurement, path):
+    from doedesign.budget import check_memory, measurement_bytes
+
+    rows, cols = measurement.height_m.shape
+    check_memory(measurement_bytes((rows, cols)), f"{path}: diagnosing this {rows} x {cols} px field")
+
+
 def _heights(design, path, args, candidates):
     from metrology.calibration.instrument import apply_calibration
     from metrology.diagnosis import diagnose_measurement
     from metrology.formats.readers import read_measurement
 
-    measurement = apply_calibration(read_measurement(path).square_pixels(), args.calibration, str(path))
+    measurement = read_measurement(path).square_pixels()
+    _check_field(measurement, path)
+    measurement = apply_calibration(measurement, args.calibration, str(path))
     diag, inputs = diagnose_measurement(design, measurement, region_px=args.region_px,
                                         upsample=args.upsample, depths_m=_depths(args),
                                         candidates=candidates, threshold=args.threshold, source=str(path),
@@ -177,7 +186,9 @@ def _camera(design, path, args, candidates):
     from metrology.formats.readers import read_measurement
 
     depths = _depths(args)
-    measurement = apply_calibration(read_measurement(path).square_pixels(), args.calibration, str(path))
+    measurement = read_measurement(path).square_pixels()
+    _check_field(measurement, path)
+    measurement = apply_calibration(measurement, args.calibration, str(path))
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
                                                force=args.force, transfer=args.transfer,

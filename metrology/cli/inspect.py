@@ -13,7 +13,7 @@ from metrology.formats import readers
 from metrology.formats.plausibility import RANGES
 
 
-__all__ = ["cmd_inspect", "inspect_file", "is_design_file", "register"]
+__all__ = ["cmd_inspect", "inspect_file", "is_design_file", "is_psf_file", "register"]
 
 
 def is_design_file(path: str | Path) -> bool:
@@ -28,10 +28,26 @@ def is_design_file(path: str | Path) -> bool:
         return False
 
 
+def is_psf_file(path: str | Path) -> bool:
+    """True when ``path`` is a ``.npz`` with the PSF file's fields (``doe psf``)."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz" or not path.is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {"psf", "views", "wavelengths_m", "pixel_pitch_m"} <= set(npz.files)
+    except Exception:  # not a zip: the measurement readers report the problem
+        return False
+
+
 def inspect_file(path: str | Path, pixel_size_m: float | None = None) -> dict:
-    """Summary dictionary of a design or a measurement file."""
+    """Summary dictionary of a design, a PSF or a measurement file."""
     if is_design_file(path):
         return Design.load(path).summary()
+    if is_psf_file(path):
+        from doedesign.engine.result import PSFResult
+
+        return PSFResult.load(path).summary()
     return readers.read_measurement(path, pixel_size_m=pixel_size_m).summary()
 
 

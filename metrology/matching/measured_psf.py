@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike
 from doedesign.engine.psf import PSFEngine
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels, printed_height_m
+from doedesign.camera import describe_surround, resolve_surround
 from masks.fabricated import DEFAULT_TARGET_FRACTION, fabricated_height, target_from_psf
 from masks.tolerance.metrics import design_target_mask, design_wavelengths_depths
 
@@ -96,6 +97,8 @@ class PSFComparison:
     oversample: int
     target_source: str = "psf_core"
     depth_m: float = float("inf")
+    surround: str = "open"
+    coded_clear_fraction: float = 1.0
 
     @property
     def merit_name(self) -> str:
@@ -139,6 +142,9 @@ class PSFComparison:
             f"measured_{key}": [float(v) for v in self.measured_on_target],
             "per_wavelength": per,
             "oversample": self.oversample,
+            "surround": self.surround,
+            "surround_means": describe_surround(self.surround),
+            "coded_clear_fraction": self.coded_clear_fraction,
             "method": ("fitted process (etch depths, overlay, linewidth bias) of the measured field applied to "
                        "the whole design by the process model on a pitch/oversample grid; coded view; light as a "
                        "fraction of the light through the coded half-aperture, counted on " + counted),
@@ -182,7 +188,9 @@ def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = N
     printed = printed_height_m(design)
     fine_measured = fabricated_height(levels, design.pitch_m, params, q)
     fine_shape = fine_measured.shape
-    engine = PSFEngine(camera, design.pitch_m / q, fine_shape, design.material, wls, depths_m=[depth])
+    surround = resolve_surround(None, design.metadata, design.source_path or design.name)[0]
+    engine = PSFEngine(camera, design.pitch_m / q, fine_shape, design.material, wls, depths_m=[depth],
+                       surround=surround)
     # The design is piecewise constant on its own pixels, so its PSF on the DOE grid equals the one
     # on the finer grid at a quarter of the cost (q = 2), except at the circular aperture's edge,
     # which the two grids sample differently: ~0.3 / N of the light for an N-pixel aperture
@@ -191,7 +199,8 @@ def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = N
     if q == 1 or n_ap < MIN_APERTURE_PX_COARSE_DESIGN:
         psf_d = engine.psf(np.kron(printed, np.ones((q, q))), views=("coded",)).view("coded")[0]
     else:
-        coarse = PSFEngine(camera, design.pitch_m, design.shape, design.material, wls, depths_m=[depth])
+        coarse = PSFEngine(camera, design.pitch_m, design.shape, design.material, wls, depths_m=[depth],
+                           surround=surround)
         psf_d = coarse.psf(printed, views=("coded",)).view("coded")[0]
     if progress is not None:
         progress.update(1, status="design PSF")
@@ -211,4 +220,5 @@ def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = N
     return PSFComparison(wavelengths_m=np.asarray(engine.wavelengths_m), design_psf=psf_d, measured_psf=psf_m,
                          target=np.array(target), design_on_target=on_d, measured_on_target=on_m,
                          design_in_window=psf_d.sum(axis=(1, 2)), measured_in_window=psf_m.sum(axis=(1, 2)),
-                         oversample=q, target_source=source, depth_m=depth)
+                         oversample=q, target_source=source, depth_m=depth, surround=surround,
+                         coded_clear_fraction=engine.clear_fraction)

@@ -16,6 +16,15 @@ Method (each step uses the fact that a DOE is a grid of square pixels):
 3. Read-out: the measurement sampled at the centre of every DOE pixel of that lattice is
    a small image of design heights; normalized cross-correlation (FFT) against the design
    for each of the 8 flips / transposes gives the orientation and the integer offset.
+4. Scale scan: a nominal pixel size (the file's, or ``--pixel-size-um``) is a starting value.
+   When no lattice within ``scale_tolerance`` of it reads out a good match, the comb peaks of
+   the whole band from 1/2 to 2 times it (:data:`SCALE_SEARCH_FACTOR`, widened by the
+   tolerance) are tried, strongest first; the read-out's correlation with the design picks
+   the pitch among them (the comb's harmonics and the sidebands of block designs read out
+   the design badly), and only a good match (:data:`GOOD_MATCH_NCC`) moves the scale away
+   from the starting one. The scan costs a few more lattice fits only when the narrow one failed.
+   A failure then says whether the scale did not match (the strongest lattice lies outside
+   the nominal band: its pixel size is given) or the pattern did not.
 
 The result is an affine map from measurement pixel (row, col) to design pixel
 (row, col), both with pixel centres at integer coordinates and row 0 at the top.
@@ -35,7 +44,8 @@ from scipy import ndimage, optimize
 from doedesign.errors import DoeError
 
 __all__ = ["GOOD_MATCH_NCC", "MIN_MATCH_NCC", "ORIENTATIONS", "Registration", "SCALE_CANDIDATES",
-           "design_on_measurement", "orient", "register", "resample_to_design"]
+           "SCALE_SEARCH_FACTOR", "WIDE_SCALE_CANDIDATES", "design_on_measurement", "orient", "register",
+           "resample_to_design"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +59,13 @@ MIN_MATCH_NCC = 0.5
 GOOD_MATCH_NCC = 0.9
 # Comb peaks tried as the DOE pitch (the strongest first).
 SCALE_CANDIDATES = 4
+# A nominal pixel size may be off by this factor either way: the scale scan's band.
+SCALE_SEARCH_FACTOR = 2.0
+# Comb peaks of that wider band tried (strongest first) once the narrow band found no good match.
+WIDE_SCALE_CANDIDATES = 8
+# Shortest lattice period (measurement pixels) the scan tries: below it a DOE pixel holds too
+# few samples to read out.
+_MIN_PERIOD_PX = 2.0
 
 # An array orientation (transpose, flip_rows, flip_cols), applied in that order; all 8 of them.
 Orientation = tuple[bool, bool, bool]
@@ -335,7 +352,7 @@ def _normalized_xcorr(image, template, valid):
 
 
 def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, pixel_size_m: float | None = None,
-             scale_tolerance: float = 0.15) -> Registration:
+             scale_tolerance: float = 0.15, scale_search: float = SCALE_SEARCH_FACTOR) -> Registration:
     """Find the affine map from the measurement's pixels to the design's pixels.
 
     Parameters
@@ -348,12 +365,15 @@ def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, 
     pitch_m : float
         Design pixel pitch (m).
     pixel_size_m : float, optional
-        Nominal measurement pixel size (from the file). The period search is limited to
-        within ``scale_tolerance`` of it; without it any period of 2.2 to 40 px is tried.
+        Nominal measurement pixel size (from the file): a starting value. The period search
+        starts within ``scale_tolerance`` of it, then scans ``1 / scale_search`` to
+        ``scale_search`` times it; without it any period of 2.2 to 40 px is tried.
     scale_tolerance : float
-        Relative range of the period search around the nominal pixel size. Keep it below
-        0.25: a design made of n-pixel blocks also has comb peaks at (n +- 1) / n of the
-        pitch frequency, which a wider search could take for the pitch.
+        Relative range of the first period search around the nominal pixel size. Keep it
+        below 0.25: a design made of n-pixel blocks also has comb peaks at (n +- 1) / n of
+        the pitch frequency; the wider scan tells them apart by the read-out's match only.
+    scale_search : float
+        Factor either way of the nominal pixel size the scale scan covers (1: no scan).
 
     Returns
     -------
@@ -362,37 +382,77 @@ def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, 
     Raises
     ------
     DoeError
-        No edges, no lattice, or no orientation whose read-out matches the design.
+        No edges, no lattice, or no orientation whose read-out matches the design; where the
+        strongest lattice lies outside the nominal band, the message says that the scale did
+        not match and gives the pixel size the lattice measures.
     """
     h = np.asarray(height_m, float)
     design = np.asarray(design_height_m, float)
     rows, cols, gy, gx, w = _edge_points(h)
-    if pixel_size_m:
-        f_nom = pixel_size_m / pitch_m
-        f_range = (f_nom * (1 - scale_tolerance), f_nom * (1 + scale_tolerance))
-    else:
-        f_range = (1 / 40, 1 / 2.2)
     theta0 = float(np.angle(np.sum(w * np.exp(4j * np.arctan2(gy, gx)))) / 4)
-    # A design built of zones also has comb sidebands near the pitch: try the strongest
-    # peaks and keep the lattice whose read-out matches the design best.
     c0, s0 = np.cos(theta0), np.sin(theta0)
-    starts = _Comb(cols * c0 + rows * s0, (gx * c0 + gy * s0) ** 2).candidates(*f_range, SCALE_CANDIDATES)
-    best = None
-    for f_start in starts:
-        lattice = _lattice(rows, cols, gy, gx, w, f_range, theta0, f_start)
-        found = _match(h, design, pitch_m, *lattice)
-        if best is None or found[0] > best[0]:
+    comb = _Comb(cols * c0 + rows * s0, (gx * c0 + gy * s0) ** 2)
+    tried = []
+
+    def search(f_range, count):
+        # A design built of zones also has comb sidebands near the pitch: try the strongest
+        # peaks and keep the lattice whose read-out matches the design best.
+        best = (-np.inf, None, None)
+        for f_start in comb.candidates(*f_range, count):
+            if any(abs(f_start - f) <= 2 / comb.extent for f in tried):
+                continue
+            tried.append(f_start)
+            lattice = _lattice(rows, cols, gy, gx, w, f_range, theta0, f_start)
+            found = _match(h, design, pitch_m, *lattice)
+            if best[1] is None or found[0] > best[0]:
+                best = found
+            if best[0] >= GOOD_MATCH_NCC:
+                break
+        return best
+
+    if not pixel_size_m:
+        best = search((1 / 40, 1 / 2.2), SCALE_CANDIDATES)
+        score, reg, period_px = best
+        if reg is None:
+            raise DoeError(f"registration: the measured pattern does not match the design anywhere: the field "
+                           f"shows another design or a region outside this one (best normalized correlation "
+                           f"{score:.2f}, need {MIN_MATCH_NCC}; lattice period {period_px:.3f} px)")
+        return reg
+    f_nom = pixel_size_m / pitch_m
+    narrow = (f_nom * (1 - scale_tolerance), f_nom * (1 + scale_tolerance))
+    wide = (f_nom / (scale_search * (1 + scale_tolerance)),
+            min(f_nom * scale_search * (1 + scale_tolerance), 1 / _MIN_PERIOD_PX))
+    scan = scale_search > 1 and wide[0] < wide[1]
+    best = search(narrow, SCALE_CANDIDATES)
+    if best[0] < GOOD_MATCH_NCC and scan:
+        # A scale away from the starting one needs a good match: a poor one there is a
+        # sideband's or another design's chance correlation.
+        found = search(wide, WIDE_SCALE_CANDIDATES)
+        if found[0] >= GOOD_MATCH_NCC:
             best = found
-        if best[0] >= GOOD_MATCH_NCC:
-            break
     score, reg, period_px = best
-    if reg is None:
-        raise DoeError(f"registration: the measured pattern does not match the design anywhere: the field shows "
-                       f"another design or a region outside this one (best normalized correlation {score:.2f}, "
-                       f"need {MIN_MATCH_NCC}; lattice period "
-                       f"{period_px:.3f} px: if the file's pixel size is off by more than "
-                       f"{scale_tolerance:.0%}, give the right one)")
-    return reg
+    if reg is not None:
+        ratio = reg.pixel_size_m / pixel_size_m
+        if abs(ratio - 1) > scale_tolerance:
+            log.warning("registration: the measured pixel size is %.4g um, %.3gx the starting %.4g um",
+                        reg.pixel_size_m * 1e6, ratio, pixel_size_m * 1e6)
+        return reg
+    # The strongest lattice of the scale band: the pixel size the field itself shows.
+    f_peak = comb.candidates(*wide, 1)[0] if scan else 1 / period_px
+    measured_m = f_peak * pitch_m
+    if abs(measured_m / pixel_size_m - 1) > scale_tolerance:
+        raise DoeError(f"registration: the scale did not match: the field's edge lattice measures a pixel size "
+                       f"of {measured_m * 1e6:.4g} um (a period of {1 / f_peak:.3f} px of the "
+                       f"{pitch_m * 1e6:.4g} um DOE pitch), {measured_m / pixel_size_m:.3g}x the starting "
+                       f"{pixel_size_m * 1e6:.4g} um, and at no scale from {1 / scale_search:.2g}x to "
+                       f"{scale_search:.2g}x the starting one does the read-out match the design (best "
+                       f"normalized correlation {score:.2f}, need {MIN_MATCH_NCC}): give the right pixel size, "
+                       f"or the field shows another design")
+    raise DoeError(f"registration: the measured pattern does not match the design anywhere: the field shows "
+                   f"another design or a region outside this one (best normalized correlation {score:.2f}, "
+                   f"need {MIN_MATCH_NCC}; lattice period {1 / f_peak:.3f} px, a pixel size of "
+                   f"{measured_m * 1e6:.4g} um, within {scale_tolerance:.0%} of the starting one; scales from "
+                   f"{1 / scale_search:.2g}x to {scale_search:.2g}x it were tried)")
 
 
 def _match(h, design, pitch_m, theta, u_lattice, v_lattice):
