@@ -458,6 +458,7 @@ def npz_shape(path: str | Path, name: str) -> tuple[int, ...] | None:
     import zipfile
 
     try:
+        path = check_input_file(path)  # a named pipe would block the zip reader forever
         with zipfile.ZipFile(path) as zf:
             info = zf.getinfo(f"{name}.npy")
             with zf.open(info) as fh:
