@@ -65,7 +65,7 @@ class PSFResult:
         return np.tensordot(self.psf, w / w.sum(), axes=([2], [0]))
 
     def save(self, path: str | Path) -> Path:
-        """Write the PSF ``.npz`` (fields documented in the README)."""
+        """Write the PSF ``.npz`` (fields documented in the file-formats page of the docs)."""
         return write_npz(
             path, psf=self.psf, views=np.array(self.views), wavelengths_m=np.asarray(self.wavelengths_m),
             depths_m=np.asarray(self.depths_m), pixel_pitch_m=np.float64(self.pixel_pitch_m),

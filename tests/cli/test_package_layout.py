@@ -3,7 +3,7 @@
 - data flow one way (doedesign -> masks -> metrology) by every import, lazy ones included;
 - no library module of masks or metrology reaches into a command-line module of another package
   (their own command modules may use only the shared helpers, ``doedesign.cli.common``);
-- the README's "where each stage lives" table names files that exist and every (sub)package.
+- CONTRIBUTING.md's "where each stage lives" table names files that exist and every (sub)package.
 """
 
 from __future__ import annotations
@@ -87,10 +87,10 @@ def test_the_import_scan_sees_lazy_and_relative_imports(tmp_path):
 
 
 def _stage_table():
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "CONTRIBUTING.md").read_text()
     section = text.split("## Where each stage lives", 1)[1].split("\n## ", 1)[0]
     rows = [line for line in section.splitlines() if line.startswith("|")][2:]
-    assert rows, "README: the 'where each stage lives' table is empty"
+    assert rows, "CONTRIBUTING.md: the 'where each stage lives' table is empty"
     return rows
 
 
@@ -106,7 +106,7 @@ def _named_paths(row):
                 folder = str(Path(token).parent)
                 paths.append(token)
             else:
-                assert folder, f"README row {row!r}: {token} named before any folder"
+                assert folder, f"CONTRIBUTING.md row {row!r}: {token} named before any folder"
                 paths.append(f"{folder}/{token}")
     return paths
 
@@ -114,15 +114,15 @@ def _named_paths(row):
 def test_readme_stage_table_matches_the_tree():
     named = [p for row in _stage_table() for p in _named_paths(row)]
     missing = [p for p in named if not (ROOT / p).exists()]
-    assert not missing, f"README names files that do not exist: {missing}"
+    assert not missing, f"CONTRIBUTING.md names files that do not exist: {missing}"
     named_dirs = {p if (ROOT / p).is_dir() else str(Path(p).parent) for p in named}
     packages = {str(init.parent.relative_to(ROOT)) for pkg in PACKAGES for init in (ROOT / pkg).rglob("__init__.py")}
     unnamed = sorted(packages - named_dirs)
-    assert not unnamed, f"README's stage table does not name these packages: {unnamed}"
+    assert not unnamed, f"CONTRIBUTING.md's stage table does not name these packages: {unnamed}"
     modules = {str(p.relative_to(ROOT)) for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
                if p.name != "__init__.py"}
     unnamed_modules = sorted(m for m in modules if not _folder_named_whole(m, named))
-    assert not unnamed_modules, f"README's stage table does not name these modules: {unnamed_modules}"
+    assert not unnamed_modules, f"CONTRIBUTING.md's stage table does not name these modules: {unnamed_modules}"
 
 
 def _folder_named_whole(module, named):
