@@ -61,8 +61,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="draws of the measured spreads the re-design averages over, beside the fitted "
                         "process (default 0)")
     p.add_argument("--map", metavar="REPORT.json",
-                   help="a doe map report: the aligner offset and rotation per mask, a mask scale correction for "
-                        "a magnification and a warning for a radial etch depth, in OUT/map_corrections.json")
+                   help="a doe map report: its named overlay terms set the aligner offset and rotation of their "
+                        "masks, a magnification becomes a stated mask scale, a radial etch depth a warning; all in "
+                        "job.json (its map entry) and the job sheet's first lines")
     p.set_defaults(func=run)
 
 
@@ -91,14 +92,8 @@ def run(args: argparse.Namespace) -> int:
                     mirrored=args.mirror, samples=args.samples, seed=args.seed,
                     min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
                     redesign_iterations=(args.redesign_iterations or DEFAULT_ITERATIONS) if args.redesign else None,
-                    redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured")
-    if map_report is not None:
-        from doedesign.fileio import write_json
-        from metrology.diagnosis.map_correction import map_corrections
-
-        from_map = map_corrections(map_report)
-        write_json(f"{args.out}/map_corrections.json", from_map)
-        sheet["warnings"] = list(sheet["warnings"]) + from_map["warnings"]
+                    redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured",
+                    map_report=map_report, map_source=str(getattr(args, "map", None)))
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",

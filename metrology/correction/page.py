@@ -73,8 +73,27 @@ def job_page(sheet: dict, folder: Path) -> Path:
     conventions = "\n".join(f"- {k}: {v}" for k, v in sheet["conventions"].items()) + "\n"
     # The first lines: what the sheet could not use (a diagnosis a limit ended says nothing about what it did not try).
     first = "".join(f"**{w}**\n\n" for w in sheet["warnings"] if w.startswith(("INCOMPLETE", "combined only")))
+    from_map = _map_section(sheet)
+    if from_map:
+        first += (f"**The whole-element map `{sheet['map']['source']}` sets the aligner dials of mask(s) "
+                  f"{', '.join(str(m['mask']) for m in sheet['masks'] if m.get('align_source') == 'map') or 'none'}; "
+                  "see its section.**\n\n")
     parts = [f"# Job sheet for `{sheet['design']}`", *([first] if first else []), summary, "## Per mask", job, conventions,
+             *from_map,
              "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,
              f"Corrected masks: `{sheet['masks_folder']}`; process spec for `doe tolerance`: "
              f"`{sheet['process_spec']}`.\n", md.json_link("job.json")]
     return md.write_markdown(folder / "report.md", parts)
+
+
+def _map_section(sheet: dict) -> list[str]:
+    """The map's part of the sheet: per mask the dial it set, the mask scale, and its warnings."""
+    if "map" not in sheet:
+        return []
+    rows = [[m["mask"], m.get("align_source", "fields"),
+             f"{m['align_offset_um'][0]:+.4f}, {m['align_offset_um'][1]:+.4f}", f"{m['align_rotation_deg']:+.6f}",
+             f"{m.get('mask_scale', 1.0):.8f}"] for m in sheet["masks"]]
+    notes = "\n".join(f"- {w}" for w in sheet["map"]["warnings"]) + "\n" if sheet["map"]["warnings"] else "No map warning.\n"
+    return [f"## From the whole-element map `{sheet['map']['source']}`",
+            md.table(rows, ["mask", "aligner dial from", "aligner offset dx, dy (um)", "aligner rotation (deg)",
+                            "mask scale to draw (1 = as designed)"]), notes]

@@ -43,7 +43,8 @@ CONVENTIONS = {
 def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *, design_path: str | None = None,
             layers: Sequence[int] | None = None, mirrored: bool = False, samples: int = 12, seed: int = 0,
             min_feature_m: float | None = None, redesign_iterations: int | None = None,
-            redesign_samples: int = 0, redesign_for: str = "measured", merit_oversample: int = 2) -> dict:
+            redesign_samples: int = 0, redesign_for: str = "measured", merit_oversample: int = 2,
+            map_report: dict | None = None, map_source: str = "map") -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -71,6 +72,13 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     merit_oversample : int
         Process-model samples per design pixel of the predicted merits (``doe tolerance``'s
         ``--oversample``, default 2; 1 is 4x faster and height-averages sub-pixel slivers).
+    map_report : dict, optional
+        A ``doe map`` report (:func:`metrology.diagnosis.map_correction.read_map_report`): its
+        named overlay terms set the aligner dials of their masks, a magnification becomes a
+        stated mask scale, the radial etch term a warning (:mod:`metrology.diagnosis.map_correction`);
+        all of it under the sheet's ``map`` entry.
+    map_source : str
+        The map report's file name, for the sheet.
 
     Returns
     -------
@@ -109,6 +117,12 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
                                           robust_samples=redesign_samples, samples=samples, seed=seed, source=name,
                                           merit=merit, jobs=redesign_jobs, min_feature_m=min_feature_m)
         merit["redesigned_wafer"] = new_report["merit"]
+    from_map = None
+    if map_report is not None:
+        from metrology.diagnosis.map_correction import apply_to_jobs, map_corrections
+
+        from_map = {"source": map_source, **map_corrections(map_report)}
+        warnings = [*warnings, *apply_to_jobs(jobs, from_map, map_source), *from_map["warnings"]]
     table, spec_notes = spec_table(estimates, jobs)
     header = [f"doe tolerance spec from doe correct of {name}: the sigmas are the spreads measured between "
               f"{len(fields)} field(s); means are what the corrected next run still carries",
@@ -126,6 +140,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         "estimates": [e.to_dict() for e in estimates], "warnings": warnings, "merit": merit,
         "masks_folder": "masks", "process_spec": "process_spec.toml",
         "process_spec_notes": spec_notes,
+        **({"map": from_map} if from_map is not None else {}),
     }
     notes = {job["mask"]: mask_label(job) for job in jobs}
     with output_run(out, f"doe correct {name}"):

@@ -5,16 +5,23 @@ dial in (the negative of the named translation and rotation); a named magnificat
 the mask must be redrawn at (``1 - M``: a contact aligner cannot change it; the mask writer can);
 an orthogonality error as a warning (no knob); a named radial depth term as a warning with its
 centre-to-edge size (the etch tool's uniformity, no mask can take it out). Terms not named are left.
+
+:func:`apply_to_jobs` puts them into ``doe correct``'s job sheet: where the map names a mask's
+translation or rotation, its whole-element fit sets that mask's aligner dial (a few diagnosed
+windows measure the same overlay less well and cannot see a rotation about the element's centre
+apart from a translation); the fields' own dial is kept beside it.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 
 from doedesign.errors import DoeError
 
-__all__ = ["map_corrections", "read_map_report"]
+__all__ = ["apply_to_jobs", "map_corrections", "read_map_report"]
 
 
 def read_map_report(path: str | Path) -> dict:
@@ -35,10 +42,9 @@ def map_corrections(report: dict) -> dict:
     """Aligner settings, mask scale corrections and warnings from a map report's models."""
     models = report.get("models", {})
     masks, warnings = [], []
-    for j in (1, 2, 3):
-        fit = models.get(f"overlay_mask{j}")
-        if fit is None:
-            continue
+    overlay = sorted(int(m.group(1)) for k in models if (m := re.fullmatch(r"overlay_mask(\d+)", k)))
+    for j in overlay:
+        fit = models[f"overlay_mask{j}"]
         t = fit["terms"]
         named = lambda k: t[k]["named"]  # noqa: E731
         entry = {"mask": j,
@@ -61,3 +67,50 @@ def map_corrections(report: dict) -> dict:
         warnings.append(f"etch depth {radial['value'] * 100:+.2f} +- {radial['error'] * 100:.2f} % from the centre "
                         "to the edge of the element (radial non-uniformity of the etch; no mask takes it out)")
     return {"masks": masks, "warnings": warnings}
+
+
+def apply_to_jobs(jobs: list[dict], from_map: dict, source: str) -> list[str]:
+    """Set the aligner dials of ``doe correct``'s per-mask ``jobs`` from a map's named terms.
+
+    Parameters
+    ----------
+    jobs : list of dict
+        :func:`metrology.correction.jobsheet.job_entries` (changed in place: ``align_offset_um``,
+        ``align_rotation_deg`` where the map names them, ``mask_scale``, ``align_source``,
+        the fields' dials as ``align_offset_um_fields`` / ``align_rotation_deg_fields``).
+    from_map : dict
+        :func:`map_corrections` of the map report.
+    source : str
+        The map report's file name (the sheet's notes).
+
+    Returns
+    -------
+    list of str
+        One line per mask whose dial the map set, for the job sheet's warnings.
+    """
+    by_mask = {m["mask"]: m for m in from_map["masks"]}
+    notes = []
+    for job in jobs:
+        job.setdefault("mask_scale", 1.0)
+        job.setdefault("align_source", "fields")
+        entry = by_mask.get(job["mask"])
+        if entry is None:
+            continue
+        offset_um = [v * 1e6 for v in entry["aligner_offset_m"]]
+        rotation_deg = math.degrees(entry["aligner_rotation_rad"])
+        job["mask_scale"] = entry["mask_scale"]
+        if not any(offset_um) and not rotation_deg:
+            continue
+        job["align_offset_um_fields"] = job["align_offset_um"]
+        job["align_rotation_deg_fields"] = job["align_rotation_deg"]
+        job["align_offset_um"] = [offset_um[c] if offset_um[c] else job["align_offset_um"][c] for c in range(2)]
+        if rotation_deg:
+            job["align_rotation_deg"] = rotation_deg
+        job["align_source"] = "map"
+        done = (f"aligner {job['align_offset_um'][0]:+.3f},{job['align_offset_um'][1]:+.3f} um "
+                f"{job['align_rotation_deg']:+.5f} deg from the map {source}")
+        job["corrections"] = [c for c in job["corrections"] if not c.startswith(("aligner", "none:"))] + [done]
+        notes.append(f"mask {job['mask']}: {done} (the diagnosed fields gave "
+                     f"{job['align_offset_um_fields'][0]:+.3f},{job['align_offset_um_fields'][1]:+.3f} um "
+                     f"{job['align_rotation_deg_fields']:+.5f} deg; the predicted merit uses the fields')")
+    return notes

@@ -296,3 +296,40 @@ def test_a_field_cut_by_a_wall_limit_leaves_the_job_sheet_of_the_complete_ones_a
     # Only incomplete diagnoses: refused, nothing written.
     code = main(["correct", "--design", str(path), "--diagnosis", str(cut), "--out", str(tmp_path / "none")])
     assert code == 2 and not (tmp_path / "none" / "job.json").exists()
+
+
+def test_a_map_sets_the_aligner_dials_it_names_and_states_the_mask_scale(tmp_path):
+    # Whole-element overlay models fitted on 25 tile values: mask 2 printed 10 ppm large, mask 3
+    # moved 50 nm and turned 10 urad; the radial etch term 3 % from centre to edge.
+    from metrology.diagnosis.map_models import fit_depth_model, fit_overlay_model
+
+    design, path = _design(tmp_path)
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-4e-3, 4e-3, (2, 25))
+    s = np.full(25, 1e-9)
+    noise = lambda: 0.5e-9 * rng.standard_normal(25)  # noqa: E731
+    models = {"overlay_mask1": fit_overlay_model(x, y, noise(), noise(), s, s),
+              "overlay_mask2": fit_overlay_model(x, y, 10e-6 * x + noise(), 10e-6 * y + noise(), s, s),
+              "overlay_mask3": fit_overlay_model(x, y, 50e-9 - 10e-6 * y + noise(), 10e-6 * x + noise(), s, s),
+              "depth_all": fit_depth_model(x, y, -0.03 * (x ** 2 + y ** 2) / 4.3e-3 ** 2 + 1e-4 * rng.standard_normal(25),
+                                           np.full(25, 1e-4), 4.3e-3)}
+    (tmp_path / "map.json").write_text(json.dumps({"n_tiles": 25, "models": models}))
+    out = tmp_path / "out"
+    diags = _three_fields(tmp_path, design, path)
+    assert main(["correct", "--design", str(path), *[a for d in diags for a in ("--diagnosis", str(d))],
+                 "--out", str(out), "--samples", "0", "--map", str(tmp_path / "map.json")]) == 0
+    sheet = json.loads((out / "job.json").read_text())
+    m = {e["mask"]: e for e in sheet["masks"]}
+    # Mask 3: the map's dial (the negative of its translation and rotation), the fields' kept beside it.
+    assert m[3]["align_source"] == "map" and m[3]["align_offset_um"][0] == pytest.approx(-0.050, rel=0.05)
+    assert m[3]["align_rotation_deg"] == pytest.approx(-math.degrees(10e-6), rel=0.05)
+    assert m[3]["align_offset_um_fields"] == [0.0, 0.0]
+    # Mask 1: the map names nothing there, so the fields' dial stays; mask 2: a stated scale.
+    assert m[1]["align_source"] == "fields" and m[1]["align_offset_um"] == pytest.approx([-0.40, 0.20])
+    assert m[2]["mask_scale"] == pytest.approx(1 - 10e-6, abs=0.3e-6) and m[1]["mask_scale"] == 1.0
+    assert sheet["map"]["source"].endswith("map.json")
+    assert any("ppm" in w and "mask 2" in w for w in sheet["warnings"])
+    assert any(w.startswith("etch depth -3.0") for w in sheet["warnings"])
+    page = (out / "report.md").read_text()
+    head = page.split("## Per mask")[0]
+    assert "map" in head and "mask(s) 3" in head and "From the whole-element map" in page
