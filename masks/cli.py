@@ -57,10 +57,38 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--plate", action="store_true",
                    help="also write <name>_plate.gds (.oas per --format, and its .lyp): a full 4-inch wafer "
                         "of this die by array references, with global alignment marks")
+    g = p.add_argument_group("print check (proximity printing through the aligner's gap)")
+    g.add_argument("--gap-um", type=Number(float, 0, 200, lo_open=True, unit="um"), default=None,
+                   help="mask-to-resist gap (um, up to 200); writes print_check.json and print_check.md: per mask "
+                        "the printed against the drawn open area, the edge placement, the isolated pixels lost and "
+                        "the one-pixel gaps bridged, and the field overlap of the printed element with the design")
+    g.add_argument("--dose", type=Number(float, 0, 1e4, lo_open=True, unit="mJ/cm^2"), default=None,
+                   help="exposure dose (mJ/cm^2; with --dose-to-clear): the resist clears where the image exceeds "
+                        "dose-to-clear / dose of the open field")
+    g.add_argument("--dose-to-clear", type=Number(float, 0, 1e4, lo_open=True, unit="mJ/cm^2"), default=None,
+                   help="the resist's dose to clear an open field (mJ/cm^2, from its data sheet)")
+    g.add_argument("--resist-threshold", type=Number(float, 0, 1, lo_open=True, hi_open=True), default=None,
+                   help="clearing level as a fraction of the open field, instead of a dose (default: the level "
+                        "that prints a long straight edge where it is drawn, about 0.25-0.3 through a gap)")
+    g.add_argument("--collimation-deg", type=Number(float, 0, 10, unit="deg"), default=2.0,
+                   help="illumination half-angle (deg, default 2)")
+    g.add_argument("--resist-blur-um", type=Number(float, 0, 1, unit="um"), default=0.1,
+                   help="resist blur sigma (um, default 0.1)")
+    g.add_argument("--cr-undercut-um", type=Number(float, 0, 5, unit="um"), default=0.0,
+                   help="lateral wet-etch undercut of the chromium mask (um, default 0)")
+    g.add_argument("--print-window", default=None, metavar="ROW,COL,ROWS,COLS|all",
+                   help=f"design pixels to check (row 0 at the top); default the central {PRINT_WINDOW_PX} x "
+                        f"{PRINT_WINDOW_PX} px (the whole design when smaller); 'all' for the whole element")
     p.set_defaults(func=run_masks)
 
 
 NO_LIMIT = "none"
+#: Side (design px) of the default print-check window: the fine grid of a whole 1600 px element
+#: at the sampling rule's 0.5 um step is 17280^2 cells, minutes and gigabytes; a central window
+#: holds the element's feature sizes.
+PRINT_WINDOW_PX = 128
+#: Bytes per fine cell of the print check (two surfaces, the printed masks, the aerial image's work).
+PRINT_BYTES_PER_CELL = 64
 
 
 class VertexLimit(Number):
@@ -83,6 +111,68 @@ def _int_list(text, what):
         raise DoeError(f"--{what} must be comma-separated integers, got {text!r}") from None
 
 
+def _print_region(text, shape):
+    """``--print-window`` as a half-open (row0, row1, col0, col1) region of a design of ``shape``."""
+    if text is not None and text.strip().lower() == "all":
+        return (0, shape[0], 0, shape[1])
+    if text is None:
+        n_r, n_c = min(PRINT_WINDOW_PX, shape[0]), min(PRINT_WINDOW_PX, shape[1])
+        r0, c0 = (shape[0] - n_r) // 2, (shape[1] - n_c) // 2
+        return (r0, r0 + n_r, c0, c0 + n_c)
+    values = _int_list(text, "print-window")
+    r0, c0, n_r, n_c = values if len(values) == 4 else (-1, -1, 0, 0)
+    if n_r < 1 or n_c < 1 or r0 < 0 or c0 < 0 or r0 + n_r > shape[0] or c0 + n_c > shape[1]:
+        raise DoeError(f"--print-window must be ROW,COL,ROWS,COLS inside the {shape[0]} x {shape[1]} px design, "
+                       f"or all; got {text!r}")
+    return (r0, r0 + n_r, c0, c0 + n_c)
+
+
+def _print_check(args, design, depths):
+    """The print check ``--gap-um`` asks for (None without it); refused whole before anything is written."""
+    import math
+
+    from doedesign.budget import check_memory
+    from doedesign.levels import quantize_design
+
+    from .print_check import in_place_threshold, print_check
+    from .process import ProcessParams, fine_upsample, proximity_optics
+    from .proximity import recommended_step_m, threshold_for_dose
+
+    dose_given = (args.dose is not None, args.dose_to_clear is not None)
+    if args.gap_um is None:
+        if any(dose_given) or args.resist_threshold is not None or args.print_window is not None:
+            raise DoeError("--dose, --dose-to-clear, --resist-threshold and --print-window need --gap-um")
+        return None
+    if any(dose_given) and not all(dose_given):
+        raise DoeError("--dose and --dose-to-clear go together (the threshold is dose-to-clear / dose)")
+    if all(dose_given) and args.resist_threshold is not None:
+        raise DoeError("give a dose (--dose, --dose-to-clear) or --resist-threshold, not both")
+    levels, _ = quantize_design(design, None, args.design)
+    region = _print_region(args.print_window, levels.shape)
+    base = ProcessParams.ideal(n_masks=design.n_masks, depths_m=depths if depths is not None else design.etch_depths_m())
+    params = base.copy(proximity_gap=args.gap_um * 1e-6, collimation_half_angle=math.radians(args.collimation_deg),
+                       resist_blur=args.resist_blur_um * 1e-6, cr_undercut=args.cr_undercut_um * 1e-6)
+    optics = proximity_optics(params)
+    step = min(0.5e-6, recommended_step_m(optics))
+    u = fine_upsample(design.pitch_m, step)
+    cells = (region[1] - region[0]) * (region[3] - region[2]) * u * u
+    check_memory(PRINT_BYTES_PER_CELL * cells,
+                 f"{args.design}: the print check of {region[1] - region[0]} x {region[3] - region[2]} px at "
+                 f"{design.pitch_m / u * 1e6:.3g} um (a smaller --print-window)")
+    if all(dose_given):
+        threshold, how = threshold_for_dose(args.dose, args.dose_to_clear), "dose"
+    elif args.resist_threshold is not None:
+        threshold, how = args.resist_threshold, "resist threshold"
+    else:
+        threshold, how = in_place_threshold(optics, design.pitch_m / u), "in place for a long edge"
+    check = print_check(levels, design.pitch_m, params.copy(resist_threshold=threshold), step_m=step,
+                        material=design.material, region=region)
+    check["threshold_from"] = how
+    if all(dose_given):
+        check["dose_mj_cm2"], check["dose_to_clear_mj_cm2"] = args.dose, args.dose_to_clear
+    return check
+
+
 def run_masks(args: argparse.Namespace) -> int:
     """Run ``doe masks``: write the verified GDS (and plate), preview and report."""
     from doedesign.budget import check_memory, mask_export_bytes
@@ -100,14 +190,19 @@ def run_masks(args: argparse.Namespace) -> int:
     shape = npz_shape(args.design, "height_m")  # refused from the header, before the map is inflated
     if shape is not None and len(shape) == 2:
         check_memory(mask_export_bytes(shape), f"{args.design}: the masks of a {shape[0]} x {shape[1]} px design")
+    design = Design.load(args.design)
+    printed = _print_check(args, design, depths)  # before anything is written: a refusal leaves nothing
     report = write_element(
-        Design.load(args.design), args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
+        design, args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=None if args.layers is None else _int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
         clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, formats=formats,
-        max_vertices=max_vertices, plate=args.plate)
+        max_vertices=max_vertices, plate=args.plate, print_check=printed)
     summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification", "layer_properties_file")}
     summary["files"] = [{k: f[k] for k in ("format", "file", "file_size_bytes", "max_vertices")} for f in report["files"]]
+    if printed is not None:
+        summary["print_check"] = {"file": "print_check.json", "field_overlap": printed["field_overlap"],
+                                  "resist_threshold": printed["resist_threshold"]}
     if args.plate:
         summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "files", "dies", "seconds")}
     print_json(summary)

@@ -96,7 +96,8 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
                   mirrored: bool = False, depths_m: Sequence[float] | None = None,
                   layers: Sequence[int] | None = None, etch_order: Sequence[int] | None = None,
                   clear_aperture: float | None = None, formats: Sequence[str] = ("gds",),
-                  max_vertices: int | None | str = "default", plate: bool = False) -> dict:
+                  max_vertices: int | None | str = "default", plate: bool = False,
+                  print_check: dict | None = None) -> dict:
     """Write ``OUT/<name>.gds`` and/or ``OUT/<name>.oas`` (each read back and verified),
     ``OUT/<name>.lyp`` (KLayout layer names and colours), ``OUT/masks.png`` and ``OUT/report.json``.
 
@@ -118,6 +119,9 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         GDS layer of each mask (default 1 .. M for the design's M = log2(n_levels) masks).
     plate : bool
         Also write the full-wafer plate (see above).
+    print_check : dict, optional
+        A :func:`masks.print_check.print_check` report, written as ``OUT/print_check.json`` and
+        ``OUT/print_check.md`` in the same run (and its field overlap in ``report.json``).
     depths_m : sequence of float, optional
         Etch depth per mask (default :meth:`doedesign.design.Design.etch_depths_m`: the design's
         own, else ``2**j`` level steps).
@@ -168,5 +172,13 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         report["n_levels"] = design.n_levels
         report["quantization"] = None if quantization is None else quantization.summary()
         preview(levels, masks, out / "masks.png", name)
+        if print_check is not None:
+            from .print_check import print_check_page
+
+            write_json(out / "print_check.json", print_check)
+            with atomic_path(out / "print_check.md") as tmp:
+                tmp.write_text(print_check_page(print_check, source))
+            report["print_check"] = {"file": "print_check.json", "page": "print_check.md",
+                                     "gap_um": print_check["gap_um"], "field_overlap": print_check["field_overlap"]}
         write_json(out / "report.json", report)
     return report
