@@ -129,15 +129,6 @@ def _print_region(text, shape):
 
 def _print_check(args, design, depths):
     """The print check ``--gap-um`` asks for (None without it); refused whole before anything is written."""
-    import math
-
-    from doedesign.budget import check_memory
-    from doedesign.levels import quantize_design
-
-    from .print_check import in_place_threshold, print_check
-    from .process import ProcessParams, fine_upsample, proximity_optics
-    from .proximity import recommended_step_m, threshold_for_dose
-
     dose_given = (args.dose is not None, args.dose_to_clear is not None)
     if args.gap_um is None:
         if any(dose_given) or args.resist_threshold is not None or args.print_window is not None:
@@ -147,6 +138,15 @@ def _print_check(args, design, depths):
         raise DoeError("--dose and --dose-to-clear go together (the threshold is dose-to-clear / dose)")
     if all(dose_given) and args.resist_threshold is not None:
         raise DoeError("give a dose (--dose, --dose-to-clear) or --resist-threshold, not both")
+    import math
+
+    from doedesign.budget import check_memory
+    from doedesign.levels import quantize_design
+
+    from .print_check import in_place_threshold, print_check
+    from .process import ProcessParams, fine_upsample, proximity_optics
+    from .proximity import recommended_step_m, threshold_for_dose
+
     levels, _ = quantize_design(design, None, args.design)
     region = _print_region(args.print_window, levels.shape)
     base = ProcessParams.ideal(n_masks=design.n_masks, depths_m=depths if depths is not None else design.etch_depths_m())
