@@ -5,10 +5,13 @@ reference, and edges inside a cell further without the cells' moments (its quick
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks import bench_fine_step as bench  # noqa: E402
 
 
+@pytest.mark.slow  # 20 s: the benchmark module itself
 def test_a_coarser_step_renders_further_from_the_reference_and_a_bias_furthest():
     rows = {r["figure"]: r for r in bench.run(quick=True)}
     fine, coarse = (f"{s * 1e6:.3g}" for s in bench.STEPS_M[::3])

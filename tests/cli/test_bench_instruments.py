@@ -11,7 +11,7 @@ from benchmarks import bench_instruments as bench  # noqa: E402
 
 
 @pytest.mark.parametrize("name", list(bench.INSTRUMENTS))
-@pytest.mark.parametrize("rotation", [-1.0, 1.0])
+@pytest.mark.parametrize("rotation", [-1.0, pytest.param(1.0, marks=pytest.mark.slow)])  # one sense in make test
 @pytest.mark.parametrize("design_px", [bench.DESIGN_PX, 130])
 def test_field_fits_the_design_at_the_largest_pixel_rotation_and_offset(name, rotation, design_px):
     # 130 design pixels: the --design-px of the 512 x 512 runs, whose field must fit as well.

@@ -76,7 +76,8 @@ def test_in_memory_comparison_recovers_process(case):
     assert np.all(rep["level_pixel_counts"] > 100)
 
 
-@pytest.mark.parametrize("ext", ["dat", "datx", "xyz", "asc", "npz", "tif"])
+# Three formats in make test; the readers' own round trips cover the rest, these run with the slow cases.
+@pytest.mark.parametrize("ext", ["dat", "datx", "asc", *(pytest.param(e, marks=pytest.mark.slow) for e in ("xyz", "npz", "tif"))])
 def test_comparison_through_file_formats(case, tmp_path, ext):
     path = tmp_path / f"wafer.{ext}"
     write_measurement(path, case["height"], pixel_size_m=PIXEL)
@@ -191,6 +192,7 @@ def test_ideal_process_gives_the_design_psf_on_the_finer_grid():
     np.testing.assert_allclose(res.measured_psf, res.design_psf, atol=5e-3 * res.design_psf.max())
 
 
+@pytest.mark.slow  # 40 s; the refusal through files: test_match_files.py
 def test_wrong_design_is_refused_unless_forced(case, tmp_path, capsys):
     """A design that shares the lattice but not the levels still registers; the read-out's
     correlation with the printed design and the share of its edges found say it is another design."""
