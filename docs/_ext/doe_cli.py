@@ -60,7 +60,7 @@ def _text_blocks(text: str) -> list[nodes.Node]:
             continue
         lines = block.split("\n")
         if any(line.startswith(" ") for line in lines) or any("=" in line and line.strip().startswith("[") for line in lines):
-            out.append(nodes.literal_block(block, block))
+            out.append(nodes.literal_block(block, block, language="text"))
         else:
             out.append(nodes.paragraph("", " ".join(line.strip() for line in lines)))
     return out
@@ -122,7 +122,7 @@ class DoeCliDirective(SphinxDirective):
             if summary:
                 section += nodes.paragraph("", summary[:1].upper() + summary[1:] + ".")
             usage = parser.format_usage().strip()
-            section += nodes.literal_block(usage, usage)
+            section += nodes.literal_block(usage, usage, language="text")
             for text in (parser.description, parser.epilog):
                 if text:
                     section += _text_blocks(text)
