@@ -8,7 +8,7 @@ STAMP_BENCH := $(VENV)/.installed-bench
 export MPLBACKEND := Agg
 export PYVISTA_OFF_SCREEN := true
 
-.PHONY: demo test test-all bench clean
+.PHONY: demo test test-all docs lint typecheck bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $@
 
 $(STAMP_TEST): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m pip install --quiet -e ".[test,docs]"
 	$(BIN)/python -m ipykernel install --sys-prefix --name python3 >/dev/null
 	touch $(STAMP) $@
 
@@ -30,8 +30,20 @@ $(STAMP_BENCH): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/doe demo --out demo-output
 
+# The suite, then the checks that keep the tree tidy: lint, types of the public API, the docs.
 test: $(STAMP_TEST)
 	$(BIN)/python -m pytest -m "not slow" -q -n 2 --dist loadfile --durations=15
+	$(MAKE) --no-print-directory lint typecheck docs
+
+lint: $(STAMP_TEST)
+	$(BIN)/python -m ruff check .
+
+typecheck: $(STAMP_TEST)
+	$(BIN)/python -m mypy
+
+# The documentation site, warnings (broken references and links included) as errors.
+docs: $(STAMP_TEST)
+	$(BIN)/python -m sphinx -b html -W --keep-going -j 2 docs docs/_build/html
 
 test-all: $(STAMP_TEST)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
@@ -40,4 +52,4 @@ bench: $(STAMP_BENCH)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache
+	rm -rf $(VENV) demo-output .pytest_cache docs/_build docs/api/generated docs/notebooks

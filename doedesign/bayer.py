@@ -313,7 +313,7 @@ def evaluate(images: dict[str, np.ndarray], methods: Sequence[Method], seed: int
 
 def figure(images: dict[str, np.ndarray], recs: dict[str, dict[str, np.ndarray]], path: str | Path,
            image_name: str | None = None) -> Path:
-    """Fig. 2-like panel: reconstructions (top) and mean |dU|+|dV| error maps (bottom)."""
+    """Fig. 2-like panel: reconstructions (top) and mean ``|dU| + |dV|`` error maps (bottom)."""
     import matplotlib.pyplot as plt
     from skimage.color import rgb2luv
 

@@ -109,7 +109,7 @@ def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
 
 def visible_gpus() -> list[str]:
     """The CUDA devices this process may use, as ``CUDA_VISIBLE_DEVICES`` names them: that
-    variable's entries when it is set, else ``0 .. n-1`` for the n devices CuPy counts."""
+    variable's entries when it is set, else ``0`` to ``n - 1`` for the n devices CuPy counts."""
     listed = os.environ.get("CUDA_VISIBLE_DEVICES")
     if listed is not None:
         return [d.strip() for d in listed.split(",") if d.strip()]

@@ -32,7 +32,7 @@ def oat_jobs(spec: ToleranceSpec) -> list[dict]:
 
 
 def oat_table(spec: ToleranceSpec, results: dict, metric: str) -> dict:
-    """Rows ``{param, label, low_delta, high_delta, swing}`` of ``metric`` changes, largest |change| first."""
+    """Rows ``{param, label, low_delta, high_delta, swing}`` of ``metric`` changes, largest ``|change|`` first."""
     base = results["oat-centre"]["metrics"][metric]
     rows = []
     for i, p in enumerate(spec.random_params):

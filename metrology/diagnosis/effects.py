@@ -5,19 +5,19 @@ applies it to the model, a one-sentence explanation, and the *stage* of the forw
 acts on. The diagnosis (:mod:`metrology.diagnosis.engine`) fits every candidate's parameters to a
 measurement and keeps those that earn their parameters.
 
-Stages, in the order the forward model applies them:
+Stages, in the order the forward model applies them::
 
-height domain (a height map on the fine model grid, row 0 at the top)
-    ``"process"``  ``apply(params: ProcessParams, values) -> ProcessParams`` (masks stage model)
-    ``"surface"``  ``apply(height_m, values, step_m) -> height_m`` (instrument artefacts)
-PSF domain (a PSF stack shaped (views, wavelengths, rows, cols))
-    ``"height"``   ``apply(height_m, values) -> height_m`` (the DOE heights before the optics)
-    ``"optics"``   ``apply(render, values, info) -> render`` where ``render(height_m,
-                   wavelengths_m, depth_m)`` returns the stack; effects wrap it (defocus,
-                   spectral bandwidth). ``info`` holds ``focus_distance_m`` and ``depth_m``.
-    ``"sensor"``   ``apply(stack, values, info) -> stack`` on the measured views (crosstalk,
-                   background); ``info`` holds ``views`` (of ``stack``), ``full`` (the stack of
-                   every view before sensor effects) and ``full_views``.
+    height domain (a height map on the fine model grid, row 0 at the top)
+        "process"  apply(params: ProcessParams, values) -> ProcessParams (masks stage model)
+        "surface"  apply(height_m, values, step_m) -> height_m (instrument artefacts)
+    PSF domain (a PSF stack shaped (views, wavelengths, rows, cols))
+        "height"   apply(height_m, values) -> height_m (the DOE heights before the optics)
+        "optics"   apply(render, values, info) -> render where render(height_m,
+                   wavelengths_m, depth_m) returns the stack; effects wrap it (defocus,
+                   spectral bandwidth). info holds focus_distance_m and depth_m.
+        "sensor"   apply(stack, values, info) -> stack on the measured views (crosstalk,
+                   background); info holds views (of stack), full (the stack of
+                   every view before sensor effects) and full_views.
 
 Users add their own effect from a script::
 

@@ -151,7 +151,7 @@ def make_height_case(effects: Sequence[str], seed: int, shape: tuple[int, int] =
 
 
 def parameter_errors(case: HiddenCase, diagnosis: Diagnosis) -> dict[str, float]:
-    """Relative error of each hidden effect's main parameters (|fit - truth| / |truth|).
+    """Relative error of each hidden effect's main parameters (``|fit - truth| / |truth|``).
 
     Returns a dict effect -> max relative error over its main parameters (inf when the effect
     was not named). For effects whose main parameters form a vector (an overlay shift), the
