@@ -120,6 +120,8 @@ class MatchCheck:
         Relative difference of the lattice's pixel size along the two axes.
     problem : str or None
         One line saying why the field does not show the design, None when it does.
+    aspect_judged : bool
+        False for a raster scan, whose two axes are calibrated apart: its aspect is reported only.
     """
 
     correlation: float
@@ -129,6 +131,7 @@ class MatchCheck:
     quarter_turn: bool
     pixel_aspect: float
     problem: str | None
+    aspect_judged: bool = True
 
     @property
     def ok(self) -> bool:
@@ -140,6 +143,7 @@ class MatchCheck:
                 "readout_correlation": self.correlation, "edges_found": self.edges_found,
                 "design_edges": self.n_edges, "field_on_design": self.field_on_design,
                 "quarter_turn": self.quarter_turn, "pixel_aspect": self.pixel_aspect,
+                "pixel_aspect_judged": self.aspect_judged,
                 "thresholds": {"readout_correlation": MIN_CORRELATION, "edges_found": MIN_EDGES_FOUND,
                                "design_edges": MIN_DESIGN_EDGES, "pixel_aspect": MAX_PIXEL_ASPECT,
                                "step_found_steps": MIN_STEP_FOUND_STEPS},
@@ -266,4 +270,4 @@ def assess_match(height_m: np.ndarray, printed_m: np.ndarray, step_m: float,
              correlation, edges_found, n_edges, field_on_design, quarter_turn, aspect)
     return MatchCheck(correlation=correlation, edges_found=edges_found, n_edges=n_edges,
                       field_on_design=field_on_design, quarter_turn=quarter_turn, pixel_aspect=aspect,
-                      problem=problem)
+                      problem=problem, aspect_judged=not scanned)
