@@ -138,6 +138,36 @@ def _profile_widths(h, raised):
     return float(np.mean(widths)), len(widths)
 
 
+@pytest.mark.parametrize("name", sorted(SCANS))
+def test_real_afm_lattice_and_step_fast(name, tmp_path):
+    """The fast variant of the slow end-to-end tests below: the library stages `doe compare` runs
+    first (levelling, the lattice's registration, the joint levelling with one offset per scan
+    line, the level heights), without the edge and camera-frame fits."""
+    from metrology.matching.depths import interior_mask, level_heights
+    from metrology.matching.lattice import register_lattice
+    from metrology.matching.level import level_joint, level_on_top, remove_spikes
+    from metrology.matching.register import design_on_measurement
+
+    raised = SCANS[name] == "raised discs"
+    m = read_measurement(AFM / name)
+    assert m.metadata["raster_scan"] is True
+    path, ref = _design_for(m.height_m, m.pixel_size_m, raised, tmp_path)
+    design = Design.load(path)
+    h, _ = remove_spikes(m.height_m)
+    reg, levels, printed, lattice = register_lattice(level_on_top(h).height_m, design.levels, design.height_m,
+                                                     design.pitch_m, m.pixel_size_m)
+    assert lattice.period_px[0] == pytest.approx(ref["period_x_px"], rel=0.005)
+    assert lattice.period_px[1] == pytest.approx(ref["period_y_px"], rel=0.005)
+    assert lattice.turn_deg == pytest.approx(ref["turn_deg"], abs=0.2)
+    assert reg.match_ncc > 0.9
+    labels = design_on_measurement(levels, reg)
+    interior = interior_mask(labels, 1.0 / reg.decompose()["scale"])
+    joint = level_joint(h, np.where(interior, labels, -1), line_offsets=True)
+    stats = level_heights(joint.height_m, labels, interior, 2)
+    assert stats.mean_m[0] == pytest.approx(0, abs=0.005 * ref["step_m"])  # levelled on the unetched top
+    assert stats.mean_m[0] - stats.mean_m[1] == pytest.approx(ref["step_m"], rel=0.02)
+
+
 @pytest.fixture(scope="module", params=sorted(SCANS))
 def compared(request, tmp_path_factory):
     """`doe compare` of one real scan against the design the test writes; (name, report, figures)."""
