@@ -15,7 +15,7 @@ from doedesign import report_md as md
 
 __all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
            "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
-           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit"]
+           "diagnose_page", "diagnose_sections", "instrument_parts", "match_sentence", "psf_merit"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -148,9 +148,38 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
                 for wl, d, m in zip(psf["wavelengths_nm"], design, made)]
         parts.append(md.table(prow, ("wavelength (nm)", f"design: {name} (fraction of light)",
                                      f"fabricated: {name} (fraction of light)", "change (%)")))
+    parts += instrument_parts(rep, h)
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
     return parts
+
+
+def instrument_parts(rep: dict, h: str = "##") -> list[str]:
+    """What levelling removed as the instrument's (tilt, scan lines), the lattice of a periodic
+    design and a binary design's duty cycle, when the comparison reports them."""
+    art = rep.get("instrument_artefacts") or {}
+    lat = rep.get("lattice") or {}
+    duty = rep.get("duty_cycle") or {}
+    lines = [f"- Removed in levelling as the instrument's, not the relief: tilt "
+             f"{md.fmt(art.get('tilt_x_nm_per_px'), 3, 'nm')} per pixel along x and "
+             f"{md.fmt(art.get('tilt_y_nm_per_px'), 3, 'nm')} along y"
+             + (f"; scan-line offsets {md.fmt(art.get('scan_line_offsets_rms_nm'), 3, 'nm')} rms "
+                f"({md.fmt(art.get('scan_line_offsets_pv_nm'), 3, 'nm')} peak to valley over "
+                f"{art.get('scan_lines')} lines) of the raster scan" if art.get("raster_scan") else "") + "."]
+    if lat:
+        px, py = lat.get("period_um_xy") or (None, None)
+        cell = lat.get("depth_per_cell") or {}
+        lines.append(f"- Lattice (registered modulo its period): {md.fmt(px, 4, 'um')} along x, "
+                     f"{md.fmt(py, 4, 'um')} along y at the file's pixel size, turned "
+                     f"{md.fmt(lat.get('turn_deg'), 3, 'deg')}, shear {md.fmt(lat.get('shear_deg'), 2, 'deg')}; "
+                     f"step per cell {md.fmt_pm(cell.get('depth_nm'), cell.get('err_nm'), 4, 'nm')} "
+                     f"(scatter {md.fmt(cell.get('std_nm'), 2, 'nm')} over {cell.get('cells')} cells).")
+    if duty.get("unetched_fraction") is not None:
+        lines.append(f"- Duty cycle (unetched share of the area): "
+                     f"{md.fmt_pm(duty['unetched_fraction'], duty.get('unetched_fraction_err'), 4)} "
+                     f"(design {md.fmt(duty.get('design_unetched_fraction'), 4)}; edges moved "
+                     f"{md.fmt_pm(duty.get('edge_shift_um'), duty.get('edge_shift_err_um'), 2, 'um')}).")
+    return [f"{h} Instrument, lattice and duty cycle", *lines, ""] if art else []
 
 
 def _param_text(name, value, err, unit):

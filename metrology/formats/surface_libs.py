@@ -48,7 +48,7 @@ import numpy as np
 from metrology.formats.measurement import Measurement, MeasurementFileError
 from metrology.formats.plausibility import check_claimed_pixels, pixel_size
 
-__all__ = ["LIB_EXTENSIONS", "UNITS_M", "height_channel", "open_reader", "read_surface_lib", "to_metres"]
+__all__ = ["LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M", "height_channel", "open_reader", "read_surface_lib", "to_metres"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,9 @@ LIB_EXTENSIONS = {".nid": "ezd", ".spm": "di", ".di": "di", ".mdt": "mdt", ".plu
                   ".opd": "opd", ".opdx": "opdx", ".vk4": "vk", ".gwy": "gwy"}
 UNITS_M = {"km": 1e3, "m": 1.0, "mm": 1e-3, "µm": 1e-6, "μm": 1e-6, "um": 1e-6, "nm": 1e-9, "Å": 1e-10,
            "pm": 1e-12}
+# Scanning-probe formats: the map is a raster scan, line by line along the rows (fast axis x),
+# so each line carries its own z offset and the two axes their own piezo calibration.
+RASTER_FORMATS = frozenset({"ezd", "di", "mdt"})
 _HEIGHT_WORDS = ("topograph", "height", "z-axis", "zsensor", "z sensor", "z-sensor", "z_axis", "default")
 
 
@@ -178,6 +181,8 @@ def read_surface_lib(path: str | Path, pixel_size_m: float | None = None, format
     metadata = {"source_file": str(path), "format": path.suffix.lower().lstrip("."), "reader": "SurfaceTopography",
                 "channel": str(ch.name), "channels": [str(c.name) for c in reader.channels],
                 "file_height_unit": str(unit)}
+    if fmt in RASTER_FORMATS:
+        metadata["raster_scan"] = True
     inst = info.get("instrument")
     if isinstance(inst, dict) and inst.get("name"):
         metadata["instrument"] = str(inst["name"])

@@ -30,6 +30,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 from doedesign.levels import design_levels, printed_height_m
+from metrology.matching.duty import duty_cycle
 from metrology.matching.edges import MAX_FIT_POINTS, WIDTH_10_90_PER_SIGMA, EdgeFit, fit_edges
 from metrology.matching.forward import (crop_registration, design_height_on_measurement, error_map,
                                         fitted_process, process_on_measurement, shift_registration)
@@ -84,10 +85,23 @@ class Comparison:
     spikes_removed: int
     roughness_m: float
     match: dict = field(default_factory=dict)
+    lattice: dict | None = None
+    duty_cycle: dict | None = None
+    raster_scan: bool = False
 
     def fitted_params(self) -> ProcessParams:
         """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
         return fitted_process(self.instrument_fit, n_masks=self.nominal_depths_m.size)
+
+    def artefacts(self) -> dict:
+        """What levelling removed as the instrument's, not the relief's: the plane tilt and, for a
+        raster scan, the scan lines' offsets."""
+        found = self.levelling.artefacts()
+        what = ("the instrument's: the sample's tilt under the scanner (a plane) and the scanner's line-to-line "
+                "z offsets (one per scan line, its slow drift and jumps), removed in levelling on the unetched "
+                "surface; not the etched relief" if self.raster_scan else
+                "the instrument's: the sample's tilt under the objective (a plane), removed in levelling")
+        return {**found, "attributed_to": what, "raster_scan": self.raster_scan}
 
     def report(self) -> dict:
         """The comparison's JSON summary (units in the keys)."""
@@ -138,6 +152,9 @@ class Comparison:
             "levelling": {"plane_m_per_px": self.levelling.plane[1:],
                           "method": "joint plane + one offset per level on feature interiors"},
             "spikes_removed": self.spikes_removed,
+            "instrument_artefacts": self.artefacts(),
+            **({"lattice": self.lattice} if self.lattice is not None else {}),
+            **({"duty_cycle": self.duty_cycle} if self.duty_cycle is not None else {}),
             "conventions": ("overlay (dx, dy) of each mask relative to mask 0, x toward increasing design column, "
                             "y up; linewidth bias = growth of every opening edge (+ = wider); heights z up, "
                             "0 = unetched top; etch depths, overlay and bias from the camera-frame fit, "
@@ -181,6 +198,9 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     """
     from masks.decompose import binary_depths_m
 
+    from doedesign.camera import resolve_surround
+
+    from metrology.matching.lattice import cell_depths, edge_span, register_lattice
     from metrology.matching.level import level_joint, level_on_top, remove_spikes
     from metrology.matching.instrument import Placement
     from metrology.matching.register import register
@@ -201,9 +221,19 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     first = level_on_top(h)
     check_relief(first.height_m, step_m)
     step("levelled on level 0")
-    reg = register(first.height_m, printed, pitch, pixel_size_m=measurement.pixel_size_m)
+    raster = bool(measurement.metadata.get("raster_scan"))
+    lattice = None
+    if resolve_surround(None, design.metadata, design.source_path or design.name)[0] == "repeat":
+        # One cell of a lattice: registered modulo the lattice onto the cell tiled over the field.
+        reg, levels, printed, found = register_lattice(first.height_m, levels, printed, pitch,
+                                                       measurement.pixel_size_m, measurement.pixel_size_y_m)
+        lattice = found.report(measurement.pixel_size_m, measurement.pixel_size_y_m)
+        span = edge_span(levels[:design.shape[0], :design.shape[1]])
+    else:
+        reg = register(first.height_m, printed, pitch, pixel_size_m=measurement.pixel_size_m)
+        span = 1
     step("registered")
-    check = assess_match(first.height_m, printed, step_m, reg)
+    check = assess_match(first.height_m, printed, step_m, reg, scanned=raster, edge_span=span)
     if not check.ok:
         if not force:
             raise DoeError(check.problem + "; --force compares anyway")
@@ -211,7 +241,7 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     match = check.report(force)
     labels = design_on_measurement(levels, reg)
     interior = interior_mask(labels, 1.0 / reg.decompose()["scale"])
-    joint = level_joint(h, np.where(interior, labels, -1))
+    joint = level_joint(h, np.where(interior, labels, -1), line_offsets=raster)
     height = joint.height_m
     st = level_heights(height, labels, interior, n_levels)
     depth_fit = fit_etch_depths(st)
@@ -232,7 +262,11 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     have = st.count > 0
     roughness = float(np.sqrt(np.sum(st.count[have] * st.std_m[have] ** 2) / st.count[have].sum()))
     step("done")
+    if lattice is not None and n_levels == 2:
+        lattice["depth_per_cell"] = cell_depths(height, labels, interior, reg, design.shape)
+    duty = duty_cycle(levels, labels, inst.bias_m, inst.bias_err_m, pitch, reg) if n_masks == 1 else None
     return Comparison(height_m=height, labels=labels, interior=interior, registration=reg, levelling=joint,
                       stats=st, depth_fit=depth_fit, edge_fit=edge, instrument_fit=inst, nominal_depths_m=nominal,
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r1, c0, c1),
-                      spikes_removed=n_spikes, roughness_m=roughness, match=match)
+                      spikes_removed=n_spikes, roughness_m=roughness, match=match, lattice=lattice, duty_cycle=duty,
+                      raster_scan=raster)

@@ -54,12 +54,27 @@ class LevelResult:
         The pixels the plane was fitted to.
     level_offsets_m : ndarray or None
         Joint fit only: fitted height of each level relative to level 0.
+    line_offsets_m : ndarray or None
+        Joint fit of a raster scan only: each scan line's (row's) offset about the plane
+        (the scanner's line-to-line z jumps), removed from ``height_m`` with the plane.
     """
 
     height_m: np.ndarray
     plane: np.ndarray
     reference: np.ndarray
     level_offsets_m: np.ndarray | None = None
+    line_offsets_m: np.ndarray | None = None
+
+    def artefacts(self) -> dict:
+        """The plane's tilt (nm per pixel along x and y) and, for a raster scan, the rms and
+        peak-to-valley of the scan lines' offsets (nm) removed in levelling, for the report."""
+        out = {"tilt_x_nm_per_px": float(self.plane[1] * 1e9), "tilt_y_nm_per_px": float(self.plane[2] * 1e9)}
+        if self.line_offsets_m is not None:
+            lines = self.line_offsets_m[np.isfinite(self.line_offsets_m)]
+            out["scan_line_offsets_rms_nm"] = float(np.sqrt(np.mean(lines ** 2)) * 1e9) if lines.size else None
+            out["scan_line_offsets_pv_nm"] = float(np.ptp(lines) * 1e9) if lines.size else None
+            out["scan_lines"] = int(lines.size)
+        return out
 
 
 def remove_spikes(height_m: np.ndarray, threshold_m: float = DEFAULT_SPIKE_THRESHOLD_M,
@@ -226,7 +241,7 @@ def level_on_top(height_m: np.ndarray, valid: np.ndarray | None = None, iteratio
 
 
 def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | None = None,
-                max_points: int = 400_000) -> LevelResult:
+                max_points: int = 400_000, line_offsets: bool = False) -> LevelResult:
     """Fit one plane jointly with one height offset per level; level 0 ends at 0.
 
     Pixels further than 5 robust sigmas from the first fit are dropped and the fit repeated.
@@ -237,6 +252,15 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
     labels : ndarray of int
         Level of each pixel (0 = top); negative values are left out (edges, unknown).
     valid : ndarray of bool, optional
+    max_points : int
+        Pixels the fit uses at most (evenly strided); all of them with ``line_offsets``.
+    line_offsets : bool
+        A raster scan (AFM, stylus): one free offset per scan line (row) as well, the
+        scanner's line-to-line z jumps. Solved exactly by taking each row's mean out of the
+        data and the other columns (the row offsets' normal equations are diagonal), so the
+        cost does not grow with the number of lines; each row needs a labelled pixel, on any
+        level. The row offsets' straight-line trend is the plane's y tilt, the rest is
+        ``line_offsets_m``.
 
     Returns
     -------
@@ -244,6 +268,8 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
         ``level_offsets_m[k]`` is the fitted height of level k relative to level 0
         (NaN for levels without pixels).
     """
+    if line_offsets:
+        return _level_joint_lines(height_m, labels, valid)
     h = np.asarray(height_m, dtype=float)
     labels = np.asarray(labels)
     if labels.shape != h.shape:
@@ -277,6 +303,65 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
     if valid is not None:
         out = np.where(valid, out, np.nan)
     return LevelResult(out, plane, use, offsets - offsets[0])
+
+
+def _row_mean(rows, values, counts):
+    """Mean of ``values`` over each row index (0 where a row has none)."""
+    return np.bincount(rows, values, minlength=counts.size) / np.maximum(counts, 1)
+
+
+def _level_joint_lines(height_m, labels, valid):
+    """:func:`level_joint` with one offset per row (see there)."""
+    h = np.asarray(height_m, dtype=float)
+    labels = np.asarray(labels)
+    if labels.shape != h.shape:
+        raise DoeError(f"labels shape {labels.shape} differs from the height map {h.shape}")
+    use = (labels >= 0) & np.isfinite(h)
+    if valid is not None:
+        use &= np.asarray(valid, bool)
+    present = np.unique(labels[use])
+    if 0 not in present:
+        raise DoeError("the measured field holds no unetched (level-0) surface to level on and measure depths from; "
+                       "measure a field that includes some unetched surface")
+    n_rows, n_cols = h.shape
+    cc = (n_cols - 1) / 2
+    keep = use.copy()
+    for _ in range(2):
+        rows, cols = np.nonzero(keep)
+        # Columns: x slope, then levels other than 0 (level 0's height is in the row offsets).
+        x = np.zeros((rows.size, present.size))
+        x[:, 0] = cols - cc
+        index = np.searchsorted(present, labels[rows, cols])
+        on = index > 0
+        x[np.flatnonzero(on), index[on]] = 1.0
+        z = h[rows, cols]
+        counts = np.bincount(rows, minlength=n_rows).astype(float)
+        xm = np.stack([_row_mean(rows, x[:, j], counts) for j in range(x.shape[1])], axis=1)
+        zm = _row_mean(rows, z, counts)
+        coef, *_ = np.linalg.lstsq(x - xm[rows], z - zm[rows], rcond=None)
+        offsets_row = zm - xm @ coef
+        resid = z - x @ coef - offsets_row[rows]
+        mad = 1.4826 * np.median(np.abs(resid - np.median(resid)))
+        outliers = np.abs(resid) > 5 * mad if mad > 0 else np.zeros(resid.size, bool)
+        if not outliers.any():
+            break
+        keep[rows[outliers], cols[outliers]] = False
+    have = counts > 0
+    if not have.any():
+        raise DoeError("no labelled pixels to level on")
+    r_all = np.arange(n_rows, dtype=float)
+    # Rows without a labelled pixel take their neighbours' offsets (linear between them).
+    offsets_row = np.interp(r_all, r_all[have], offsets_row[have])
+    rc = (n_rows - 1) / 2
+    slope_y, offset = np.polyfit(r_all[have] - rc, offsets_row[have], 1)
+    lines = offsets_row - (offset + slope_y * (r_all - rc))
+    levels = np.full(int(labels.max()) + 1, np.nan)
+    levels[present] = np.concatenate([[0.0], coef[1:]])
+    plane = np.array([offset, coef[0], slope_y])
+    out = h - plane_image(plane, h.shape) - np.where(np.isfinite(lines), lines, 0.0)[:, None]
+    if valid is not None:
+        out = np.where(valid, out, np.nan)
+    return LevelResult(out, plane, keep, levels, line_offsets_m=lines)
 
 
 def classify_by_histogram(height_m: np.ndarray, valid: np.ndarray | None = None,
