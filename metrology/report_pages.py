@@ -15,7 +15,7 @@ from doedesign import report_md as md
 
 __all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
            "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
-           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit"]
+           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit", "terrace_sections"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -134,6 +134,7 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
                      "off nominal" if any(f[0] == j for f in findings) else "nominal"))
     parts.append(md.table(rows, ("mask", "nominal depth (nm)", "measured depth (nm)", "depth error (%)",
                                  "overlay dx (um)", "overlay dy (um)", "linewidth bias (um)", "verdict")))
+    parts += terrace_sections(rep.get("terrace_fit"), h)
     psf = rep.get("psf")
     if isinstance(psf, dict) and psf.get("wavelengths_nm"):
         name, design, made, counted = psf_merit(psf)
@@ -150,6 +151,32 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
                                      f"fabricated: {name} (fraction of light)", "change (%)")))
     parts.append(f"{h} Figures")
     parts += [md.figure(folder, prefix + name, caption) for name, caption in COMPARE_FIGURES]
+    return parts
+
+
+def terrace_sections(terrace: dict | None, h: str = "##") -> list[str]:
+    """The terrace fit beside the camera-frame fit: a verdict line, then per mask and per step."""
+    if not isinstance(terrace, dict):
+        return []
+    check = terrace.get("against_camera_frame") or {}
+    warnings = check.get("warnings") or []
+    parts = [f"{h} Terrace fit beside the camera-frame fit (± 1 standard uncertainty)",
+             "- " + md.verdict(check.get("agree"), "the two fits agree on every step and mask within twice their "
+                               "combined standard uncertainty (k = 2)", "; ".join(warnings) or "not compared") + ".",
+             f"- Terraces: {md.fmt(terrace.get('margin_px'), 3)} px from every design or measured step (ISO 5436-1's "
+             f"central third on a line), common background of degree {terrace.get('background_degree')}, residual "
+             f"{md.fmt(terrace.get('rms_residual_nm'), 3, 'nm')} rms.", ""]
+    rows = [(f"mask {j}", md.fmt_pm(m.get("terrace_nm"), m.get("terrace_err_nm"), 4),
+             md.fmt_pm(m.get("camera_frame_nm"), m.get("camera_frame_err_nm"), 4), md.fmt(m.get("difference_nm"), 3),
+             md.fmt(m.get("limit_nm"), 3), {True: "agree", False: "WARNING: differ"}.get(m.get("agree"), "not compared"))
+            for j, m in enumerate(check.get("masks") or [])]
+    rows += [(s.get("name", "").removeprefix("step "), md.fmt_pm(s.get("terrace_nm"), s.get("terrace_err_nm"), 4),
+              md.fmt_pm(s.get("camera_frame_nm"), s.get("camera_frame_err_nm"), 4), md.fmt(s.get("difference_nm"), 3),
+              md.fmt(s.get("limit_nm"), 3), {True: "agree", False: "WARNING: differ"}.get(s.get("agree"), "not measured"))
+             for s in check.get("steps") or []]
+    if rows:
+        parts.append(md.table(rows, ("etch depth or step", "terrace fit (nm)", "camera-frame fit (nm)",
+                                     "difference (nm)", "k = 2 limit (nm)", "verdict")))
     return parts
 
 

@@ -58,3 +58,18 @@ def test_placement_refined_with_uncertainties_and_spikes_excluded(compared):
     true = case.instrument["matrix"] @ pts + case.instrument["offset"][:, None]
     assert np.abs(fit - true).max() * filegen.PITCH_M / case.instrument["pixel_m"] < 0.05
     assert rep["spikes_removed"] + rep["instrument_frame"]["excluded_pixels"] >= case.instrument["n_spikes"]
+
+
+def test_terrace_fit_agrees_with_the_camera_frame_fit(compared):
+    """Issue 52, must 4: the terrace fit of the flat interiors and the camera-frame fit agree on
+    every step and mask within twice their combined standard uncertainty, and both find the truth."""
+    case, rep = compared
+    terr = rep["terrace_fit"]
+    check = terr["against_camera_frame"]
+    assert check["agree"] is True and check["warnings"] == []
+    assert len(check["masks"]) == 4 and len(check["steps"]) == 15
+    depths = np.array(filegen.DEPTHS_M) * (1 + case.truth["etch_depth"]["error"]) * 1e9
+    err = np.asarray(terr["etch_depths_err_nm"])
+    assert np.all(np.abs(np.asarray(terr["etch_depths_nm"]) - depths) < 3 * err)
+    # The terrace residual is the instrument's white noise: no edge pixel left on a terrace.
+    assert terr["rms_residual_nm"] < 1.3 * case.instrument["noise_m"] * 1e9
