@@ -15,7 +15,7 @@ from doedesign import report_md as md
 
 __all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
            "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
-           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit", "terrace_sections"]
+           "diagnose_page", "diagnose_sections", "match_sentence", "psf_merit", "terrace_sections", "texture_sections"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -30,7 +30,8 @@ COMPARE_FIGURES = (("surface3d.png", "measured surface (3-D)"),
                    ("masks.png", "per-mask etch depth error, overlay and linewidth bias with 1-sigma bars"),
                    ("error_map.png", "height error against the design and against the fitted process model"),
                    ("levels.png", "level histogram with the fitted level means"),
-                   ("psf.png", "PSF predicted from the measured heights beside the design's"))
+                   ("psf.png", "PSF predicted from the measured heights beside the design's"),
+                   ("texture.png", "radially averaged PSD of the residual (measured minus design)"))
 DIAGNOSE_FIGURES = (("residual_steps.png", "residual map after each named effect"),
                     ("breakdown.png", "where the residual lives (by edge distance, level, density)"))
 
@@ -135,6 +136,7 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
     parts.append(md.table(rows, ("mask", "nominal depth (nm)", "measured depth (nm)", "depth error (%)",
                                  "overlay dx (um)", "overlay dy (um)", "linewidth bias (um)", "verdict")))
     parts += terrace_sections(rep.get("terrace_fit"), h)
+    parts += texture_sections(rep.get("texture"), h)
     psf = rep.get("psf")
     if isinstance(psf, dict) and psf.get("wavelengths_nm"):
         name, design, made, counted = psf_merit(psf)
@@ -177,6 +179,27 @@ def terrace_sections(terrace: dict | None, h: str = "##") -> list[str]:
     if rows:
         parts.append(md.table(rows, ("etch depth or step", "terrace fit (nm)", "camera-frame fit (nm)",
                                      "difference (nm)", "k = 2 limit (nm)", "verdict")))
+    return parts
+
+
+def texture_sections(texture: dict | None, h: str = "##") -> list[str]:
+    """ISO 25178 height parameters of each level's flat interiors and of the residual, its band rms."""
+    if not isinstance(texture, dict):
+        return []
+    parts = [f"{h} Surface texture (ISO 25178, about each region's own mean, no S/L filter)", ""]
+    rows = [(f"level {k} flat interiors", md.fmt(d.get("Sa_nm"), 3), md.fmt(d.get("Sq_nm"), 3),
+             md.fmt(d.get("Sz_nm"), 3), d.get("pixels"))
+            for k, d in enumerate(texture.get("levels") or []) if d.get("pixels")]
+    res = texture.get("residual") or {}
+    rows.append(("residual (measured - design)", md.fmt(res.get("Sa_nm"), 3), md.fmt(res.get("Sq_nm"), 3),
+                 md.fmt(res.get("Sz_nm"), 3), res.get("pixels")))
+    parts.append(md.table(rows, ("region", "Sa (nm)", "Sq (nm)", "Sz (nm)", "pixels")))
+    bands = [(f"{md.fmt(b.get('wavelength_from_um'), 3)} to "
+              f"{md.fmt(b.get('wavelength_to_um'), 3) if b.get('wavelength_to_um') is not None else 'field'}",
+              md.fmt(b.get("rms_nm"), 3)) for b in res.get("bands") or []]
+    if bands:
+        parts += ["", "The residual's rms by band of spatial wavelength (from its PSD, Hann window):", "",
+                  md.table(bands, ("spatial wavelength (um)", "rms (nm)"))]
     return parts
 
 

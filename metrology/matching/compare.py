@@ -16,7 +16,9 @@ Stages, each in its own module:
 - error maps against the design and against the fitted model (:mod:`.forward`);
 - an independent check of the level heights: a terrace fit of the levelled field on the
   camera-frame fit's window, each level from its flat interiors (:mod:`.terrace`), set beside
-  the camera-frame fit step by step and mask by mask.
+  the camera-frame fit step by step and mask by mask;
+- surface texture figures (ISO 25178 Sa, Sq, Sz of each level's flat interiors and of the
+  residual, the residual's PSD and band rms; :mod:`.texture`).
 
 Coordinates: measurement arrays are row-major, row 0 at the top (camera order); design
 pixel (i, j) is centred at design coordinates (i, j). Overlay is x toward increasing
@@ -40,7 +42,8 @@ from metrology.matching.instrument_fit import InstrumentFit, fit_in_camera_frame
 from metrology.matching.match import assess_match, check_relief
 from metrology.matching.transfer import LateralTransfer
 from metrology.matching.register import design_on_measurement
-from metrology.matching.terrace import TerraceFit, check_against, fit_terraces
+from metrology.matching.terrace import TerraceFit, check_against, fit_terraces, flat_interiors
+from metrology.matching.texture import Texture, field_texture
 from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MAX_EDGE_BAND_PITCH, DepthFit, LevelStats,
                                        binary_code_matrix, fit_etch_depths, interior_mask, level_heights)
 
@@ -94,6 +97,7 @@ class Comparison:
     match: dict = field(default_factory=dict)
     terrace_fit: TerraceFit | None = None
     terrace_check: dict = field(default_factory=dict)
+    texture: Texture | None = None
 
     def fitted_params(self) -> ProcessParams:
         """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
@@ -147,6 +151,7 @@ class Comparison:
                           "method": "joint plane + one offset per level on feature interiors"},
             "spikes_removed": self.spikes_removed,
             "terrace_fit": self._terrace_report(),
+            "texture": None if self.texture is None else self.texture.report(),
             "conventions": ("overlay (dx, dy) of each mask relative to mask 0, x toward increasing design column, "
                             "y up; linewidth bias = growth of every opening edge (+ = wider); heights z up, "
                             "0 = unetched top; etch depths, overlay and bias from the camera-frame fit, "
@@ -267,6 +272,8 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
         terrace, terrace_check = None, {"agree": None, "warnings": [f"no terrace fit: {exc}"]}
     for line in terrace_check["warnings"]:
         log.warning("terrace fit against the camera-frame fit: %s", line)
+    flat = flat_interiors(height, labels, margin, step_m, 1.0 / reg.decompose()["scale"])
+    texture = field_texture(height, labels, flat, err_design, px, pitch, n_levels)
     have = st.count > 0
     roughness = float(np.sqrt(np.sum(st.count[have] * st.std_m[have] ** 2) / st.count[have].sum()))
     step("done")
@@ -274,4 +281,4 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
                       stats=st, depth_fit=depth_fit, edge_fit=edge, instrument_fit=inst, nominal_depths_m=nominal,
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r1, c0, c1),
                       spikes_removed=n_spikes, roughness_m=roughness, match=match, terrace_fit=terrace,
-                      terrace_check=terrace_check)
+                      terrace_check=terrace_check, texture=texture)

@@ -177,6 +177,23 @@ def _figures(comp, pixel_size_m, psf_cmp, out):
     save_figure(fig, out / "masks.png")
     names.append("masks.png")
 
+    if comp.texture is not None and comp.texture.q_per_m.size:
+        from metrology.matching.texture import BAND_EDGES_PITCH
+
+        t = comp.texture
+        fig, ax = plt.subplots(figsize=(6.4, 4))
+        wl_um = 2 * np.pi / t.q_per_m * 1e6
+        ax.loglog(wl_um, t.psd_m4 * 1e36, color="C0")
+        for e in BAND_EDGES_PITCH:
+            ax.axvline(e * comp.registration.pitch_m * 1e6, color="0.5", lw=0.6, ls="--")
+        ax.invert_xaxis()
+        ax.set_xlabel("spatial wavelength (um); dashed: 1 and 10 DOE pitches")
+        ax.set_ylabel("PSD C(q) (nm^2 um^2)")
+        ax.set_title(f"residual (measured - design), radially averaged PSD; Sq {t.residual['Sq_m'] * 1e9:.2f} nm",
+                     fontsize=9)
+        save_figure(fig, out / "texture.png")
+        names.append("texture.png")
+
     if psf_cmp is not None:
         nw = len(psf_cmp.wavelengths_m)
         fig, axes = plt.subplots(3, nw, figsize=(3.2 * nw, 9), squeeze=False)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Texture", "band_rms", "field_texture", "height_parameters", "residual_psd"]
+__all__ = ["BAND_EDGES_PITCH", "Texture", "band_rms", "field_texture", "height_parameters", "residual_psd"]
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,10 @@ def _topography(height_m, pixel_m):
 
     rows, cols = height_m.shape
     # SurfaceTopography indexes (x, y): the transpose of the row-major map.
-    return Topography(np.ascontiguousarray(height_m.T), (cols * pixel_m, rows * pixel_m), periodic=False)
+    heights = np.ascontiguousarray(np.ma.getdata(height_m).T)
+    if np.ma.is_masked(height_m):
+        heights = np.ma.masked_array(heights, mask=np.ascontiguousarray(np.ma.getmaskarray(height_m).T))
+    return Topography(heights, (cols * pixel_m, rows * pixel_m), periodic=False)
 
 
 def height_parameters(height_m: np.ndarray, pixel_m: float, mask: np.ndarray | None = None) -> dict:
