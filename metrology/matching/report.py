@@ -101,13 +101,12 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
                 figures.append("surface3d.png")
         report["figures"] = figures
         if x3p:
-            from metrology.formats.x3p import write_x3p
+            from metrology.formats.x3p import write_levelled_and_residual
 
-            pitch = measurement.pixel_size_m  # the file's pitch: the maps are in the camera frame
-            write_x3p(out / "levelled.x3p", comp.height_m, pitch, comment=f"levelled {measurement_source}")
-            write_x3p(out / "residual.x3p", comp.error_design_m, pitch,
-                      comment=f"{measurement_source} minus design {design_source}")
-            report["x3p"] = ["levelled.x3p", "residual.x3p"]
+            # The file's pitch: the maps are in the camera frame.
+            report["x3p"] = write_levelled_and_residual(out, comp.height_m, comp.error_design_m,
+                                                        measurement.pixel_size_m, f"levelled {measurement_source}",
+                                                        f"{measurement_source} minus design {design_source}")
         write_json(out / "report.json", report)
         compare_page(json_ready(report), out)
     return report
