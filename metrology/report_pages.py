@@ -15,7 +15,8 @@ from doedesign import report_md as md
 
 __all__ = ["BIAS_TOLERANCE_UM", "COMPARE_FIGURES", "DEPTH_TOLERANCE_PERCENT", "DIAGNOSE_FIGURES",
            "OVERLAY_TOLERANCE_UM", "SIGNIFICANCE", "compare_findings", "compare_page", "compare_sections",
-           "diagnose_page", "diagnose_sections", "instrument_parts", "match_sentence", "psf_merit"]
+           "diagnose_page", "diagnose_sections", "instrument_parts", "match_sentence", "psf_merit", "terrace_sections",
+           "texture_sections"]
 
 # Verdict rules. A depth or overlay is called off nominal when it is both significant (beyond
 # 3 standard errors) and large enough to matter: 2 % of a depth (a 10 nm error costs 0.07 %
@@ -30,7 +31,8 @@ COMPARE_FIGURES = (("surface3d.png", "measured surface (3-D)"),
                    ("masks.png", "per-mask etch depth error, overlay and linewidth bias with 1-sigma bars"),
                    ("error_map.png", "height error against the design and against the fitted process model"),
                    ("levels.png", "level histogram with the fitted level means"),
-                   ("psf.png", "PSF predicted from the measured heights beside the design's"))
+                   ("psf.png", "PSF predicted from the measured heights beside the design's"),
+                   ("texture.png", "radially averaged PSD of the residual (measured minus design)"))
 DIAGNOSE_FIGURES = (("residual_steps.png", "residual map after each named effect"),
                     ("breakdown.png", "where the residual lives (by edge distance, level, density)"))
 
@@ -134,6 +136,8 @@ def compare_sections(rep: dict, folder: str | Path, prefix: str = "", level: int
                      "off nominal" if any(f[0] == j for f in findings) else "nominal"))
     parts.append(md.table(rows, ("mask", "nominal depth (nm)", "measured depth (nm)", "depth error (%)",
                                  "overlay dx (um)", "overlay dy (um)", "linewidth bias (um)", "verdict")))
+    parts += terrace_sections(rep.get("terrace_fit"), h)
+    parts += texture_sections(rep.get("texture"), h)
     psf = rep.get("psf")
     if isinstance(psf, dict) and psf.get("wavelengths_nm"):
         name, design, made, counted = psf_merit(psf)
@@ -180,6 +184,53 @@ def instrument_parts(rep: dict, h: str = "##") -> list[str]:
                      f"(design {md.fmt(duty.get('design_unetched_fraction'), 4)}; edges moved "
                      f"{md.fmt_pm(duty.get('edge_shift_um'), duty.get('edge_shift_err_um'), 2, 'um')}).")
     return [f"{h} Instrument, lattice and duty cycle", *lines, ""] if art else []
+
+
+def terrace_sections(terrace: dict | None, h: str = "##") -> list[str]:
+    """The terrace fit beside the camera-frame fit: a verdict line, then per mask and per step."""
+    if not isinstance(terrace, dict):
+        return []
+    check = terrace.get("against_camera_frame") or {}
+    warnings = check.get("warnings") or []
+    parts = [f"{h} Terrace fit beside the camera-frame fit (± 1 standard uncertainty)",
+             "- " + md.verdict(check.get("agree"), "the two fits agree on every step and mask within twice their "
+                               "combined standard uncertainty (k = 2)", "; ".join(warnings) or "not compared") + ".",
+             f"- Terraces: {md.fmt(terrace.get('margin_px'), 3)} px from every design or measured step (ISO 5436-1's "
+             f"central third on a line), common background of degree {terrace.get('background_degree')}, residual "
+             f"{md.fmt(terrace.get('rms_residual_nm'), 3, 'nm')} rms.", ""]
+    rows = [(f"mask {j}", md.fmt_pm(m.get("terrace_nm"), m.get("terrace_err_nm"), 4),
+             md.fmt_pm(m.get("camera_frame_nm"), m.get("camera_frame_err_nm"), 4), md.fmt(m.get("difference_nm"), 3),
+             md.fmt(m.get("limit_nm"), 3), {True: "agree", False: "WARNING: differ"}.get(m.get("agree"), "not compared"))
+            for j, m in enumerate(check.get("masks") or [])]
+    rows += [(s.get("name", "").removeprefix("step "), md.fmt_pm(s.get("terrace_nm"), s.get("terrace_err_nm"), 4),
+              md.fmt_pm(s.get("camera_frame_nm"), s.get("camera_frame_err_nm"), 4), md.fmt(s.get("difference_nm"), 3),
+              md.fmt(s.get("limit_nm"), 3), {True: "agree", False: "WARNING: differ"}.get(s.get("agree"), "not measured"))
+             for s in check.get("steps") or []]
+    if rows:
+        parts.append(md.table(rows, ("etch depth or step", "terrace fit (nm)", "camera-frame fit (nm)",
+                                     "difference (nm)", "k = 2 limit (nm)", "verdict")))
+    return parts
+
+
+def texture_sections(texture: dict | None, h: str = "##") -> list[str]:
+    """ISO 25178 height parameters of each level's flat interiors and of the residual, its band rms."""
+    if not isinstance(texture, dict):
+        return []
+    parts = [f"{h} Surface texture (ISO 25178, about each region's own mean, no S/L filter)", ""]
+    rows = [(f"level {k} flat interiors", md.fmt(d.get("Sa_nm"), 3), md.fmt(d.get("Sq_nm"), 3),
+             md.fmt(d.get("Sz_nm"), 3), d.get("pixels"))
+            for k, d in enumerate(texture.get("levels") or []) if d.get("pixels")]
+    res = texture.get("residual") or {}
+    rows.append(("residual (measured - design)", md.fmt(res.get("Sa_nm"), 3), md.fmt(res.get("Sq_nm"), 3),
+                 md.fmt(res.get("Sz_nm"), 3), res.get("pixels")))
+    parts.append(md.table(rows, ("region", "Sa (nm)", "Sq (nm)", "Sz (nm)", "pixels")))
+    bands = [(f"{md.fmt(b.get('wavelength_from_um'), 3)} to "
+              f"{md.fmt(b.get('wavelength_to_um'), 3) if b.get('wavelength_to_um') is not None else 'field'}",
+              md.fmt(b.get("rms_nm"), 3)) for b in res.get("bands") or []]
+    if bands:
+        parts += ["", "The residual's rms by band of spatial wavelength (from its PSD, Hann window):", "",
+                  md.table(bands, ("spatial wavelength (um)", "rms (nm)"))]
+    return parts
 
 
 def _param_text(name, value, err, unit):

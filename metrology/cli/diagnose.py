@@ -76,6 +76,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cpu-budget-s", type=Number(float, 0, 1e6, lo_open=True, unit="s"), default=None,
                    help="opt-in: CPU seconds (all threads together) after which the selection stops, as "
                         f"--wall-limit-s does (INCOMPLETE, exit status {EXIT_INCOMPLETE}); default none")
+    p.add_argument("--x3p", action="store_true",
+                   help="height maps, --frame camera: also write levelled.x3p (the levelled measurement) and "
+                        "residual.x3p (measured minus the fitted model after every named effect, on the diagnosed "
+                        "window), ISO 25178-72, into --out")
     p.add_argument("--force", action="store_true",
                    help="diagnose even when the field does not show the design (another design, off the element, "
                         "turned by a quarter turn)")
@@ -94,6 +98,10 @@ def run(args: argparse.Namespace) -> int:
     for path in args.effects_file:
         load_effects_file(path)
     candidates = parse_effects(args.effects, "psf" if args.measured_psf else "height")
+    if getattr(args, "x3p", False) and not (args.measured and args.frame == "camera"):
+        from doedesign.errors import DoeError
+
+        raise DoeError("--x3p writes height maps in the camera's frame: it needs --measured and --frame camera")
     args.calibration = args.transfer = None
     if getattr(args, "instrument", None):
         from metrology.calibration.instrument import read_calibration
@@ -110,7 +118,12 @@ def run(args: argparse.Namespace) -> int:
         diag, inputs = _psf(design, Path(args.measured_psf), args, candidates)
     # What the design was, so that a later `doe correct` refuses a diagnosis of another one.
     inputs.update(design_fingerprint(design, args.design))
+    maps = inputs.pop("_x3p_maps", None)
     with output_run(out, "doe diagnose"):
+        if maps is not None:
+            from metrology.formats.x3p import write_levelled_and_residual
+
+            inputs["x3p"] = write_levelled_and_residual(out, *maps)
         report = diag.save(out, dict(design=str(args.design), **inputs))
     print_json({"report": str(out / "report.json"), "summary": report["summary"], "incomplete": diag.incomplete,
                 "untried": diag.untried, "effects_found": diag.named,
@@ -189,11 +202,26 @@ def _camera(design, path, args, candidates):
     measurement = read_measurement(path).square_pixels()
     _check_field(measurement, path)
     measurement = apply_calibration(measurement, args.calibration, str(path))
+    comparison = None
+    if getattr(args, "x3p", False):
+        from doedesign.errors import DoeError
+        from metrology.matching.compare import compare_measurement
+
+        try:
+            comparison = compare_measurement(measurement, design, force=args.force, transfer=args.transfer)
+        except DoeError as exc:
+            raise DoeError(f"{path}: {exc}") from None
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,
                                                threshold=args.threshold, window_px=args.window_px, source=str(path),
-                                               force=args.force, transfer=args.transfer,
+                                               force=args.force, comparison=comparison, transfer=args.transfer,
                                                limit=args.limit,
                                                batwing=None if args.calibration is None else args.calibration.batwing)
+    if comparison is not None:
+        r0, r1, c0, c1 = diag.window_camera_px
+        inputs["_x3p_maps"] = (comparison.height_m, diag.residual_maps[-1], measurement.pixel_size_m,
+                               f"levelled {path}",
+                               f"{path} minus the fitted model ({', '.join(diag.named) or 'ideal'}), "
+                               f"camera window rows {r0}:{r1}, columns {c0}:{c1}", diag.map_step_m)
     return diag, {"measured": str(path), **_held(args), **inputs}
 
 

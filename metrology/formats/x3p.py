@@ -26,7 +26,7 @@ from doedesign.fileio import atomic_path
 from metrology.formats.measurement import Measurement, MeasurementFileError
 from metrology.formats.plausibility import check_claimed_pixels, pixel_size
 
-__all__ = ["MAX_X3P_INFLATION", "read_x3p", "write_x3p"]
+__all__ = ["MAX_X3P_INFLATION", "read_x3p", "write_levelled_and_residual", "write_x3p"]
 
 log = logging.getLogger(__name__)
 
@@ -154,3 +154,32 @@ def write_x3p(path: str | Path, height_m: ArrayLike, pixel_size_m: float, pixel_
                     z_type=x3pio.DataType.FLOAT64, revision=x3pio.Revision.ISO5436_2000,
                     metadata=_metadata(x3pio, comment))
     return path
+
+
+def write_levelled_and_residual(out: str | Path, levelled_m: ArrayLike, residual_m: ArrayLike, pixel_size_m: float,
+                                levelled_comment: str, residual_comment: str,
+                                residual_pixel_m: float | None = None) -> list[str]:
+    """Write ``levelled.x3p`` and ``residual.x3p`` into ``out`` (``doe compare`` and ``doe diagnose``).
+
+    Parameters
+    ----------
+    out : str or Path
+        Output folder.
+    levelled_m, residual_m : array (rows, cols)
+        The levelled measurement and a residual (measured minus a model), row 0 first.
+    pixel_size_m : float
+        The levelled map's pitch (the file's, square: the maps are in the camera's frame).
+    levelled_comment, residual_comment : str
+        What each file holds (its ``Record2/Comment``).
+    residual_pixel_m : float, optional
+        The residual's pitch when it differs (default ``pixel_size_m``).
+
+    Returns
+    -------
+    list of str
+        The file names written.
+    """
+    out = Path(out)
+    write_x3p(out / "levelled.x3p", levelled_m, pixel_size_m, comment=levelled_comment)
+    write_x3p(out / "residual.x3p", residual_m, residual_pixel_m or pixel_size_m, comment=residual_comment)
+    return ["levelled.x3p", "residual.x3p"]

@@ -13,7 +13,12 @@ Stages, each in its own module:
   with the same measurement model as ``doe diagnose --frame camera`` (objective blur,
   pixel-area integration, placement refined with uncertainties, levelling projected out;
   :mod:`.instrument_fit`), the measured heights never resampled;
-- error maps against the design and against the fitted model (:mod:`.forward`).
+- error maps against the design and against the fitted model (:mod:`.forward`);
+- an independent check of the level heights: a terrace fit of the levelled field on the
+  camera-frame fit's window, each level from its flat interiors (:mod:`.terrace`), set beside
+  the camera-frame fit step by step and mask by mask;
+- surface texture figures (ISO 25178 Sa, Sq, Sz of each level's flat interiors and of the
+  residual, the residual's PSD and band rms; :mod:`.texture`).
 
 Coordinates: measurement arrays are row-major, row 0 at the top (camera order); design
 pixel (i, j) is centred at design coordinates (i, j). Overlay is x toward increasing
@@ -38,6 +43,8 @@ from metrology.matching.instrument_fit import InstrumentFit, fit_in_camera_frame
 from metrology.matching.match import assess_match, check_relief
 from metrology.matching.transfer import LateralTransfer
 from metrology.matching.register import design_on_measurement
+from metrology.matching.terrace import TerraceFit, check_against, fit_terraces, flat_interiors
+from metrology.matching.texture import Texture, field_texture
 from metrology.matching.depths import (LEVEL_REPEATABILITY_M, MAX_EDGE_BAND_PITCH, DepthFit, LevelStats,
                                        binary_code_matrix, fit_etch_depths, interior_mask, level_heights)
 
@@ -60,6 +67,10 @@ log = logging.getLogger(__name__)
 # Camera pixels per side of the window on which depths, overlay and bias are fitted in the
 # camera's frame (the one richest in every mask's edges).
 INSTRUMENT_WINDOW_PX = 128
+# The terrace fit keeps pixels this many camera pixels from every step, or this many edge
+# widths (the edge fit's sigma), whichever is more.
+TERRACE_MARGIN_PX = 3.0
+TERRACE_MARGIN_SIGMAS = 3.0
 
 
 @dataclass
@@ -88,6 +99,9 @@ class Comparison:
     lattice: dict | None = None
     duty_cycle: dict | None = None
     raster_scan: bool = False
+    terrace_fit: TerraceFit | None = None
+    terrace_check: dict = field(default_factory=dict)
+    texture: Texture | None = None
 
     def fitted_params(self) -> ProcessParams:
         """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
@@ -155,12 +169,33 @@ class Comparison:
             "instrument_artefacts": self.artefacts(),
             **({"lattice": self.lattice} if self.lattice is not None else {}),
             **({"duty_cycle": self.duty_cycle} if self.duty_cycle is not None else {}),
+            "terrace_fit": self._terrace_report(),
+            "texture": None if self.texture is None else self.texture.report(),
             "conventions": ("overlay (dx, dy) of each mask relative to mask 0, x toward increasing design column, "
                             "y up; linewidth bias = growth of every opening edge (+ = wider); heights z up, "
                             "0 = unetched top; etch depths, overlay and bias from the camera-frame fit, "
                             "etch_depths_levels_nm from the level means; level heights on the central third of features (ISO 5436-1); "
                             "roughness = pooled rms about the level means on interiors, 5-sigma outliers out (includes instrument noise)"),
         }
+
+    def _terrace_report(self) -> dict | None:
+        t = self.terrace_fit
+        if t is None:
+            return {"against_camera_frame": dict(self.terrace_check)}
+        nm = 1e9
+        return {"level_heights_nm": t.heights_m * nm, "level_heights_err_nm": t.heights_err_m * nm,
+                "steps_nm": t.steps_m * nm, "steps_err_nm": t.steps_err_m * nm,
+                "etch_depths_nm": None if t.depths is None else t.depths.depths_m * nm,
+                "etch_depths_err_nm": None if t.depths is None else t.depths.depths_err_m * nm,
+                "terraces": t.terraces, "terrace_pixels": t.pixels, "margin_px": t.margin_px,
+                "background_degree": t.degree, "rms_residual_nm": t.rms_residual_m * nm,
+                "window_camera_px": list(self.model_window),
+                "against_camera_frame": dict(self.terrace_check),
+                "method": "each level's height from its flat terraces (margin_px from every design or measured "
+                          "step; ISO 5436-1's central third on a line), all terraces fitted at once with a common "
+                          "polynomial background, on the camera-frame fit's window; uncertainty: standard error of "
+                          "the terraces' means (at least the pixel scatter's) and the level repeatability floor in "
+                          "quadrature; agreement: |difference| <= 2 x combined standard uncertainty (k = 2)"}
 
 
 def compare_measurement(measurement: Measurement, design: Design, n_masks: int | None = None,
@@ -259,6 +294,18 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     err_model = np.full(height.shape, np.nan)
     err_model[r0:r1, c0:c1] = inst.residual_m
     step("camera-frame fit")
+    px = reg.pixel_size_m
+    margin = max(TERRACE_MARGIN_PX, TERRACE_MARGIN_SIGMAS * edge.sigma_m / px)
+    try:
+        terrace = fit_terraces(height[r0:r1, c0:c1], labels[r0:r1, c0:c1], n_levels, margin, step_m,
+                               pitch_px=1.0 / reg.decompose()["scale"])
+        terrace_check = check_against(terrace, inst.depths_m, inst.depths_err_m)
+    except DoeError as exc:
+        terrace, terrace_check = None, {"agree": None, "warnings": [f"no terrace fit: {exc}"]}
+    for line in terrace_check["warnings"]:
+        log.warning("terrace fit against the camera-frame fit: %s", line)
+    flat = flat_interiors(height, labels, margin, step_m, 1.0 / reg.decompose()["scale"])
+    texture = field_texture(height, labels, flat, err_design, px, pitch, n_levels)
     have = st.count > 0
     roughness = float(np.sqrt(np.sum(st.count[have] * st.std_m[have] ** 2) / st.count[have].sum()))
     step("done")
@@ -269,4 +316,5 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
                       stats=st, depth_fit=depth_fit, edge_fit=edge, instrument_fit=inst, nominal_depths_m=nominal,
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r1, c0, c1),
                       spikes_removed=n_spikes, roughness_m=roughness, match=match, lattice=lattice, duty_cycle=duty,
-                      raster_scan=raster)
+                      raster_scan=raster,
+                      terrace_fit=terrace, terrace_check=terrace_check, texture=texture)

@@ -18,7 +18,7 @@ from scipy import ndimage, stats
 from doedesign.errors import DoeError
 
 __all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MAX_EDGE_BAND_PITCH", "binary_code_matrix",
-           "fit_etch_depths", "interior_mask", "level_heights"]
+           "depths_from_levels", "feature_distances", "fit_etch_depths", "interior_mask", "level_heights"]
 
 # Repeatability floor (m) added in quadrature to each level mean's standard error in the
 # chi-square: a white-light profiler does not repeat a terrace height better than this.
@@ -48,6 +48,32 @@ def interior_mask(labels: np.ndarray, pitch_px: float) -> np.ndarray:
     -------
     ndarray of bool
     """
+    dist, dmax = feature_distances(labels)
+    cap = MAX_EDGE_BAND_PITCH * pitch_px
+    # No feature is narrower than one DOE pixel, whose central third starts pitch/3 in:
+    # thinner pieces are features cut by the field border.
+    need = np.clip(2.0 / 3.0 * dmax, pitch_px / 3.0, cap)
+    return (dist >= need) & (np.asarray(labels) >= 0)
+
+
+def feature_distances(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's distance to the nearest boundary between features, and its feature's largest.
+
+    A feature is a connected region of one level (4-connected). ISO 5436-1's central third of a
+    feature of width ``w`` is where the distance is at least ``w / 3``, i.e. ``2 / 3`` of the
+    feature's largest distance ``w / 2``.
+
+    Parameters
+    ----------
+    labels : ndarray of int
+        Level at each pixel; negative = outside the design (no feature).
+
+    Returns
+    -------
+    dist, feature_max : ndarray of float
+        Distance (px) from the boundary line (a pixel beside a boundary reads 0.5) and the largest
+        distance in the pixel's feature (0 outside the design).
+    """
     labels = np.asarray(labels)
     edge = np.zeros(labels.shape, bool)
     diff_r = labels[1:] != labels[:-1]
@@ -56,7 +82,6 @@ def interior_mask(labels: np.ndarray, pitch_px: float) -> np.ndarray:
     edge[:-1] |= diff_r
     edge[:, 1:] |= diff_c
     edge[:, :-1] |= diff_c
-    # Distance (px) from each pixel to the nearest boundary between features.
     dist = ndimage.distance_transform_edt(~edge) + 0.5
     # One id per connected feature (all levels), then each feature's largest distance.
     feature = np.zeros(labels.shape, np.int64)
@@ -67,13 +92,8 @@ def interior_mask(labels: np.ndarray, pitch_px: float) -> np.ndarray:
         n_total += n
     dmax = np.zeros(n_total + 1)
     np.maximum.at(dmax, feature.ravel(), dist.ravel())
-    cap = MAX_EDGE_BAND_PITCH * pitch_px
-    # No feature is narrower than one DOE pixel, whose central third starts pitch/3 in:
-    # thinner pieces are features cut by the field border.
-    need = np.clip(2.0 / 3.0 * dmax, pitch_px / 3.0, cap)
-    need[0] = np.inf
-    inner = dist >= need[feature]
-    return inner
+    dmax[0] = 0.0
+    return dist, dmax[feature]
 
 
 @dataclass
@@ -143,21 +163,49 @@ class DepthFit:
 
 
 def fit_etch_depths(stats_: LevelStats) -> DepthFit:
-    """Weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the levels present."""
-    n_levels = stats_.mean_m.size
+    """Weighted least squares ``mu_k = c - sum_j B_kj D_j`` over the levels present.
+
+    Each level mean weighs by its standard error plus ``LEVEL_REPEATABILITY_M`` in quadrature.
+    """
+    sigma = np.sqrt(stats_.std_m ** 2 / np.maximum(stats_.count, 1) + LEVEL_REPEATABILITY_M ** 2)
+    mean = np.where(stats_.count > 0, stats_.mean_m, np.nan)
+    return depths_from_levels(mean, sigma)
+
+
+def depths_from_levels(mean_m: np.ndarray, sigma_m: np.ndarray) -> DepthFit:
+    """Etch depth per mask from level heights: weighted least squares ``mu_k = c - sum_j B_kj D_j``.
+
+    Parameters
+    ----------
+    mean_m : ndarray (n_levels,)
+        Height of each level (NaN = not measured).
+    sigma_m : ndarray (n_levels,)
+        Standard uncertainty of each height (the weights; the chi-square is counted with them).
+
+    Returns
+    -------
+    DepthFit
+
+    Raises
+    ------
+    DoeError
+        The levels measured are too few to separate the masks' depths.
+    """
+    mean_m, sigma_m = np.asarray(mean_m, float), np.asarray(sigma_m, float)
+    n_levels = mean_m.size
     b = binary_code_matrix(n_levels)
-    ok = np.isfinite(stats_.mean_m) & (stats_.count > 0)
+    ok = np.isfinite(mean_m) & np.isfinite(sigma_m) & (sigma_m > 0)
     a = np.column_stack([np.ones(n_levels), -b])[ok]
     if np.linalg.matrix_rank(a) < a.shape[1]:
         raise DoeError(f"only levels {np.flatnonzero(ok).tolist()} are measured: too few to separate "
                        f"the {b.shape[1]} etch depths")
-    sigma = np.sqrt(stats_.std_m[ok] ** 2 / np.maximum(stats_.count[ok], 1) + LEVEL_REPEATABILITY_M ** 2)
+    sigma = sigma_m[ok]
     aw = a / sigma[:, None]
-    yw = stats_.mean_m[ok] / sigma
+    yw = mean_m[ok] / sigma
     coef, *_ = np.linalg.lstsq(aw, yw, rcond=None)
     cov = np.linalg.inv(aw.T @ aw)
     resid = np.full(n_levels, np.nan)
-    resid[ok] = stats_.mean_m[ok] - a @ coef
+    resid[ok] = mean_m[ok] - a @ coef
     chi2 = float(np.sum((resid[ok] / sigma) ** 2))
     dof = int(ok.sum() - a.shape[1])
     return DepthFit(depths_m=coef[1:], depths_err_m=np.sqrt(np.diag(cov))[1:], top_m=float(coef[0]),

@@ -101,13 +101,12 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
                 figures.append("surface3d.png")
         report["figures"] = figures
         if x3p:
-            from metrology.formats.x3p import write_x3p
+            from metrology.formats.x3p import write_levelled_and_residual
 
-            pitch = measurement.pixel_size_m  # the file's pitch: the maps are in the camera frame
-            write_x3p(out / "levelled.x3p", comp.height_m, pitch, comment=f"levelled {measurement_source}")
-            write_x3p(out / "residual.x3p", comp.error_design_m, pitch,
-                      comment=f"{measurement_source} minus design {design_source}")
-            report["x3p"] = ["levelled.x3p", "residual.x3p"]
+            # The file's pitch: the maps are in the camera frame.
+            report["x3p"] = write_levelled_and_residual(out, comp.height_m, comp.error_design_m,
+                                                        measurement.pixel_size_m, f"levelled {measurement_source}",
+                                                        f"{measurement_source} minus design {design_source}")
         write_json(out / "report.json", report)
         compare_page(json_ready(report), out)
     return report
@@ -176,6 +175,23 @@ def _figures(comp, pixel_size_m, psf_cmp, out):
         ax.axhline(0, color="k", lw=0.5)
     save_figure(fig, out / "masks.png")
     names.append("masks.png")
+
+    if comp.texture is not None and comp.texture.q_per_m.size:
+        from metrology.matching.texture import BAND_EDGES_PITCH
+
+        t = comp.texture
+        fig, ax = plt.subplots(figsize=(6.4, 4))
+        wl_um = 2 * np.pi / t.q_per_m * 1e6
+        ax.loglog(wl_um, t.psd_m4 * 1e36, color="C0")
+        for e in BAND_EDGES_PITCH:
+            ax.axvline(e * comp.registration.pitch_m * 1e6, color="0.5", lw=0.6, ls="--")
+        ax.invert_xaxis()
+        ax.set_xlabel("spatial wavelength (um); dashed: 1 and 10 DOE pitches")
+        ax.set_ylabel("PSD C(q) (nm^2 um^2)")
+        ax.set_title(f"residual (measured - design), radially averaged PSD; Sq {t.residual['Sq_m'] * 1e9:.2f} nm",
+                     fontsize=9)
+        save_figure(fig, out / "texture.png")
+        names.append("texture.png")
 
     if psf_cmp is not None:
         nw = len(psf_cmp.wavelengths_m)

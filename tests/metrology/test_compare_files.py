@@ -58,3 +58,37 @@ def test_placement_refined_with_uncertainties_and_spikes_excluded(compared):
     true = case.instrument["matrix"] @ pts + case.instrument["offset"][:, None]
     assert np.abs(fit - true).max() * filegen.PITCH_M / case.instrument["pixel_m"] < 0.05
     assert rep["spikes_removed"] + rep["instrument_frame"]["excluded_pixels"] >= case.instrument["n_spikes"]
+
+
+def test_terrace_fit_agrees_with_the_camera_frame_fit(compared):
+    """Issue 52, must 4: the terrace fit of the flat interiors and the camera-frame fit agree on
+    every step and mask within twice their combined standard uncertainty, and both find the truth."""
+    case, rep = compared
+    terr = rep["terrace_fit"]
+    check = terr["against_camera_frame"]
+    assert check["agree"] is True and check["warnings"] == []
+    assert len(check["masks"]) == 4 and len(check["steps"]) == 15
+    depths = np.array(filegen.DEPTHS_M) * (1 + case.truth["etch_depth"]["error"]) * 1e9
+    err = np.asarray(terr["etch_depths_err_nm"])
+    assert np.all(np.abs(np.asarray(terr["etch_depths_nm"]) - depths) < 3 * err)
+    # The terrace residual is the instrument's white noise: no edge pixel left on a terrace.
+    assert terr["rms_residual_nm"] < 1.3 * case.instrument["noise_m"] * 1e9
+
+
+def test_texture_figures_beside_the_doe_figures(compared):
+    """Issue 52, must 5: Sa, Sq, Sz of each level's flat interiors and of the residual, its band rms."""
+    case, rep = compared
+    tex = rep["texture"]
+    noise = case.instrument["noise_m"] * 1e9
+    sq = [d["Sq_nm"] for d in tex["levels"] if d["pixels"]]
+    assert len(sq) >= 8
+    # Flat interiors hold the instrument's white noise only: Sq near it, Sa = Sq sqrt(2 / pi).
+    assert np.median(sq) == pytest.approx(noise, rel=0.25)
+    sa = [d["Sa_nm"] / d["Sq_nm"] for d in tex["levels"] if d["pixels"] > 100]
+    assert np.median(sa) == pytest.approx(np.sqrt(2 / np.pi), rel=0.05)
+    res = tex["residual"]
+    # The residual's Sq is the report's height error rms about its mean; its bands add up to it.
+    assert res["Sq_nm"] <= rep["height_error_rms_nm"] * 1.0001
+    bands = np.array([b["rms_nm"] for b in res["bands"]])
+    assert np.sqrt(np.sum(bands ** 2)) == pytest.approx(res["Sq_nm"], rel=0.15)
+    assert "texture.png" in rep["figures"]
