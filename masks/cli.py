@@ -79,6 +79,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--print-window", default=None, metavar="ROW,COL,ROWS,COLS|all",
                    help=f"design pixels to check (row 0 at the top); default the central {PRINT_WINDOW_PX} x "
                         f"{PRINT_WINDOW_PX} px (the whole design when smaller); 'all' for the whole element")
+    g.add_argument("--opc", action="store_true",
+                   help="optical proximity correction (with --gap-um): write the masks pre-distorted on a sub-pixel "
+                        "grid so that what prints through the gap matches the design (masks.opc); the print check "
+                        "then reports the drawn and the corrected masks side by side")
+    g.add_argument("--opc-iterations", type=Number(int, 1, 200), default=None,
+                   help="OPC gradient steps (default 20; the iterate that prints closest to the design is kept)")
+    g.add_argument("--opc-min-feature-um", type=Number(float, 0.1, 10, unit="um"), default=None,
+                   help="narrowest opening and chrome line the corrected masks may hold (um, default "
+                        "1: the mask writer's resolution)")
     p.set_defaults(func=run_masks)
 
 
@@ -130,10 +139,13 @@ def _print_region(text, shape):
 def _print_check(args, design, depths):
     """The print check ``--gap-um`` asks for (None without it); refused whole before anything is written."""
     dose_given = (args.dose is not None, args.dose_to_clear is not None)
+    opc_options = args.opc_iterations is not None or args.opc_min_feature_um is not None
+    if opc_options and not args.opc:
+        raise DoeError("--opc-iterations and --opc-min-feature-um need --opc")
     if args.gap_um is None:
-        if any(dose_given) or args.resist_threshold is not None or args.print_window is not None:
-            raise DoeError("--dose, --dose-to-clear, --resist-threshold and --print-window need --gap-um")
-        return None
+        if any(dose_given) or args.resist_threshold is not None or args.print_window is not None or args.opc:
+            raise DoeError("--dose, --dose-to-clear, --resist-threshold, --print-window and --opc need --gap-um")
+        return None, None
     if any(dose_given) and not all(dose_given):
         raise DoeError("--dose and --dose-to-clear go together (the threshold is dose-to-clear / dose)")
     if all(dose_given) and args.resist_threshold is not None:
@@ -155,6 +167,13 @@ def _print_check(args, design, depths):
     optics = proximity_optics(params)
     step = min(0.5e-6, recommended_step_m(optics))
     u = fine_upsample(design.pitch_m, step)
+    if args.opc:
+        from .opc import OPC_SUBGRID, opc_bytes, opc_upsample
+
+        u = opc_upsample(design.pitch_m, step, OPC_SUBGRID)
+        check_memory(opc_bytes(levels.shape, u, OPC_SUBGRID),
+                     f"{args.design}: the proximity correction of the whole {levels.shape[0]} x {levels.shape[1]} px "
+                     f"element at {design.pitch_m / u * 1e6:.3g} um (it is not tiled)")
     cells = (region[1] - region[0]) * (region[3] - region[2]) * u * u
     check_memory(PRINT_BYTES_PER_CELL * cells,
                  f"{args.design}: the print check of {region[1] - region[0]} x {region[3] - region[2]} px at "
@@ -165,12 +184,43 @@ def _print_check(args, design, depths):
         threshold, how = args.resist_threshold, "resist threshold"
     else:
         threshold, how = in_place_threshold(optics, design.pitch_m / u), "in place for a long edge"
-    check = print_check(levels, design.pitch_m, params.copy(resist_threshold=threshold), step_m=step,
-                        material=design.material, region=region)
+    params = params.copy(resist_threshold=threshold)
+    check = print_check(levels, design.pitch_m, params, step_m=design.pitch_m / u, material=design.material,
+                        region=region)
+    corrected = None
+    if args.opc:
+        check, corrected = _corrected(args, design, levels, params, u, region, check)
     check["threshold_from"] = how
     if all(dose_given):
         check["dose_mj_cm2"], check["dose_to_clear_mj_cm2"] = args.dose, args.dose_to_clear
-    return check
+    return check, corrected
+
+
+def _corrected(args, design, levels, params, u, region, uncorrected):
+    """``--opc``: the pre-distorted masks (and their cells a pixel) and the print check of both."""
+    import math
+
+    import numpy as np
+
+    from .corrected import MIN_FEATURE_M
+    from .decompose import levels_to_masks
+    from .opc import OPC_SUBGRID, OpcSettings, correct_masks, correction_report
+    from .print_check import print_check_masks
+    from .process import proximity_optics
+
+    step = design.pitch_m / u
+    cell = step / OPC_SUBGRID
+    min_feature = MIN_FEATURE_M if args.opc_min_feature_um is None else args.opc_min_feature_um * 1e-6
+    settings = OpcSettings(iterations=20 if args.opc_iterations is None else args.opc_iterations,
+                           subgrid=OPC_SUBGRID, min_feature_cells=max(1, math.ceil(min_feature / cell - 1e-9)))
+    fixes = correct_masks(levels_to_masks(levels, design.n_masks), u, design.pitch_m, proximity_optics(params),
+                          params.resist_threshold, params.cr_undercut, settings)
+    masks = np.stack([f.mask for f in fixes])
+    check = print_check_masks(levels, design.pitch_m, params, masks, u, OPC_SUBGRID, material=design.material,
+                              region=region)
+    check["uncorrected"] = uncorrected
+    check["opc"] = correction_report(fixes, step, settings)
+    return check, (masks, u * OPC_SUBGRID)
 
 
 def run_masks(args: argparse.Namespace) -> int:
@@ -191,18 +241,20 @@ def run_masks(args: argparse.Namespace) -> int:
     if shape is not None and len(shape) == 2:
         check_memory(mask_export_bytes(shape), f"{args.design}: the masks of a {shape[0]} x {shape[1]} px design")
     design = Design.load(args.design)
-    printed = _print_check(args, design, depths)  # before anything is written: a refusal leaves nothing
+    printed, corrected = _print_check(args, design, depths)  # before anything is written: a refusal leaves nothing
     report = write_element(
         design, args.out, source=str(args.design), tone=args.tone, mirrored=args.mirror,
         depths_m=depths, layers=None if args.layers is None else _int_list(args.layers, "layers"),
         etch_order=None if args.etch_order is None else _int_list(args.etch_order, "etch-order"),
         clear_aperture=None if args.clear_aperture_mm is None else args.clear_aperture_mm * 1e-3, formats=formats,
-        max_vertices=max_vertices, plate=args.plate, print_check=printed)
+        max_vertices=max_vertices, plate=args.plate, print_check=printed, corrected_masks=corrected)
     summary = {k: report[k] for k in ("file", "file_size_bytes", "seconds", "verification", "layer_properties_file")}
     summary["files"] = [{k: f[k] for k in ("format", "file", "file_size_bytes", "max_vertices")} for f in report["files"]]
     if printed is not None:
         summary["print_check"] = {"file": "print_check.json", "field_overlap": printed["field_overlap"],
                                   "resist_threshold": printed["resist_threshold"]}
+        if corrected is not None:
+            summary["print_check"]["field_overlap_uncorrected"] = printed["uncorrected"]["field_overlap"]
     if args.plate:
         summary["plate"] = {k: report["plate"][k] for k in ("file", "file_size_bytes", "files", "dies", "seconds")}
     print_json(summary)

@@ -97,7 +97,7 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
                   layers: Sequence[int] | None = None, etch_order: Sequence[int] | None = None,
                   clear_aperture: float | None = None, formats: Sequence[str] = ("gds",),
                   max_vertices: int | None | str = "default", plate: bool = False,
-                  print_check: dict | None = None) -> dict:
+                  print_check: dict | None = None, corrected_masks: tuple[np.ndarray, int] | None = None) -> dict:
     """Write ``OUT/<name>.gds`` and/or ``OUT/<name>.oas`` (each read back and verified),
     ``OUT/<name>.lyp`` (KLayout layer names and colours), ``OUT/masks.png`` and ``OUT/report.json``.
 
@@ -121,7 +121,13 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
         Also write the full-wafer plate (see above).
     print_check : dict, optional
         A :func:`masks.print_check.print_check` report, written as ``OUT/print_check.json`` and
-        ``OUT/print_check.md`` in the same run (and its field overlap in ``report.json``).
+        ``OUT/print_check.md`` in the same run (and its field overlap in ``report.json``). With
+        ``corrected_masks`` it holds ``uncorrected`` (the drawn masks' check) and ``opc`` (the
+        correction's summary) beside the corrected masks' figures.
+    corrected_masks : (ndarray of bool, int), optional
+        Masks drawn on a finer grid instead of the design's pixels (``masks.opc``'s pre-distorted
+        masks, shape (n_masks, rows * k, cols * k)) and ``k``: the layout files (and plate) hold
+        them, on a ``pitch / k`` grid, and are verified against them.
     depths_m : sequence of float, optional
         Etch depth per mask (default :meth:`doedesign.design.Design.etch_depths_m`: the design's
         own, else ``2**j`` level steps).
@@ -144,6 +150,13 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
     levels, quantization = quantize_design(design, None, source)
     step = design.level_step_m()
     masks = levels_to_masks(levels, design.n_masks)
+    pitch = design.pitch_m
+    if corrected_masks is not None:
+        masks, k = np.asarray(corrected_masks[0], dtype=bool), int(corrected_masks[1])
+        if masks.shape != (design.n_masks, design.shape[0] * k, design.shape[1] * k):
+            raise DoeError(f"{source}: corrected masks of shape {masks.shape} do not draw the {design.n_masks} masks "
+                           f"of the {design.shape[0]} x {design.shape[1]} px design at {k} cells a pixel")
+        pitch = design.pitch_m / k
     depths = list(design.etch_depths_m()) if depths_m is None else list(depths_m)
     layers = tuple(range(1, design.n_masks + 1)) if layers is None else layers
     aperture = clear_aperture if clear_aperture is not None else clear_aperture_m(design)
@@ -158,13 +171,13 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
     stem = safe_file_name(Path(name).name, "_plate.gds").removesuffix("_plate.gds")
     # The folder says INCOMPLETE until the GDS, the preview and the report are all written.
     with output_run(out, f"doe masks {source}"):
-        report = export_masks(out / f"{stem}.gds", masks, design.pitch_m, layers=layers,
+        report = export_masks(out / f"{stem}.gds", masks, pitch, layers=layers,
                               tone=tone, mirrored=mirrored, depths_m=depths, etch_order=etch_order, name=name,
                               clear_aperture_m=aperture, die_size_m=DIE_SIZE_M, formats=formats,
                               max_vertices=max_vertices)
         if plate:
             report["plate"] = export_plate(
-                out / f"{stem}_plate.gds", PlateDesign(name, masks, design.pitch_m, aperture),
+                out / f"{stem}_plate.gds", PlateDesign(name, masks, pitch, aperture),
                 formats=formats, max_vertices=max_vertices, layers=layers, tone=tone, mirrored=mirrored,
                 depths_m=depths, etch_order=etch_order, die_size_m=DIE_SIZE_M)
         report["design"] = source
@@ -180,5 +193,9 @@ def write_element(design: Design, out: str | Path, *, source: str | None = None,
                 tmp.write_text(print_check_page(print_check, source))
             report["print_check"] = {"file": "print_check.json", "page": "print_check.md",
                                      "gap_um": print_check["gap_um"], "field_overlap": print_check["field_overlap"]}
+            if "uncorrected" in print_check:
+                report["print_check"]["field_overlap_uncorrected"] = print_check["uncorrected"]["field_overlap"]
+        if corrected_masks is not None:
+            report["opc_mask_grid_um"] = pitch * 1e6
         write_json(out / "report.json", report)
     return report

@@ -17,15 +17,18 @@ the Markdown that ``doe masks --gap-um`` writes beside its report.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from doedesign.errors import DoeError
 from doedesign.materials import get_material
 
 from .decompose import mask_bit
-from .process import ProcessParams, simulate_surface
-from .proximity import ProximityOptics, aerial_image
+from .process import ProcessParams, proximity_optics, simulate_surface
+from .proximity import ProximityOptics, aerial_image, print_coverage, reach_m
 
-__all__ = ["in_place_threshold", "print_check", "print_check_page"]
+__all__ = ["in_place_threshold", "print_check", "print_check_masks", "print_check_page"]
 
 # Fine cells on each side of the drawn edge in the half-plane image of in_place_threshold.
 _EDGE_CELLS = 512
@@ -63,14 +66,72 @@ def print_check(levels: np.ndarray, pitch_m: float, params: ProcessParams, step_
     printed = simulate_surface(levels, pitch_m, params, step_m=step_m, region=region)
     ideal = simulate_surface(levels, pitch_m, ProcessParams.ideal(n_masks=params.n_masks, depths_m=params.etch_depth),
                              step_m=step_m, region=region)
-    u = printed.upsample
-    r0, r1, c0, c1 = printed.region
+    masks_printed = [np.asarray(m, dtype=float) for m in printed.masks_printed]
+    return _report(levels, pitch_m, params, masks_printed, printed.upsample, printed.region,
+                   np.asarray(printed.height_m), np.asarray(ideal.height_m), material, wavelength_m)
+
+
+def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams, masks: np.ndarray,
+                      upsample: int, subgrid: int = 1, material: str = "fused_silica", wavelength_m: float = 550e-9,
+                      region: tuple[int, int, int, int] | None = None) -> dict:
+    """:func:`print_check` of masks drawn on their own grid (e.g. pre-distorted by
+    :mod:`masks.opc`) against the design's ``levels``, with the ideal etch of ``params``' depths.
+
+    Parameters
+    ----------
+    levels, pitch_m, material, wavelength_m, region
+        As for :func:`print_check` (``region`` in design pixels).
+    params : ProcessParams
+        The gap, collimation, resist blur, threshold, undercut and etch depths (no other effect).
+    masks : ndarray of bool, shape (n_masks, rows * upsample * subgrid, cols * upsample * subgrid)
+        The drawn openings on the mask grid (row 0 at the top).
+    upsample : int
+        Print cells per design pixel a side (the print grid's step is ``pitch_m / upsample``).
+    subgrid : int
+        Mask cells per print cell a side (their area coverage is what prints).
+
+    Returns
+    -------
+    dict
+        As :func:`print_check`.
+    """
+    from .opc import block_coverage
+
+    levels = np.asarray(levels)
+    masks = np.asarray(masks, dtype=bool)
+    rows, cols = levels.shape
+    u, sub = int(upsample), int(subgrid)
+    m, step = u * sub, pitch_m / u
+    if masks.shape != (params.n_masks, rows * m, cols * m):
+        raise DoeError(f"print check: masks of shape {masks.shape} do not draw {params.n_masks} masks of the "
+                       f"{rows} x {cols} px design at {m} cells a pixel")
+    optics = proximity_optics(params)
+    r0, r1, c0, c1 = (0, rows, 0, cols) if region is None else region
+    margin = int(math.ceil((reach_m(optics, step) + params.cr_undercut) / pitch_m)) + 1
+    w0, w1, v0, v1 = max(r0 - margin, 0), min(r1 + margin, rows), max(c0 - margin, 0), min(c1 + margin, cols)
+    inner = (slice((r0 - w0) * u, (r1 - w0) * u), slice((c0 - v0) * u, (c1 - v0) * u))
+    printed = []
+    for j in range(params.n_masks):
+        cov = block_coverage(masks[j, w0 * m:w1 * m, v0 * m:v1 * m], sub)
+        pc = print_coverage(cov, step, optics, params.resist_threshold, params.cr_undercut)
+        printed.append(np.asarray(pc, dtype=float)[inner])
+    depths = np.asarray(params.etch_depth, dtype=float)
+    drawn = [np.repeat(np.repeat(mask_bit(levels[r0:r1, c0:c1], j), u, axis=0), u, axis=1)
+             for j in range(params.n_masks)]
+    height = -sum(d * p for d, p in zip(depths, printed))
+    ideal = -sum(d * q for d, q in zip(depths, drawn))
+    return _report(levels, pitch_m, params, printed, u, (r0, r1, c0, c1), height, ideal, material, wavelength_m)
+
+
+def _report(levels, pitch_m, params, masks_printed, u, region, height, ideal, material, wavelength_m):
+    """The print check's dict from the printed masks (fine coverage) and the two surfaces."""
+    r0, r1, c0, c1 = region
     levels = np.asarray(levels)[r0:r1, c0:c1]
     rows, cols = levels.shape
     out = []
     for j in range(params.n_masks):
         drawn = mask_bit(np.asarray(levels), j)
-        cov = np.asarray(printed.masks_printed[j], dtype=float)
+        cov = np.asarray(masks_printed[j], dtype=float)
         per_px = cov.reshape(rows, u, cols, u).mean(axis=(1, 3))
         edges = (np.count_nonzero(np.diff(drawn, axis=0)) + np.count_nonzero(np.diff(drawn, axis=1))
                  + drawn[[0, -1], :].sum() + drawn[:, [0, -1]].sum()) * pitch_m
@@ -86,12 +147,12 @@ def print_check(levels: np.ndarray, pitch_m: float, params: ProcessParams, step_
                     "isolated_pixels": int(isolated.sum()), "isolated_lost": int((isolated & (per_px < 0.5)).sum()),
                     "narrow_gaps": int(gaps.sum()), "narrow_gaps_bridged": int((gaps & (per_px > 0.5)).sum())})
     mat = get_material(material)
-    dphi = mat.phase(np.asarray(printed.height_m), wavelength_m) - mat.phase(np.asarray(ideal.height_m), wavelength_m)
+    dphi = mat.phase(height, wavelength_m) - mat.phase(ideal, wavelength_m)
     overlap = float(np.abs(np.mean(np.exp(1j * dphi))) ** 2)
     return {"gap_um": params.proximity_gap * 1e6, "resist_threshold": params.resist_threshold,
             "collimation_half_angle_deg": float(np.degrees(params.collimation_half_angle)),
             "resist_blur_um": params.resist_blur * 1e6, "cr_undercut_um": params.cr_undercut * 1e6,
-            "step_um": printed.step_m * 1e6, "region_px": [int(v) for v in printed.region],
+            "step_um": pitch_m / u * 1e6, "region_px": [int(v) for v in region],
             "wavelength_nm": wavelength_m * 1e9, "masks": out, "field_overlap": overlap}
 
 
@@ -118,4 +179,28 @@ def print_check_page(check: dict, source: str) -> str:
              "|---|---|---|---|---|---|---|", *rows, "",
              "An isolated pixel is lost when it keeps under half its area; a gap is bridged when more than half of "
              "it clears. Numbers for the whole element need `--print-window all`.", ""]
+    if "uncorrected" in check:
+        lines += _opc_section(check)
     return "\n".join(lines)
+
+
+def _opc_section(check):
+    """The page's comparison of the corrected masks (the figures above) with the drawn ones."""
+    unc, opc = check["uncorrected"], check["opc"]
+    rows = []
+    for a, b, m in zip(unc["masks"], check["masks"], opc["masks"]):
+        edge = ["n/a" if x["edge_placement_um"] is None else f"{x['edge_placement_um']:+.3f}" for x in (a, b)]
+        narrow = ["n/a" if m[k] is None else f"{m[k]:.3f}" for k in ("narrowest_opening_um", "narrowest_gap_um")]
+        rows.append(f"| {a['mask']} | {a['printed_open_fraction']:.3f} / {b['printed_open_fraction']:.3f} "
+                    f"(drawn {a['drawn_open_fraction']:.3f}) | {edge[0]} / {edge[1]} | "
+                    f"{m['printed_area_error_um2_drawn']:.1f} / {m['printed_area_error_um2_corrected']:.1f} | "
+                    f"{narrow[0]} / {narrow[1]} |")
+    return ["## Optical proximity correction", "",
+            f"The masks written are pre-distorted ({opc['method']}, {opc['iterations']} iterations, mask grid "
+            f"{opc['mask_grid_um']:.3f} um, minimum feature {opc['min_feature_um']:.3f} um, print grid "
+            f"{opc['print_step_um']:.3f} um) so that their print matches the design; the figures above are theirs.", "",
+            f"**Field overlap at {check['wavelength_nm']:g} nm: {unc['field_overlap']:.4f} as drawn, "
+            f"{check['field_overlap']:.4f} corrected.**", "",
+            "| mask | printed open fraction, drawn / corrected masks | edge placement (um), drawn / corrected | "
+            "printed area error (um^2, whole mask), drawn / corrected | corrected mask's narrowest opening / gap (um) |",
+            "|---|---|---|---|---|", *rows, ""]

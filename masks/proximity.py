@@ -87,6 +87,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,7 +100,7 @@ from doedesign.errors import DoeError
 from . import litho
 
 __all__ = ["GAUSSIAN_ERROR", "HG_LINES_M", "HG_WEIGHTS", "ProximityOptics", "aerial_image", "aerial_image_naive",
-           "aerial_bytes", "print_coverage", "reach_m", "recommended_step_m", "source_angles", "threshold_for_dose"]
+           "aerial_image_vjp", "aerial_bytes", "print_coverage", "reach_m", "resist_print", "recommended_step_m", "source_angles", "threshold_for_dose"]
 
 #: Mercury g, h, i lines (m) and their exposure weights (sum 1), see the module docstring.
 HG_LINES_M = (435.8e-9, 404.7e-9, 365.0e-9)
@@ -344,6 +345,51 @@ def aerial_image(coverage: Array, step_m: float, optics: ProximityOptics, backen
     return out[:rows, :cols]
 
 
+def aerial_image_vjp(coverage: np.ndarray, step_m: float, optics: ProximityOptics
+                     ) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """The periodic aerial image of ``coverage`` and its vector-Jacobian product (for inverse
+    lithography): ``vjp(g)`` is the gradient of ``sum(g * image)`` with respect to the coverage.
+
+    The image is :func:`aerial_image` with ``periodic=True`` (pad the array with chrome first for
+    an isolated mask): per line ``U_w = F^-1 H_w F c``, ``I = K * sum_w w |U_w|^2`` with ``K`` the
+    collimation disc and resist blur (real and even, so its own adjoint), hence
+    ``vjp(g) = sum_w 2 w Re(F^-1 conj(H_w) F ((K * g) U_w))``. CPU (NumPy) only; holds one complex
+    field per line.
+
+    Returns
+    -------
+    image : ndarray of float32, shape of ``coverage``
+    vjp : callable, float array of that shape -> ndarray of float32
+    """
+    cov = np.asarray(coverage, dtype=np.float32)
+    shape = tuple(int(n) for n in cov.shape)
+    step_m = float(step_m)
+    spectrum = sfft.fftn(cov.astype(np.complex64))
+    kernel = None
+    if optics.disc_radius_m > 0 or optics.resist_blur_m > 0:
+        kernel = _image_kernel_host(shape, step_m, optics.disc_radius_m, optics.resist_blur_m, None)
+    lines = []
+    intensity = np.zeros(shape, dtype=np.float32)
+    for wl, w in zip(optics.wavelengths_m, optics.weights):
+        h = _transfer_host(shape, step_m, wl, optics.gap_m) if optics.gap_m > 0 else np.complex64(1)
+        field = sfft.ifftn(spectrum * h)
+        intensity += np.float32(w) * (field.real ** 2 + field.imag ** 2)
+        lines.append((np.float32(2 * w), h, field))
+    if kernel is not None:
+        intensity = sfft.ifftn(sfft.fftn(intensity) * kernel).real.astype(np.float32)
+
+    def vjp(cotangent: np.ndarray) -> np.ndarray:
+        g = np.asarray(cotangent, dtype=np.float32)
+        if kernel is not None:
+            g = sfft.ifftn(sfft.fftn(g) * kernel).real.astype(np.float32)
+        grad = np.zeros(shape, dtype=np.float32)
+        for w2, h, field in lines:
+            grad += w2 * sfft.ifftn(np.conj(h) * sfft.fftn(g * field)).real
+        return grad
+
+    return intensity, vjp
+
+
 def aerial_image_naive(coverage: np.ndarray, step_m: float, optics: ProximityOptics,
                        angles: np.ndarray | None = None) -> np.ndarray:
     """The same image by the straightforward loop: per line and per direction, the mask times the
@@ -394,6 +440,15 @@ def print_coverage(coverage: Array, step_m: float, optics: ProximityOptics, thre
     if not (math.isfinite(float(cr_undercut_m)) and cr_undercut_m >= 0):
         raise DoeError(f"proximity print: cr_undercut_m must be >= 0 m, got {cr_undercut_m}")
     be = litho.backend_of(backend)
-    image = aerial_image(coverage, step_m, optics, be, **image_options)
+    return resist_print(aerial_image(coverage, step_m, optics, be, **image_options), step_m, threshold,
+                        cr_undercut_m, be)
+
+
+def resist_print(image: Array, step_m: float, threshold: float, cr_undercut_m: float = 0.0,
+                 backend: str | Backend | None = None) -> Array:
+    """Printed coverage from an aerial image: the resist clears above ``threshold`` (sub-pixel
+    contour, :func:`masks.litho.threshold_coverage`), the contour then moves outward by the
+    chromium undercut (:func:`masks.litho.grow`)."""
+    be = litho.backend_of(backend)
     printed = litho.threshold_coverage(image, float(threshold), 0.0, be)
     return litho.grow(printed, float(cr_undercut_m) / float(step_m), be)
