@@ -154,6 +154,7 @@ class ArrayCache:
         self.max_bytes = int(max_bytes)
         self.max_items = max_items
         self._items: OrderedDict = OrderedDict()
+        self._bytes = 0  # of the arrays held: a put is then not a sum over them
         self._lock = threading.Lock()
 
     def get(self, key: Hashable) -> np.ndarray | None:
@@ -165,11 +166,14 @@ class ArrayCache:
 
     def put(self, key: Hashable, value: np.ndarray) -> None:
         with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self._bytes -= old.nbytes
             self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > 1 and (sum(v.nbytes for v in self._items.values()) > self.max_bytes
+            self._bytes += value.nbytes
+            while len(self._items) > 1 and (self._bytes > self.max_bytes
                                             or (self.max_items and len(self._items) > self.max_items)):
-                self._items.popitem(last=False)
+                self._bytes -= self._items.popitem(last=False)[1].nbytes
 
     def __contains__(self, key: Hashable) -> bool:
         with self._lock:
@@ -178,6 +182,7 @@ class ArrayCache:
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
+            self._bytes = 0
 
 
 class InstrumentModel:
