@@ -146,11 +146,9 @@ class Comparison:
             "instrument_frame": {
                 "window_camera_px": f.window_camera_px, "placement": f.placement_report,
                 "blur_sigma_um": f.blur_sigma_m * um, "blur_sigma_err_um": f.blur_sigma_err_m * um,
-                "fill_factor": f.fill_factor, "fill_factor_err": f.fill_factor_err,
                 "rms_residual_nm": f.rms_residual_m * nm, "pixels": f.n_pixels, "excluded_pixels": f.excluded_pixels,
-                "method": "depths, overlay, bias, objective blur, pixel fill factor (0 = point samples, 1 = whole "
-                          "pixels) and placement fitted on the camera's own pixels (levelling projected out; the data "
-                          "are not resampled); a calibrated transfer (--instrument) is held instead"},
+                "method": "depths, overlay, bias, objective blur and placement fitted on the camera's own pixels "
+                          "(pixel-area integration, levelling projected out; the data are not resampled)"},
             "edge_fit_overlay_um": e.overlay_m * um,
             "edge_fit_linewidth_bias_um": e.bias_m * um,
             "edge_transition_width_um": e.transition_width_m * um,

@@ -36,10 +36,9 @@ from metrology.matching.window import busiest_camera_window
 
 __all__ = ["InstrumentFit", "fit_in_camera_frame"]
 
-# Steps of the derivative maps: linewidth bias (m), blur sigma (m) and fill factor.
+# Steps of the derivative maps: linewidth bias (m) and blur sigma (m).
 BIAS_STEP_M = 0.02e-6
 SIGMA_STEP_M = 0.02e-6
-FILL_STEP = 0.05
 # Solver units: heights in 100 nm, bias and blur in um, shifts in design pixels.
 _H, _UM = 1e-7, 1e-6
 
@@ -56,8 +55,6 @@ class InstrumentFit:
     bias_m, bias_err_m : ndarray (n_masks,)
     blur_sigma_m, blur_sigma_err_m : float
         Objective blur (Gaussian sigma) besides the pixel integral.
-    fill_factor, fill_factor_err : float
-        Fraction of each camera pixel's area integrated (0: point samples, 1: the whole pixel).
     placement : Placement
         Refined camera pixel -> design pixel map of the whole field (mask 0 on the design).
     placement_report : dict
@@ -78,8 +75,6 @@ class InstrumentFit:
     bias_err_m: np.ndarray
     blur_sigma_m: float
     blur_sigma_err_m: float
-    fill_factor: float
-    fill_factor_err: float
     placement: Placement
     placement_report: dict
     residual_m: np.ndarray
@@ -90,38 +85,28 @@ class InstrumentFit:
 
 
 class _MaskMaps:
-    """Each mask's camera map and its derivatives in bias, blur and fill factor, about
-    ``(bias, sigma, fill)``; with a calibrated ``transfer`` held, the blur and fill columns are
-    zero."""
+    """Each mask's camera map and its derivatives in bias and blur, about ``(bias, sigma)``."""
 
-    def __init__(self, model, levels, pitch_m, bias_m, sigma_m, fill, transfer=None):
+    def __init__(self, model, levels, pitch_m, bias_m, sigma_m, transfer=None):
         self.bias_m = np.asarray(bias_m, float).copy()
         self.sigma_m = float(sigma_m) if transfer is None else transfer.sigma_m
-        self.fill = min(max(float(fill), 0.0), 1.0) if transfer is None else transfer.fill_factor
         cov = self._coverage(model, levels, pitch_m, self.bias_m)
         d_bias = (self._coverage(model, levels, pitch_m, self.bias_m + BIAS_STEP_M)
                   - self._coverage(model, levels, pitch_m, self.bias_m - BIAS_STEP_M)) / (2 * BIAS_STEP_M / _UM)
         if transfer is not None:
-            self.maps = [(model.camera_map(c, transfer), model.camera_map(db, transfer), np.zeros(c.shape),
-                          np.zeros(c.shape)) for c, db in zip(cov, d_bias)]
+            # A calibrated transfer, held: no blur derivative (the blur's column is zero).
+            self.maps = [(model.camera_map(c, transfer), model.camera_map(db, transfer), np.zeros(c.shape))
+                         for c, db in zip(cov, d_bias)]
         else:
             hs = min(SIGMA_STEP_M, 0.5 * self.sigma_m)
-            # One-sided at the bounds: a fill factor outside [0, 1] has no camera.
-            f0, f1 = max(self.fill - FILL_STEP, 0.0), min(self.fill + FILL_STEP, 1.0)
-
-            def at(sigma, fill=self.fill):
-                return LateralTransfer(sigma_m=sigma, fill_factor=fill)
-
-            self.maps = [(model.camera_map(c, at(self.sigma_m)), model.camera_map(db, at(self.sigma_m)),
-                          (model.camera_map(c, at(self.sigma_m + hs)) - model.camera_map(c, at(self.sigma_m - hs)))
-                          / (2 * hs / _UM),
-                          (model.camera_map(c, at(self.sigma_m, f1)) - model.camera_map(c, at(self.sigma_m, f0)))
-                          / (f1 - f0)) for c, db in zip(cov, d_bias)]
+            self.maps = [(model.camera_map(c, self.sigma_m), model.camera_map(db, self.sigma_m),
+                          (model.camera_map(c, self.sigma_m + hs) - model.camera_map(c, self.sigma_m - hs))
+                          / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
         self._samples = {}
 
     def sampled(self, model, j, placement):
-        """Mask ``j``'s maps sampled under ``placement``; kept for the next calls, since a
-        Jacobian column of a depth, bias, blur, fill or another mask's shift leaves them unchanged."""
+        """Mask ``j``'s three maps sampled under ``placement``; kept for the next calls, since a
+        Jacobian column of a depth, bias, blur or another mask's shift leaves them unchanged."""
         key = (j, placement.matrix.tobytes(), placement.offset.tobytes())
         out = self._samples.pop(key, None)
         if out is None:
@@ -154,10 +139,8 @@ class _MaskMaps:
 def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Placement, pitch_m: float,
                         depths0_m: Sequence[float], overlay0_m: np.ndarray | None = None,
                         bias0_m: Sequence[float] | None = None, blur0_m: float = 0.4e-6, window_px: int = 128,
-                        passes: int = 2, transfer: LateralTransfer | None = None,
-                        fill0: float = 1.0) -> InstrumentFit:
-    """Fit depths, overlay, bias, blur, fill factor and placement to a camera height map in its
-    own frame.
+                        passes: int = 2, transfer: LateralTransfer | None = None) -> InstrumentFit:
+    """Fit depths, overlay, bias, blur and placement to a camera height map in its own frame.
 
     Parameters
     ----------
@@ -183,9 +166,7 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
         Outer passes (derivative maps rebuilt about the current bias and blur).
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: a
-        Gaussian blur and a pixel fill factor (point samples to whole pixels), both fitted.
-    fill0 : float
-        Starting fill factor (ignored with ``transfer``).
+        Gaussian blur with full pixels, the blur fitted.
 
     Returns
     -------
@@ -204,20 +185,17 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
         raise DoeError("instrument-frame fit: fewer than 200 valid camera pixels in the window")
     overlay0 = np.zeros((n, 2)) if overlay0_m is None else np.asarray(overlay0_m, float)
     if transfer is not None:
-        blur0_m, fill0 = transfer.sigma_m, transfer.fill_factor
-    # Parameters: depths (100 nm), shifts of masks 1.. (design px, row/col), bias (um), blur (um),
-    # fill factor, placement.
+        blur0_m = transfer.sigma_m
+    # Parameters: depths (100 nm), shifts of masks 1.. (design px, row/col), bias (um), blur (um), placement.
     x = np.concatenate([np.asarray(depths0_m, float) / _H,
                         np.column_stack([-overlay0[1:, 1], overlay0[1:, 0]]).ravel() / pitch_m,
                         (np.zeros(n) if bias0_m is None else np.asarray(bias0_m, float)) / _UM,
-                        [blur0_m / _UM, fill0], np.zeros(len(PLACEMENT_PARAMS))])
-    i_shift, i_bias, i_blur, i_fill, i_place = _indices(n)
+                        [blur0_m / _UM], np.zeros(len(PLACEMENT_PARAMS))])
+    i_shift, i_bias, i_blur, i_place = n, 3 * n - 2, 4 * n - 2, 4 * n - 1
     keep = finite
     res = maps = leveller = None
     for k in range(passes):
-        # The maps are rebuilt about physical values: a step outside the bounds is clamped.
-        x[i_blur], x[i_fill] = max(x[i_blur], 0.02), min(max(x[i_fill], 0.0), 1.0)
-        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, x[i_blur] * _UM, x[i_fill], transfer)
+        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, transfer)
         leveller = Leveller(crop.shape, keep)
 
         def render(p, maps=maps):
@@ -225,27 +203,17 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             shifts = np.vstack([[0.0, 0.0], p[i_shift:i_bias].reshape(n - 1, 2)])
             db = p[i_bias:i_blur] - maps.bias_m / _UM
             ds = p[i_blur] - maps.sigma_m / _UM
-            df = p[i_fill] - maps.fill
             total = np.zeros(crop.shape)
             for j in range(n):
                 # Overlay alone (no rotation): the mask's map sampled where the moved mask shows.
-                v0, v_b, v_s, v_f = maps.sampled(model, j, place.in_frame_of(shifts[j], 0.0, (0.0, 0.0)))
-                total -= p[j] * (v0 + db[j] * v_b + ds * v_s + df * v_f)
+                v0, v_b, v_s = maps.sampled(model, j, place.in_frame_of(shifts[j], 0.0, (0.0, 0.0)))
+                total -= p[j] * (v0 + db[j] * v_b + ds * v_s)
             return total * _H
 
         def fun(p, render=render, leveller=leveller, keep=keep):
             return leveller(crop[keep] - render(p)[keep]) / _H
 
-        if transfer is None:
-            # Bounded where a camera exists: blur >= 0, fill factor in [0, 1] (unbounded, a
-            # transfer the family cannot hold, such as an objective's cut-off, drove the blur
-            # to -1.5 um on a coherence-scanning file).
-            lo, hi = np.full(x.size, -np.inf), np.full(x.size, np.inf)
-            lo[i_blur], lo[i_fill], hi[i_fill] = 0.0, 0.0, 1.0
-            res = optimize.least_squares(fun, np.clip(x, lo, hi), method="trf", bounds=(lo, hi), x_scale="jac",
-                                         xtol=1e-10, ftol=1e-10, max_nfev=400)
-        else:
-            res = optimize.least_squares(fun, x, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=400)
+        res = optimize.least_squares(fun, x, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=400)
         x = res.x
         if k == 0:
             resid = np.full(crop.shape, np.nan)
@@ -262,14 +230,9 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     return _result(x, err, n, pitch_m, start, placement, crop.shape, (r0, c0), resid_map, keep, finite)
 
 
-def _indices(n):
-    """Where the shifts, biases, blur, fill factor and placement start in the solver's vector."""
-    return n, 3 * n - 2, 4 * n - 2, 4 * n - 1, 4 * n
-
-
 def _result(x, err, n, pitch_m, start, placement, shape, corner, resid_map, keep, finite):
     """Unpack solver units into an :class:`InstrumentFit`."""
-    i_shift, i_bias, i_blur, i_fill, i_place = _indices(n)
+    i_shift, i_bias, i_blur, i_place = n, 3 * n - 2, 4 * n - 2, 4 * n - 1
 
     def overlay(v):
         rc = np.vstack([[0.0, 0.0], v[i_shift:i_bias].reshape(n - 1, 2)]) * pitch_m
@@ -289,8 +252,7 @@ def _result(x, err, n, pitch_m, start, placement, shape, corner, resid_map, keep
     return InstrumentFit(
         depths_m=x[:n] * _H, depths_err_m=err[:n] * _H, overlay_m=overlay(x), overlay_err_m=np.abs(overlay(err)),
         bias_m=x[i_bias:i_blur] * _UM, bias_err_m=err[i_bias:i_blur] * _UM, blur_sigma_m=float(x[i_blur] * _UM),
-        blur_sigma_err_m=float(err[i_blur] * _UM), fill_factor=float(min(max(x[i_fill], 0.0), 1.0)),
-        fill_factor_err=float(err[i_fill]), placement=field, placement_report=report, residual_m=resid_map,
+        blur_sigma_err_m=float(err[i_blur] * _UM), placement=field, placement_report=report, residual_m=resid_map,
         window_camera_px=[int(corner[0]), int(corner[0] + shape[0]), int(corner[1]), int(corner[1] + shape[1])],
         rms_residual_m=float(np.sqrt(np.mean(resid_map[ok] ** 2))), n_pixels=int(ok.sum()),
         excluded_pixels=int(finite.sum() - keep.sum()))
