@@ -32,7 +32,7 @@ from .decompose import levels_to_masks
 from .element import DIE_SIZE_M, clear_aperture_m, preview
 from .gds_read import read_boundaries
 from .gds_records import gds_name
-from .grid import ELEMENT_CELL, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid, check_layers
+from .grid import ELEMENT_CELL, MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid, check_layers, narrowest_runs_px
 from .lyp import die_layer_styles, write_lyp
 from .offset import offset_polygons, verify_offset_layer
 
@@ -40,27 +40,6 @@ __all__ = ["MIN_FEATURE_M", "narrowest_runs_px", "offset_feasibility", "write_of
 
 #: Narrowest opening or chrome line a contact-printed mask is trusted to resolve (m).
 MIN_FEATURE_M = 1.0e-6
-
-
-def narrowest_runs_px(mask: np.ndarray) -> tuple[int | None, int | None]:
-    """Narrowest opening and narrowest gap between two openings (pixels), along rows and columns.
-
-    A gap counts only between openings (not to the element's rim). None when there is none.
-    """
-    mask = np.asarray(mask, bool)
-    opens, gaps = [], []
-    for m in (mask, mask.T):
-        padded = np.pad(m, ((0, 0), (1, 1))).astype(np.int8)
-        d = np.diff(padded, axis=1)
-        r_up, c_up = np.nonzero(d == 1)
-        r_dn, c_dn = np.nonzero(d == -1)
-        # Runs come in the same row-major order: the k-th rise pairs with the k-th fall.
-        if r_up.size:
-            opens.append(int((c_dn - c_up).min()))
-            same_row = r_up[1:] == r_dn[:-1]
-            if same_row.any():
-                gaps.append(int((c_up[1:] - c_dn[:-1])[same_row].min()))
-    return (min(opens) if opens else None), (min(gaps) if gaps else None)
 
 
 def offset_feasibility(mask: np.ndarray, pitch_m: float, offset_m: float,

@@ -25,7 +25,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-__all__ = ["APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER", "ELEMENT_CELL", "FORMATS", "GDS_VERTEX_CEILING",
+__all__ = ["narrowest_runs_px", "APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER", "ELEMENT_CELL", "FORMATS", "GDS_VERTEX_CEILING",
            "MAX_VERTICES", "MIN_VERTICES", "PRECISION_M", "PixelGrid", "SUFFIXES", "TEXT_LAYER", "TONES", "UNIT_M",
            "check_layers", "drawn_masks", "rasterize_layer", "rasterize_points", "vertex_limits"]
 
@@ -243,3 +243,24 @@ def rasterize_points(idx: np.ndarray, counts: np.ndarray, grid: PixelGrid,
     np.cumsum(coverage, axis=0, out=coverage)
     np.cumsum(coverage, axis=1, out=coverage)
     return np.ascontiguousarray(coverage[:rows, :cols]), problems
+
+
+def narrowest_runs_px(mask: np.ndarray) -> tuple[int | None, int | None]:
+    """Narrowest opening and narrowest gap between two openings (pixels), along rows and columns.
+
+    A gap counts only between openings (not to the element's rim). None when there is none.
+    """
+    mask = np.asarray(mask, bool)
+    opens, gaps = [], []
+    for m in (mask, mask.T):
+        padded = np.pad(m, ((0, 0), (1, 1))).astype(np.int8)
+        d = np.diff(padded, axis=1)
+        r_up, c_up = np.nonzero(d == 1)
+        r_dn, c_dn = np.nonzero(d == -1)
+        # Runs come in the same row-major order: the k-th rise pairs with the k-th fall.
+        if r_up.size:
+            opens.append(int((c_dn - c_up).min()))
+            same_row = r_up[1:] == r_dn[:-1]
+            if same_row.any():
+                gaps.append(int((c_up[1:] - c_dn[:-1])[same_row].min()))
+    return (min(opens) if opens else None), (min(gaps) if gaps else None)

@@ -33,7 +33,7 @@ that side (isolated specks and slivers below the writer's resolution removed, ha
 filled). Defaults: a 0.45 um print grid for 5.4 um pixels (12 cells), 2 mask cells per print cell
 (a 0.225 um mask-writer grid, whole nanometres) and a 4-cell (0.9 um) minimum feature, inside a
 laser mask writer's ~0.6-1 um resolution for chrome on quartz. The result is reported with its
-measured narrowest opening and gap (:func:`masks.corrected.narrowest_runs_px`).
+measured narrowest opening and gap (:func:`masks.grid.narrowest_runs_px`).
 
 Limits: the whole mask is corrected in one window (no tiles), so the element's fine grid must fit
 memory (:func:`opc_bytes`); a corner cannot print sharper than the image resolves (its rounding
@@ -291,7 +291,7 @@ def opc_upsample(pitch_m: float, step_m: float, subgrid: int) -> int:
 def correction_report(corrections: list[MaskCorrection], step_m: float, settings: OpcSettings) -> dict:
     """JSON-ready summary (lengths in um): the settings and, per mask, the iterate kept, the printed
     area error before and after, and the corrected mask's narrowest opening and chrome gap."""
-    from .corrected import narrowest_runs_px
+    from .grid import narrowest_runs_px
 
     cell_um = float(step_m) / settings.subgrid * 1e6
     rows = []
