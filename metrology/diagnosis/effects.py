@@ -59,7 +59,7 @@ STAGES = {"height": ("process", "surface"), "psf": ("height", "optics", "sensor"
 KINDS = ("fabrication", "artefact", "calibration")
 # Peak of sigma^2 d/dx G_sigma(x) for a unit step, at x = sigma: 1 / sqrt(2 pi e). Batwing
 # amplitudes are quoted as the peak overshoot as a fraction of the step height.
-_DOG_PEAK = 1.0 / np.sqrt(2.0 * np.pi * np.e)
+_DOG_PEAK = 1.0 / np.sqrt(2.0 * np.pi * np.exp(1.0))
 
 
 class EffectError(DoeError):

@@ -278,6 +278,7 @@ def register_lattice(height_m: np.ndarray, cell_levels: np.ndarray, cell_printed
         if best is None or ncc[i, j] > best[0]:
             shift = (i + _parabola(ncc[:, j], i), j + _parabola(ncc[i, :], j))
             best = (float(ncc[i, j]), o, matrix, shift)
+    assert best is not None  # at least one orientation is always tried
     score, o, matrix, shift = best
     log.info("lattice registration: orientation %s, shift in the cell (%.2f, %.2f) px, NCC %.3f", o, *shift, score)
     if not score >= MIN_MATCH_NCC:
@@ -341,14 +342,14 @@ def cell_depths(height_m: np.ndarray, labels: np.ndarray, interior: np.ndarray, 
     which = which.ravel()
     order = np.argsort(which, kind="stable")
     bounds = np.searchsorted(which[order], np.arange(ids.shape[1] + 1))
-    depth = []
+    cells = []
     for k in range(ids.shape[1]):
         pick = order[bounds[k]:bounds[k + 1]]
         top, low = values[pick][level[pick] == 0], values[pick][level[pick] == 1]
         if top.size >= MIN_CELL_PIXELS and low.size >= MIN_CELL_PIXELS:
             # Medians: the tip's overshoot beside an edge and particles make a level's tail.
-            depth.append(np.median(top) - np.median(low))
-    depth = np.array(depth)
+            cells.append(np.median(top) - np.median(low))
+    depth = np.array(cells)
     if depth.size < 2:
         return {"depth_nm": float(depth.mean() * 1e9) if depth.size else None, "std_nm": None, "err_nm": None,
                 "cells": int(depth.size)}
