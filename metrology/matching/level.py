@@ -270,17 +270,7 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
     """
     if line_offsets:
         return _level_joint_lines(height_m, labels, valid)
-    h = np.asarray(height_m, dtype=float)
-    labels = np.asarray(labels)
-    if labels.shape != h.shape:
-        raise DoeError(f"labels shape {labels.shape} differs from the height map {h.shape}")
-    use = (labels >= 0) & np.isfinite(h)
-    if valid is not None:
-        use &= np.asarray(valid, bool)
-    present = np.unique(labels[use])
-    if 0 not in present:
-        raise DoeError("the measured field holds no unetched (level-0) surface to level on and measure depths from; "
-                       "measure a field that includes some unetched surface")
+    h, labels, use, present = _joint_inputs(height_m, labels, valid)
     rows, cols = _subsample(use, max_points)
     lab = labels[rows, cols]
     index = np.searchsorted(present, lab)
@@ -305,13 +295,9 @@ def level_joint(height_m: np.ndarray, labels: np.ndarray, valid: np.ndarray | No
     return LevelResult(out, plane, use, offsets - offsets[0])
 
 
-def _row_mean(rows, values, counts):
-    """Mean of ``values`` over each row index (0 where a row has none)."""
-    return np.bincount(rows, values, minlength=counts.size) / np.maximum(counts, 1)
-
-
-def _level_joint_lines(height_m, labels, valid):
-    """:func:`level_joint` with one offset per row (see there)."""
+def _joint_inputs(height_m, labels, valid):
+    """Heights, labels, the pixels a joint levelling uses and the levels present among them;
+    refused without a level-0 (unetched) surface to level on."""
     h = np.asarray(height_m, dtype=float)
     labels = np.asarray(labels)
     if labels.shape != h.shape:
@@ -323,6 +309,17 @@ def _level_joint_lines(height_m, labels, valid):
     if 0 not in present:
         raise DoeError("the measured field holds no unetched (level-0) surface to level on and measure depths from; "
                        "measure a field that includes some unetched surface")
+    return h, labels, use, present
+
+
+def _row_mean(rows, values, counts):
+    """Mean of ``values`` over each row index (0 where a row has none)."""
+    return np.bincount(rows, values, minlength=counts.size) / np.maximum(counts, 1)
+
+
+def _level_joint_lines(height_m, labels, valid):
+    """:func:`level_joint` with one offset per row (see there)."""
+    h, labels, use, present = _joint_inputs(height_m, labels, valid)
     n_rows, n_cols = h.shape
     cc = (n_cols - 1) / 2
     keep = use.copy()
