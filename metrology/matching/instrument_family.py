@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from doedesign.errors import DoeError
 from metrology.matching.instrument import Placement
 from metrology.matching.instrument_fit import InstrumentFit
 
@@ -116,9 +117,15 @@ def fit_instrument_family(fit: Callable[..., InstrumentFit], height_m: np.ndarra
     # Point samples start from the blur of the same second moment (the box's variance added).
     blur0 = float(np.sqrt(whole.blur_sigma_m ** 2 + pixel_m ** 2 / 12.0))
     point = fit(fill=0.0, blur0_m=blur0, start=whole)
-    first, make = _window_problem(whole, height_m, levels, pitch_m)
     rss_whole, rss_point, n = _common_rss(whole, point)
-    n_eff = max(n / first.noise.corr_area_px, 2.0)
+    try:
+        first, make = _window_problem(whole, height_m, levels, pitch_m)
+        corr_area, skipped = first.noise.corr_area_px, None
+    except DoeError as exc:
+        # No noise floor on the window (too few flat pixels): the pixels counted as independent,
+        # and no instrument stage (its criteria need the floor).
+        corr_area, skipped = 1.0, str(exc)
+    n_eff = max(n / corr_area, 2.0)
     change = float(n_eff * np.log(max(rss_point, 1e-300) / max(rss_whole, 1e-300)))
     chosen = point if change < -threshold else whole
     report: dict[str, Any] = {
@@ -132,9 +139,18 @@ def fit_instrument_family(fit: Callable[..., InstrumentFit], height_m: np.ndarra
                  "where they lower n_eff ln(RSS/N) by more than the threshold. Then the diagnosis's instrument stage "
                  "(choose_transfer) on the window with the fitted process: an objective (NA) and a batwing, with a "
                  "fitted fill factor, where they earn their parameters; what it chose is held in the last fit")}
-    if chosen is not whole:
-        first, make = _window_problem(chosen, height_m, levels, pitch_m)
-    members, model, changes = choose_transfer(make, threshold)
+    if skipped is None:
+        try:
+            if chosen is not whole:
+                first, make = _window_problem(chosen, height_m, levels, pitch_m)
+                first.noise  # noqa: B018 (estimated here, where a window without flat pixels says so)
+            members, model, changes = choose_transfer(make, threshold)
+        except DoeError as exc:
+            skipped = str(exc)
+    if skipped is not None:
+        log.info("compare: no instrument stage: %s", skipped)
+        report["stage"] = {"members": [], "skipped": skipped}
+        return chosen, report
     report["stage"] = {"members": [k for k, v in members.items() if v], "criterion_changes": changes}
     if not any(members.values()):
         return chosen, report
