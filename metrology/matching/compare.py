@@ -12,7 +12,10 @@ Stages, each in its own module:
 - the reported etch depths, overlay and linewidth bias: fitted in the camera's own frame
   with the same measurement model as ``doe diagnose --frame camera`` (objective blur,
   pixel-area integration, placement refined with uncertainties, levelling projected out;
-  :mod:`.instrument_fit`), the measured heights never resampled;
+  :mod:`.instrument_fit`), through the member of the lateral transfer's family the data ask
+  for (whole pixels or point samples; an objective and a batwing where the diagnosis's
+  instrument stage chooses them: :mod:`.instrument_family`), the measured heights never
+  resampled;
 - error maps against the design and against the fitted model (:mod:`.forward`);
 - an independent check of the level heights: a terrace fit of the levelled field on the
   camera-frame fit's window, each level from its flat interiors (:mod:`.terrace`), set beside
