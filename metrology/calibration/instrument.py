@@ -155,6 +155,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         depth = get_effect("etch_depth").for_masks(len(depths))
         first = CameraHeightProblem(levels, design.pitch_m, crop, start, comp.fitted_params(), [],
                                     transfer=LateralTransfer(comp.instrument_fit.blur_sigma_m,
+                                                             comp.instrument_fit.transfer.fill_factor,
                                                              wavelength_m=wavelength_m))
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), np.isfinite(crop))
 

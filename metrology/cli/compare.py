@@ -76,7 +76,8 @@ def run_compare(args: argparse.Namespace) -> int:
                               design_source=str(args.design),
                               wavelengths_m=parse_wavelengths_nm(args.wavelengths_nm) if args.wavelengths_nm else None,
                               psf_oversample=args.psf_oversample, psf=not args.no_psf, render=not args.no_render,
-                              force=args.force, transfer=transfer, x3p=args.x3p)
+                              force=args.force, transfer=transfer, x3p=args.x3p,
+                              batwing=cal.batwing if cal is not None else None)
     print_json({k: report[k] for k in ("etch_depths_nm", "overlay_um", "linewidth_bias_um",
                                        "height_error_rms_nm", "render3d")}
                | {"report": str(Path(args.out) / "report.json")})

@@ -12,7 +12,10 @@ Stages, each in its own module:
 - the reported etch depths, overlay and linewidth bias: fitted in the camera's own frame
   with the same measurement model as ``doe diagnose --frame camera`` (objective blur,
   pixel-area integration, placement refined with uncertainties, levelling projected out;
-  :mod:`.instrument_fit`), the measured heights never resampled;
+  :mod:`.instrument_fit`), through the member of the lateral transfer's family the data ask
+  for (whole pixels or point samples; an objective and a batwing where the diagnosis's
+  instrument stage chooses them: :mod:`.instrument_family`), the measured heights never
+  resampled;
 - error maps against the design and against the fitted model (:mod:`.forward`);
 - an independent check of the level heights: a terrace fit of the levelled field on the
   camera-frame fit's window, each level from its flat interiors (:mod:`.terrace`), set beside
@@ -39,6 +42,7 @@ from metrology.matching.duty import duty_cycle
 from metrology.matching.edges import MAX_FIT_POINTS, WIDTH_10_90_PER_SIGMA, EdgeFit, fit_edges
 from metrology.matching.forward import (crop_registration, design_height_on_measurement, error_map,
                                         fitted_process, process_on_measurement, shift_registration)
+from metrology.matching.instrument_family import fit_instrument_family
 from metrology.matching.instrument_fit import InstrumentFit, fit_in_camera_frame
 from metrology.matching.match import assess_match, check_relief
 from metrology.matching.transfer import LateralTransfer
@@ -102,6 +106,8 @@ class Comparison:
     terrace_fit: TerraceFit | None = None
     terrace_check: dict = field(default_factory=dict)
     texture: Texture | None = None
+    instrument_family: dict | None = None
+    flat_residual_m: float = float("nan")
 
     def fitted_params(self) -> ProcessParams:
         """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
@@ -146,9 +152,18 @@ class Comparison:
             "instrument_frame": {
                 "window_camera_px": f.window_camera_px, "placement": f.placement_report,
                 "blur_sigma_um": f.blur_sigma_m * um, "blur_sigma_err_um": f.blur_sigma_err_m * um,
-                "rms_residual_nm": f.rms_residual_m * nm, "pixels": f.n_pixels, "excluded_pixels": f.excluded_pixels,
+                "fill_factor": f.transfer.fill_factor, "na": f.transfer.na,
+                "wavelength_um": f.transfer.wavelength_m * um,
+                "batwing": None if f.batwing is None else {"amplitude": f.batwing[0], "sigma_um": f.batwing[1] * um},
+                "rms_residual_nm": f.rms_residual_m * nm, "rms_residual_flat_nm": self.flat_residual_m * nm,
+                "pixels": f.n_pixels, "excluded_pixels": f.excluded_pixels,
+                "family": self.instrument_family if self.instrument_family is not None else
+                {"rule": "a calibrated lateral transfer (--instrument), held"},
                 "method": "depths, overlay, bias, objective blur and placement fitted on the camera's own pixels "
-                          "(pixel-area integration, levelling projected out; the data are not resampled)"},
+                          "through the lateral transfer's member the data ask for (pixel fill factor 1 or 0; an "
+                          "objective and a batwing where the diagnosis's instrument stage chooses them, held), or a "
+                          "calibrated one; levelling projected out, the data not resampled; rms_residual_flat_nm on "
+                          "the window's flat interiors (the terrace fit's margin from every step)"},
             "edge_fit_overlay_um": e.overlay_m * um,
             "edge_fit_linewidth_bias_um": e.bias_m * um,
             "edge_transition_width_um": e.transition_width_m * um,
@@ -198,7 +213,8 @@ class Comparison:
 
 def compare_measurement(measurement: Measurement, design: Design, n_masks: int | None = None,
                         window_px: int = INSTRUMENT_WINDOW_PX, progress: Progress | None = None,
-                        force: bool = False, transfer: LateralTransfer | None = None) -> Comparison:
+                        force: bool = False, transfer: LateralTransfer | None = None,
+                        batwing: tuple[float, float] | None = None) -> Comparison:
     """Level, register and compare a measurement with its design.
 
     Parameters
@@ -217,7 +233,10 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
         Go on when the field does not show the design (see :mod:`metrology.matching.match`).
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer (``doe calibrate instrument``), held fixed
-        in the camera-frame fit (default: its Gaussian blur fitted, full pixels).
+        in the camera-frame fit (default: the member of the transfer's family the data ask for,
+        :func:`metrology.matching.instrument_family.fit_instrument_family`).
+    batwing : (float, float), optional
+        The calibration's batwing (amplitude, sigma_m), held beside ``transfer``.
 
     Returns
     -------
@@ -286,8 +305,19 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     placement = Placement.from_registration(shift_registration(reg, edge.shift_m[0], pitch))
     pixel_area = reg.pixel_size_m ** 2 / 12.0  # variance of the pixel box
     blur0 = float(np.sqrt(max(edge.sigma_m ** 2 - pixel_area, (0.2e-6) ** 2)))
-    inst = fit_in_camera_frame(height, levels, placement, pitch, depth_fit.depths_m, edge.overlay_m, edge.bias_m,
-                               blur0_m=blur0, window_px=window_px, transfer=transfer)
+
+    def camera_fit(start=None, blur0_m=blur0, **kw):
+        s = start
+        return fit_in_camera_frame(height, levels, placement, pitch, depth_fit.depths_m if s is None else s.depths_m,
+                                   edge.overlay_m if s is None else s.overlay_m, edge.bias_m if s is None else s.bias_m,
+                                   blur0_m=blur0_m,
+                                   window_px=window_px, **kw)
+
+    family = None
+    if transfer is not None:
+        inst = camera_fit(transfer=transfer, batwing=batwing)
+    else:
+        inst, family = fit_instrument_family(camera_fit, height, levels, pitch, reg.pixel_size_m)
     r0, r1, c0, c1 = inst.window_camera_px
     err_model = np.full(height.shape, np.nan)
     err_model[r0:r1, c0:c1] = inst.residual_m
@@ -303,6 +333,8 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     for line in terrace_check["warnings"]:
         log.warning("terrace fit against the camera-frame fit: %s", line)
     flat = flat_interiors(height, labels, margin, step_m, 1.0 / reg.decompose()["scale"])
+    in_flat = flat[r0:r1, c0:c1] & np.isfinite(inst.residual_m)
+    flat_rms = float(np.sqrt(np.mean(inst.residual_m[in_flat] ** 2))) if in_flat.any() else float("nan")
     texture = field_texture(height, labels, flat, err_design, px, pitch, n_levels)
     have = st.count > 0
     roughness = float(np.sqrt(np.sum(st.count[have] * st.std_m[have] ** 2) / st.count[have].sum()))
@@ -315,4 +347,5 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r1, c0, c1),
                       spikes_removed=n_spikes, roughness_m=roughness, match=match, lattice=lattice, duty_cycle=duty,
                       raster_scan=raster,
-                      terrace_fit=terrace, terrace_check=terrace_check, texture=texture)
+                      terrace_fit=terrace, terrace_check=terrace_check, texture=texture, instrument_family=family,
+                      flat_residual_m=flat_rms)

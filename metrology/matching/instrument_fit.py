@@ -23,7 +23,7 @@ increasing design column and y up; bias positive = openings wider.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize
@@ -55,6 +55,11 @@ class InstrumentFit:
     bias_m, bias_err_m : ndarray (n_masks,)
     blur_sigma_m, blur_sigma_err_m : float
         Objective blur (Gaussian sigma) besides the pixel integral.
+    transfer : LateralTransfer
+        The whole lateral transfer the fit rendered through (its fill factor held, the blur the
+        fitted one; or a calibrated or chosen one, held).
+    batwing : (float, float) or None
+        The batwing (amplitude, sigma_m) held beside the transfer, if any.
     placement : Placement
         Refined camera pixel -> design pixel map of the whole field (mask 0 on the design).
     placement_report : dict
@@ -82,25 +87,39 @@ class InstrumentFit:
     rms_residual_m: float
     n_pixels: int
     excluded_pixels: int
+    transfer: LateralTransfer = field(default_factory=LateralTransfer)
+    batwing: tuple[float, float] | None = None
+
+    @property
+    def rss_m2(self) -> float:
+        """Sum of squared residuals over the pixels fitted (m^2)."""
+        return float(np.nansum(self.residual_m ** 2))
 
 
 class _MaskMaps:
-    """Each mask's camera map and its derivatives in bias and blur, about ``(bias, sigma)``."""
+    """Each mask's camera map and its derivatives in bias and blur, about ``(bias, sigma)``;
+    the pixel fill factor ``fill`` held. With a ``transfer`` held (and a ``batwing`` beside it)
+    the blur's column is zero."""
 
-    def __init__(self, model, levels, pitch_m, bias_m, sigma_m, transfer=None):
+    def __init__(self, model, levels, pitch_m, bias_m, sigma_m, fill=1.0, transfer=None, batwing=None):
         self.bias_m = np.asarray(bias_m, float).copy()
         self.sigma_m = float(sigma_m) if transfer is None else transfer.sigma_m
         cov = self._coverage(model, levels, pitch_m, self.bias_m)
         d_bias = (self._coverage(model, levels, pitch_m, self.bias_m + BIAS_STEP_M)
                   - self._coverage(model, levels, pitch_m, self.bias_m - BIAS_STEP_M)) / (2 * BIAS_STEP_M / _UM)
         if transfer is not None:
-            # A calibrated transfer, held: no blur derivative (the blur's column is zero).
-            self.maps = [(model.camera_map(c, transfer), model.camera_map(db, transfer), np.zeros(c.shape))
-                         for c, db in zip(cov, d_bias)]
+            self.transfer = transfer
+            self.maps = [(_mapped(model, c, transfer, batwing), _mapped(model, db, transfer, batwing),
+                          np.zeros(c.shape)) for c, db in zip(cov, d_bias)]
         else:
+            self.transfer = LateralTransfer(sigma_m=self.sigma_m, fill_factor=fill)
+
+            def at(sigma):
+                return LateralTransfer(sigma_m=sigma, fill_factor=fill)
+
             hs = min(SIGMA_STEP_M, 0.5 * self.sigma_m)
-            self.maps = [(model.camera_map(c, self.sigma_m), model.camera_map(db, self.sigma_m),
-                          (model.camera_map(c, self.sigma_m + hs) - model.camera_map(c, self.sigma_m - hs))
+            self.maps = [(model.camera_map(c, self.transfer), model.camera_map(db, self.transfer),
+                          (model.camera_map(c, at(self.sigma_m + hs)) - model.camera_map(c, at(self.sigma_m - hs)))
                           / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
         self._samples = {}
 
@@ -136,10 +155,26 @@ class _MaskMaps:
         return out
 
 
+def _mapped(model, fine, transfer, batwing):
+    """Camera map of ``fine`` through ``transfer``, with a ``batwing`` (amplitude, sigma_m)
+    beside its objective (mapped without the objective's transfer and added, as the diagnosis's
+    camera model does: :meth:`metrology.diagnosis.camera.CameraHeightProblem.render`)."""
+    coeffs = model.camera_map(fine, transfer)
+    if batwing is None:
+        return coeffs
+    from dataclasses import replace
+
+    from metrology.diagnosis.effects import get_effect
+
+    edge = get_effect("batwing").apply(fine, np.asarray(batwing, float), model.step_m) - fine
+    return coeffs + model.camera_map(edge, replace(transfer, na=0.0))
+
+
 def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Placement, pitch_m: float,
                         depths0_m: Sequence[float], overlay0_m: np.ndarray | None = None,
                         bias0_m: Sequence[float] | None = None, blur0_m: float = 0.4e-6, window_px: int = 128,
-                        passes: int = 2, transfer: LateralTransfer | None = None) -> InstrumentFit:
+                        passes: int = 2, transfer: LateralTransfer | None = None, fill: float = 1.0,
+                        batwing: Sequence[float] | None = None) -> InstrumentFit:
     """Fit depths, overlay, bias, blur and placement to a camera height map in its own frame.
 
     Parameters
@@ -165,8 +200,13 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     passes : int
         Outer passes (derivative maps rebuilt about the current bias and blur).
     transfer : LateralTransfer, optional
-        A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: a
-        Gaussian blur with full pixels, the blur fitted.
+        A calibrated or chosen lateral transfer (``doe calibrate instrument``, or
+        :func:`metrology.matching.instrument_family.fit_instrument_family`), held fixed; default:
+        a Gaussian blur (fitted, bounded at 0) with the pixel fill factor ``fill``.
+    fill : float
+        Pixel fill factor held while the blur is fitted (1: whole pixels, 0: point samples).
+    batwing : (float, float), optional
+        A batwing (amplitude, sigma_m) held beside ``transfer``.
 
     Returns
     -------
@@ -195,7 +235,8 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     keep = finite
     res = maps = leveller = None
     for k in range(passes):
-        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, transfer)
+        maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, fill, transfer,
+                         None if batwing is None else tuple(float(v) for v in batwing))
         leveller = Leveller(crop.shape, keep)
 
         def render(p, maps=maps):
@@ -214,6 +255,14 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             return leveller(crop[keep] - render(p)[keep]) / _H
 
         res = optimize.least_squares(fun, x, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=400)
+        if transfer is None and res.x[i_blur] < 0:
+            # A blur has no negative width: where the free fit crosses zero (a transfer the
+            # family cannot hold, such as an objective's cut-off, drove it to -1.5 um on a
+            # coherence-scanning file), the fit is bounded there.
+            lo = np.full(x.size, -np.inf)
+            lo[i_blur] = 0.0
+            res = optimize.least_squares(fun, np.maximum(x, lo), method="trf", bounds=(lo, np.inf), x_scale="jac",
+                                         xtol=1e-10, ftol=1e-10, max_nfev=400)
         x = res.x
         if k == 0:
             resid = np.full(crop.shape, np.nan)
@@ -227,7 +276,11 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
         err = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         err = np.full(x.size, np.nan)
-    return _result(x, err, n, pitch_m, start, placement, crop.shape, (r0, c0), resid_map, keep, finite)
+    fitted = maps.transfer if transfer is not None else LateralTransfer(sigma_m=x[i_blur] * _UM, fill_factor=fill)
+    out = _result(x, err, n, pitch_m, start, placement, crop.shape, (r0, c0), resid_map, keep, finite)
+    out.transfer = fitted
+    out.batwing = None if batwing is None or transfer is None else (float(batwing[0]), float(batwing[1]))
+    return out
 
 
 def _result(x, err, n, pitch_m, start, placement, shape, corner, resid_map, keep, finite):

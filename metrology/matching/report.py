@@ -35,7 +35,7 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
                      wavelengths_m: ArrayLike | None = None, psf_oversample: int = 1,
                      psf: bool = True, render: bool = True, force: bool = False,
                      comparison: Comparison | None = None, transfer: LateralTransfer | None = None,
-                     x3p: bool = False) -> dict:
+                     x3p: bool = False, batwing: tuple[float, float] | None = None) -> dict:
     """Compare ``measurement`` with ``design`` and write the report and figures into ``out``.
 
     Parameters
@@ -59,6 +59,8 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         The :func:`~metrology.matching.compare.compare_measurement` result, if already made.
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed in the camera-frame fit.
+    batwing : (float, float), optional
+        The calibration's batwing (amplitude, sigma_m), held beside ``transfer``.
     x3p : bool
         Also write ``levelled.x3p`` (the levelled measurement) and ``residual.x3p`` (measured
         minus design), ISO 25178-72, row 0 first, through :func:`metrology.formats.x3p.write_x3p`.
@@ -73,7 +75,8 @@ def write_comparison(measurement: Measurement, design: Design, out: str | Path, 
         comp = comparison
         if comp is None:
             try:
-                comp = compare_measurement(measurement, design, progress=prog, force=force, transfer=transfer)
+                comp = compare_measurement(measurement, design, progress=prog, force=force, transfer=transfer,
+                                           batwing=batwing)
             except DoeError as exc:
                 raise DoeError(f"{measurement_source}: {exc}") from None
         report = {"measurement": measurement_source, "design": design_source, **comp.report()}

@@ -116,23 +116,40 @@ def test_check_warns_naming_the_step_and_mask_that_differ():
 
 @pytest.mark.slow
 def test_an_edge_artefact_makes_the_two_fits_differ_and_the_report_warn(tmp_path):
-    """A batwing at every edge (the profilometer's overshoot) pulls the camera-frame fit, which
-    models no batwing, off the depths; the terrace fit reads the flat interiors and stays."""
+    """A batwing at every edge (the profilometer's overshoot): the camera-frame fit finds it (the
+    diagnosis's instrument stage chooses it) and agrees with the terrace fit; held to a transfer
+    without one (a calibration that has none), it is pulled off the depths, the terrace fit,
+    which reads the flat interiors, stays, and the report warns."""
     from doedesign.cli import main
+    from metrology.calibration.instrument import FORMAT
     import json
 
     case = filegen.make_case(["etch_depth"], 4, design_px=24, field_px=80,
                              instrument={"batwing": (0.15, 0.5e-6)})
     design, measured = case.write(tmp_path)
-    out = tmp_path / "out"
-    assert main(["compare", str(measured), "--design", str(design), "--out", str(out), "--no-psf",
-                 "--no-render"]) == 0
-    rep = json.loads((out / "report.json").read_text())
-    terr = rep["terrace_fit"]
+    truth = np.array(filegen.DEPTHS_M) * (1 + case.truth["etch_depth"]["error"]) * 1e9
+
+    def compare(out, *extra):
+        assert main(["compare", str(measured), "--design", str(design), "--out", str(out), "--no-psf",
+                     "--no-render", *extra]) == 0
+        return json.loads((out / "report.json").read_text())
+
+    rep = compare(tmp_path / "fitted")
+    frame = rep["instrument_frame"]
+    # Before the camera-frame fit chose its transfer's member, it modelled no batwing and
+    # missed the deepest step by more than the terrace fit did.
+    assert frame["family"]["stage"]["members"] == ["batwing"] and frame["batwing"]["amplitude"] > 0.05
+    assert rep["terrace_fit"]["against_camera_frame"]["agree"] is True
+    np.testing.assert_allclose(rep["etch_depths_nm"], truth, atol=1.0)
+    assert frame["rms_residual_flat_nm"] < 1.2 * case.instrument["noise_m"] * 1e9
+    cal = tmp_path / "instrument.json"
+    cal.write_text(json.dumps({"format": FORMAT, "lateral_transfer": {
+        "blur_sigma_m": case.instrument["blur_sigma_m"], "fill_factor": 1.0, "na": 0.0, "wavelength_m": 0.57e-6}}))
+    held = compare(tmp_path / "held", "--instrument", str(cal))
+    terr = held["terrace_fit"]
     check = terr["against_camera_frame"]
     assert check["agree"] is False and check["warnings"]
-    truth = np.array(filegen.DEPTHS_M) * (1 + case.truth["etch_depth"]["error"]) * 1e9
     # The terrace fit is the nearer to the truth on the deepest mask.
-    assert abs(terr["etch_depths_nm"][3] - truth[3]) < abs(rep["etch_depths_nm"][3] - truth[3])
-    page = (out / "report.md").read_text()
+    assert abs(terr["etch_depths_nm"][3] - truth[3]) < abs(held["etch_depths_nm"][3] - truth[3])
+    page = (tmp_path / "held" / "report.md").read_text()
     assert "Terrace fit beside the camera-frame fit" in page and "WARNING: differ" in page
