@@ -32,7 +32,11 @@ What this module adds: the size claimed by the header is checked with
 :func:`~metrology.formats.plausibility.check_claimed_pixels` (against the file's size) before
 the library reads the heights; any exception of the library on a damaged or hostile file
 becomes one :class:`~metrology.formats.measurement.MeasurementFileError` naming the file
-(a third-party parser can raise anything on hostile bytes, hence the broad catch); heights
+(a third-party parser can raise anything on hostile bytes, hence the broad catch); the library
+reads the file through :class:`BoundedReader`, so that a length read from hostile bytes never
+makes it allocate more than the file holds (CPython allocates ``n`` bytes for ``read(n)``
+before reading: SurfaceTopography's OPDx reader asked for 1.85 GB on 200 kB of random bytes
+behind the OPDx magic); heights
 and sizes are converted to metres from the channel's unit; the library's (x, y) array is
 transposed to the tool's row-major (rows = y) order with row 0 the first row stored; a
 non-square pixel is kept (``Measurement.pixel_size_y_m``); a line scan the library reads as
@@ -43,6 +47,7 @@ the file where the library checks only part of them (:data:`DECLARED_CHECKS`).
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 from pathlib import Path
@@ -55,7 +60,7 @@ from metrology.formats.measurement import Measurement, MeasurementFileError
 from metrology.formats.plausibility import check_claimed_pixels, pixel_size
 from metrology.formats.profile import line_pitch
 
-__all__ = ["CONTENT_FORMATS", "DECLARED_CHECKS", "LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M", "height_channel",
+__all__ = ["BoundedReader", "CONTENT_FORMATS", "DECLARED_CHECKS", "LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M", "height_channel",
            "is_dektak", "open_reader", "read_dektak", "read_surface_lib", "to_metres"]
 
 log = logging.getLogger(__name__)
@@ -94,13 +99,31 @@ def to_metres(path: str | Path, unit: object, what: str) -> float:
     return UNITS_M[unit]
 
 
+class BoundedReader(io.BufferedReader):
+    """A binary file whose ``read(n)`` asks for no more than the bytes left before its end.
+
+    ``read(n)`` of a CPython file allocates ``n`` bytes before it reads; a parser that takes
+    ``n`` from hostile bytes (a 4 GB name length) would allocate it for a 200 kB file.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(io.FileIO(path, "rb"))
+        self.end = os.fstat(self.fileno()).st_size
+
+    def read(self, size: int | None = -1) -> bytes:
+        if size is not None and size > 0:
+            size = min(size, max(0, self.end - self.tell()))
+        return super().read(size)
+
+
 def open_reader(path: str | Path, fmt: str, label: str | None = None) -> Any:
-    """SurfaceTopography's reader on ``path`` (header parsed, heights not read yet); errors
-    name the format as ``label`` (``fmt`` when None)."""
+    """SurfaceTopography's reader on ``path`` (header parsed, heights not read yet), reading
+    through :class:`BoundedReader` (the library opens it anew for each read); errors name the
+    format as ``label`` (``fmt`` when None)."""
     from SurfaceTopography.IO import open_topography
 
     try:
-        return open_topography(str(path), format=fmt)
+        return open_topography(lambda: BoundedReader(path), format=fmt)
     except MemoryError:
         raise MeasurementFileError(f"{path}: cannot read as {label or fmt}: the header claims more memory than "
                                    f"this machine has") from None

@@ -12,6 +12,7 @@ import json
 import os
 import struct
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -573,3 +574,138 @@ def test_hostile_json_in_metrology_files(tmp_path, capsys, name, text, match, ca
     np.savez(meas, height_m=np.zeros((4, 4)), pixel_size_m=np.float64(1e-6), metadata=np.str_(text))
     assert read_measurement(meas).metadata["format"] == "npz"
     assert match in caplog.text
+
+
+# -- formats read through libraries (SurfaceTopography, x3pio): real files damaged, through the CLI -------
+# Each case: a file cut at 50 %, random bytes with the format's extension (and behind its magic),
+# a header claiming a huge grid. Refused in one line naming the file, exit status 2, nothing on
+# stdout, and the traced peak memory small (nothing allocated from the claim).
+REAL = Path(__file__).resolve().parents[1] / "data" / "realdata"
+LIB_FILES = {
+    "nid": REAL / "afm-nanosurf-binary-arrays" / "circles.nid",
+    "nid-1": REAL / "surface-formats" / "nid-1.nid",
+    "di": REAL / "surface-formats" / "di-3.di",
+    "spm": REAL / "surface-formats" / "di-3.di",  # NanoScope files carry either extension
+    "sur": REAL / "surface-formats" / "sur-3.sur",
+    "opdx": REAL / "surface-formats" / "opdx-3.opdx",
+    "x3p": REAL / "surface-formats" / "x3p-2.x3p",
+    "dektak": REAL / "surface-formats" / "dektak-1.csv",
+    "gwy": None,  # written by SurfaceTopography's own Gwyddion writer (no real file at hand)
+}
+EXT = {"nid-1": ".nid", "dektak": ".csv"}
+MAGIC = {"nid": b"[DataSet]\r\n", "di": b"\\*File list\r\n", "spm": b"\\*File list\r\n", "sur": b"DIGITAL SURF",
+         "opdx": b"VCA DATA\x01\x00\x00\x55", "x3p": b"PK\x03\x04", "dektak": b"Scan Parameters\r\n",
+         "gwy": b"GWYP", "vk4": b"VK4_\0\0\0\0", "mdt": struct.pack("<I", 0xFF93B001), "plu": b"", "opd": b""}
+LIB_PEAK_BYTES = 64 * 2**20
+
+
+def _lib_source(tmp_path, key):
+    if LIB_FILES.get(key) is not None:
+        return LIB_FILES[key].read_bytes()
+    from SurfaceTopography import Topography
+
+    path = tmp_path / "source.gwy"
+    heights = np.random.default_rng(4).normal(0, 1e-8, (64, 48))
+    Topography(heights, (64e-6, 48e-6), unit="m").to_gwy(str(path))
+    return path.read_bytes()
+
+
+def _lib_path(tmp_path, key, name):
+    return tmp_path / f"{name}{EXT.get(key, '.' + key)}"
+
+
+def _x3p_claim(raw, size):
+    import hashlib
+    import io
+    import re
+
+    src, out = zipfile.ZipFile(io.BytesIO(raw)), io.BytesIO()
+    xml = src.read("main.xml")
+    xml = re.sub(rb"<SizeX>\d+</SizeX>", b"<SizeX>%d</SizeX>" % size, xml)
+    xml = re.sub(rb"<SizeY>\d+</SizeY>", b"<SizeY>%d</SizeY>" % size, xml)
+    with zipfile.ZipFile(out, "w") as dst:
+        dst.writestr("main.xml", xml)
+        dst.writestr("bindata/data.bin", src.read("bindata/data.bin"))
+        dst.writestr("md5checksum.hex", hashlib.md5(xml).hexdigest().encode() + b" *main.xml\n")
+    return out.getvalue()
+
+
+def _gwy_claim(raw, size):
+    for key in (b"xres\0i", b"yres\0i"):
+        at = raw.index(key) + len(key)
+        raw = raw[:at] + struct.pack("<i", size) + raw[at + 4:]
+    return raw
+
+
+def _sur_claim(raw, size):
+    raw = bytearray(raw)
+    struct.pack_into("<iiI", raw, 108, size, size, size * size)  # nb_grid_pts_x, _y, nb_points
+    return bytes(raw)
+
+
+HUGE_CLAIMS = {
+    "nid": lambda raw: raw.replace(b"Lines=256", b"Lines=999999999").replace(b"Points=256", b"Points=999999999"),
+    "nid-1": lambda raw: raw.replace(b"Lines=256", b"Lines=999999999").replace(b"Points=256", b"Points=999999999"),
+    "di": lambda raw: raw.replace(b"\\Samps/line: 256", b"\\Samps/line: 99999").replace(
+        b"\\Number of lines: 256", b"\\Number of lines: 99999"),
+    "spm": lambda raw: raw.replace(b"\\Samps/line: 256", b"\\Samps/line: 99999").replace(
+        b"\\Number of lines: 256", b"\\Number of lines: 99999"),
+    "sur": lambda raw: _sur_claim(raw, 60000),
+    "x3p": lambda raw: _x3p_claim(raw, 100000),
+    "gwy": lambda raw: _gwy_claim(raw, 100000),
+}
+
+
+def _lib_cases():
+    cases = [(f"{k} cut at 50 %", k, "half") for k in LIB_FILES]
+    cases += [(f"{k} random bytes", k, "random") for k in MAGIC]
+    cases += [(f"{k} magic then random bytes", k, "magic") for k in MAGIC if MAGIC[k]]
+    cases += [(f"{k} header claims a huge grid", k, "claim") for k in HUGE_CLAIMS]
+    return cases
+
+
+LIB_CASES = _lib_cases()
+
+
+def _lib_damaged(tmp_path, key, kind):
+    rng = np.random.default_rng(sum(map(ord, key + kind)))
+    noise = rng.integers(0, 256, 200_000, dtype=np.uint8).tobytes()
+    if kind == "random":
+        data = noise
+    elif kind == "magic":
+        data = MAGIC[key] + noise
+    else:
+        raw = _lib_source(tmp_path, key)
+        data = raw[:len(raw) // 2] if kind == "half" else HUGE_CLAIMS[key](raw)
+        assert data != raw
+    path = _lib_path(tmp_path, key, f"bad-{kind}")
+    path.write_bytes(data)
+    return path
+
+
+def test_library_format_sources_read(tmp_path):
+    """The undamaged sources read: each damage below is what makes its file refused."""
+    for key in LIB_FILES:
+        path = _lib_path(tmp_path, key, "good")
+        path.write_bytes(_lib_source(tmp_path, key))
+        assert read_measurement(path).height_m.size > 1000, key
+
+
+@pytest.mark.parametrize("name,key,kind", LIB_CASES, ids=[c[0] for c in LIB_CASES])
+def test_library_format_damage_refused_in_one_line(tmp_path, capsys, name, key, kind):
+    import tracemalloc
+
+    from doedesign.cli import main
+
+    path = _lib_damaged(tmp_path, key, kind)
+    tracemalloc.start()
+    try:
+        code = main(["inspect", str(path)])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    captured = capsys.readouterr()
+    assert code == 2, captured.out
+    err = captured.err.strip()
+    assert str(path) in err and len(err.splitlines()) == 1 and "Traceback" not in err and not captured.out, err
+    assert peak < LIB_PEAK_BYTES, f"{name}: traced peak {peak / 2**20:.0f} MB"
