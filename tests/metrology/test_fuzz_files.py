@@ -695,6 +695,9 @@ def test_library_format_sources_read(tmp_path):
 def test_library_format_damage_refused_in_one_line(tmp_path, capsys, name, key, kind):
     import tracemalloc
 
+    import SurfaceTopography.IO  # noqa: F401  (imported before tracing: importing is not the file's cost)
+    import x3pio  # noqa: F401
+
     from doedesign.cli import main
 
     path = _lib_damaged(tmp_path, key, kind)
@@ -709,3 +712,22 @@ def test_library_format_damage_refused_in_one_line(tmp_path, capsys, name, key, 
     err = captured.err.strip()
     assert str(path) in err and len(err.splitlines()) == 1 and "Traceback" not in err and not captured.out, err
     assert peak < LIB_PEAK_BYTES, f"{name}: traced peak {peak / 2**20:.0f} MB"
+
+
+LIB_CORRUPT = [(key, seed) for key in LIB_FILES for seed in range(4)]
+
+
+@pytest.mark.parametrize("key,seed", LIB_CORRUPT, ids=[f"{k}-corrupt-{s}" for k, s in LIB_CORRUPT])
+def test_library_file_with_corrupt_header_bytes_is_refused_or_plausible(tmp_path, key, seed):
+    raw = bytearray(_lib_source(tmp_path, key))
+    rng = np.random.default_rng(seed)
+    for i in rng.integers(0, min(len(raw), 40_000), 16):  # the header and the first data
+        raw[i] = int(rng.integers(0, 256))
+    path = _lib_path(tmp_path, key, "corrupt")
+    path.write_bytes(bytes(raw))
+    try:
+        meas = read_measurement(path)
+    except DoeError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc)
+        return
+    plausibility.check_measurement(path, meas)
