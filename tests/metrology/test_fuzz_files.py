@@ -637,6 +637,12 @@ def _gwy_claim(raw, size):
     return raw
 
 
+def _opdx_claim(raw, size):
+    key = b"NumPoints\x0b"  # the profile's point count, a uint64 item
+    at = raw.index(key) + len(key)
+    return raw[:at] + struct.pack("<Q", size) + raw[at + 8:]
+
+
 def _sur_claim(raw, size):
     raw = bytearray(raw)
     struct.pack_into("<iiI", raw, 108, size, size, size * size)  # nb_grid_pts_x, _y, nb_points
@@ -653,6 +659,7 @@ HUGE_CLAIMS = {
     "sur": lambda raw: _sur_claim(raw, 60000),
     "x3p": lambda raw: _x3p_claim(raw, 100000),
     "gwy": lambda raw: _gwy_claim(raw, 100000),
+    "opdx": lambda raw: _opdx_claim(raw, 10**12),
 }
 
 

@@ -209,3 +209,14 @@ def test_damaged_dektak_refused_in_one_line(tmp_path, capsys, name, build, match
     err = captured.err.strip()
     assert str(bad) in err and "Traceback" not in err and len(err.splitlines()) == 1 and not captured.out, err
     assert match is None or match in err, err
+
+
+def test_nid_claim_within_the_size_slack_refused_by_its_frames(tmp_path, capsys):
+    # 2048 x 2048 points of 2 bytes in 4 frames: under the 16x slack of the pixel-count check
+    # (4.2e6 points for a 529 kB file), but 33.5 MB of frames against 524288 bytes after '#!'.
+    text = (AFM / "circles.nid").read_bytes()
+    bad = tmp_path / "claims.nid"
+    bad.write_bytes(text.replace(b"Lines=256", b"Lines=2048").replace(b"Points=256", b"Points=2048"))
+    assert main(["inspect", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(bad) in err and "33554432 bytes of data in 4 frames" in err and "holds 524288" in err, err
