@@ -36,7 +36,8 @@ becomes one :class:`~metrology.formats.measurement.MeasurementFileError` naming 
 reads the file through :class:`BoundedReader`, so that a length read from hostile bytes never
 makes it allocate more than the file holds (CPython allocates ``n`` bytes for ``read(n)``
 before reading: SurfaceTopography's OPDx reader asked for 1.85 GB on 200 kB of random bytes
-behind the OPDx magic); heights
+behind the OPDx magic); the library's warnings (numpy overflow on a hostile header's sizes)
+are logged at INFO level, not printed beside the one-line error; heights
 and sizes are converted to metres from the channel's unit; the library's (x, y) array is
 transposed to the tool's row-major (rows = y) order with row 0 the first row stored; a
 non-square pixel is kept (``Measurement.pixel_size_y_m``); a line scan the library reads as
@@ -50,6 +51,9 @@ from __future__ import annotations
 import io
 import logging
 import os
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -60,8 +64,9 @@ from metrology.formats.measurement import Measurement, MeasurementFileError
 from metrology.formats.plausibility import check_claimed_pixels, pixel_size
 from metrology.formats.profile import line_pitch
 
-__all__ = ["BoundedReader", "CONTENT_FORMATS", "DECLARED_CHECKS", "LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M", "height_channel",
-           "is_dektak", "open_reader", "read_dektak", "read_surface_lib", "to_metres"]
+__all__ = ["BoundedReader", "CONTENT_FORMATS", "DECLARED_CHECKS", "LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M",
+           "height_channel", "is_dektak", "library_warnings", "open_reader", "read_dektak", "read_surface_lib",
+           "to_metres"]
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +121,17 @@ class BoundedReader(io.BufferedReader):
         return super().read(size)
 
 
+@contextmanager
+def library_warnings(path: str | Path) -> Iterator[None]:
+    """Warnings the library raises inside the block, logged at INFO level naming ``path``
+    (``doe --verbose`` shows them) instead of printed to stderr."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        log.info("%s: %s from the reader: %s", path, w.category.__name__, w.message)
+
+
 def open_reader(path: str | Path, fmt: str, label: str | None = None) -> Any:
     """SurfaceTopography's reader on ``path`` (header parsed, heights not read yet), reading
     through :class:`BoundedReader` (the library opens it anew for each read); errors name the
@@ -123,7 +139,8 @@ def open_reader(path: str | Path, fmt: str, label: str | None = None) -> Any:
     from SurfaceTopography.IO import open_topography
 
     try:
-        return open_topography(lambda: BoundedReader(path), format=fmt)
+        with library_warnings(path):
+            return open_topography(lambda: BoundedReader(path), format=fmt)
     except MemoryError:
         raise MeasurementFileError(f"{path}: cannot read as {label or fmt}: the header claims more memory than "
                                    f"this machine has") from None
@@ -207,15 +224,16 @@ def read_surface_lib(path: str | Path, pixel_size_m: float | None = None, format
         DECLARED_CHECKS[fmt](path)
     positions = None
     try:
-        topo = reader.topography(channel_index=ch.index)
-        if ch.is_uniform:
-            heights = topo.heights()
-        else:
-            positions, heights = topo.positions_and_heights()
-            positions = np.asarray(positions, dtype=np.float64)
-        heights = np.ma.filled(np.ma.asarray(heights, dtype=np.float64), np.nan)
-        sizes = tuple(float(s) for s in topo.physical_sizes)
-        unit = topo.unit
+        with library_warnings(path):
+            topo = reader.topography(channel_index=ch.index)
+            if ch.is_uniform:
+                heights = topo.heights()
+            else:
+                positions, heights = topo.positions_and_heights()
+                positions = np.asarray(positions, dtype=np.float64)
+            heights = np.ma.filled(np.ma.asarray(heights, dtype=np.float64), np.nan)
+            sizes = tuple(float(s) for s in topo.physical_sizes)
+            unit = topo.unit
     except MemoryError:
         raise MeasurementFileError(f"{path}: the data of channel '{ch.name}' do not fit in memory") from None
     except MeasurementFileError:

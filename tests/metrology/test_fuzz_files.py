@@ -11,6 +11,7 @@ clean and, when accepted, physically plausible.
 import json
 import os
 import struct
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -710,10 +711,13 @@ def test_library_format_damage_refused_in_one_line(tmp_path, capsys, name, key, 
     path = _lib_damaged(tmp_path, key, kind)
     tracemalloc.start()
     try:
-        code = main(["inspect", str(path)])
+        with warnings.catch_warnings(record=True) as caught:  # a warning would print beside the error
+            warnings.simplefilter("always")
+            code = main(["inspect", str(path)])
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
+    assert not caught, [str(w.message) for w in caught]
     captured = capsys.readouterr()
     assert code == 2, captured.out
     err = captured.err.strip()
