@@ -592,6 +592,7 @@ LIB_FILES = {
     "x3p": REAL / "surface-formats" / "x3p-2.x3p",
     "dektak": REAL / "surface-formats" / "dektak-1.csv",
     "gwy": None,  # written by SurfaceTopography's own Gwyddion writer (no real file at hand)
+    "opd": None,  # written here to the layout SurfaceTopography's OPD reader declares (no real file)
 }
 EXT = {"nid-1": ".nid", "dektak": ".csv"}
 MAGIC = {"nid": b"[DataSet]\r\n", "di": b"\\*File list\r\n", "spm": b"\\*File list\r\n", "sur": b"DIGITAL SURF",
@@ -600,9 +601,26 @@ MAGIC = {"nid": b"[DataSet]\r\n", "di": b"\\*File list\r\n", "spm": b"\\*File li
 LIB_PEAK_BYTES = 64 * 2**20
 
 
+def _opd_bytes(nx=64, ny=48):
+    """A Wyko .opd: a directory of 24-byte entries (name, type, length, attribute), then the
+    payloads; the raster holds float32 heights in waves, scaled by Wavelength (nm) / Mult."""
+    data = np.random.default_rng(5).normal(0, 0.05, (nx, ny)).astype("<f4")
+    blocks = [("RAW_DATA", 3, struct.pack("<HHH", nx, ny, 4) + data.tobytes()),
+              ("Wavelength", 7, struct.pack("<f", 632.8)), ("Mult", 6, struct.pack("<h", 1)),
+              ("Pixel_size", 7, struct.pack("<f", 0.001)), ("Aspect", 7, struct.pack("<f", 1.0))]
+
+    def entry(name, kind, length):
+        return struct.pack("<16shlH", name.encode(), kind, length, 0)
+
+    head = b"\x01\x00" + entry("Directory", 0, 24 * (len(blocks) + 1))
+    return head + b"".join(entry(n, k, len(p)) for n, k, p in blocks) + b"".join(p for _, _, p in blocks)
+
+
 def _lib_source(tmp_path, key):
     if LIB_FILES.get(key) is not None:
         return LIB_FILES[key].read_bytes()
+    if key == "opd":
+        return _opd_bytes()
     from SurfaceTopography import Topography
 
     path = tmp_path / "source.gwy"
@@ -661,6 +679,7 @@ HUGE_CLAIMS = {
     "x3p": lambda raw: _x3p_claim(raw, 100000),
     "gwy": lambda raw: _gwy_claim(raw, 100000),
     "opdx": lambda raw: _opdx_claim(raw, 10**12),
+    "opd": lambda raw: raw.replace(struct.pack("<HHH", 64, 48, 4), struct.pack("<HHH", 65535, 65535, 4), 1),
 }
 
 
@@ -697,6 +716,10 @@ def test_library_format_sources_read(tmp_path):
         path = _lib_path(tmp_path, key, "good")
         path.write_bytes(_lib_source(tmp_path, key))
         assert read_measurement(path).height_m.size > 1000, key
+    # The .opd built here: 1 um pixels (Pixel_size 0.001 mm), heights 0.05 waves rms of 632.8 nm.
+    opd = read_measurement(_lib_path(tmp_path, "opd", "good"))
+    assert opd.shape == (48, 64) and opd.pixel_size_m == pytest.approx(1e-6, rel=1e-6)
+    assert opd.height_m.std() == pytest.approx(0.05 * 632.8e-9, rel=0.05)
 
 
 @pytest.mark.parametrize("name,key,kind", LIB_CASES, ids=[c[0] for c in LIB_CASES])
