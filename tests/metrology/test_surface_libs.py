@@ -220,3 +220,18 @@ def test_nid_claim_within_the_size_slack_refused_by_its_frames(tmp_path, capsys)
     assert main(["inspect", str(bad)]) == 2
     err = capsys.readouterr().err.strip()
     assert str(bad) in err and "33554432 bytes of data in 4 frames" in err and "holds 524288" in err, err
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda raw: raw[:raw.index(b"\n#!") + 1], "no '#!' data marker"),
+    (lambda raw: raw.replace(b"SaveBits=16", b"SaveBits=12"), "not a whole number of bytes"),
+    (lambda raw: raw.replace(b"Points=256", b"Points=-256"), "negative"),
+    (lambda raw: raw.replace(b"Lines=256", b"Lines=lots"), "cannot read as ezd"),  # the library's parse
+])
+def test_nid_header_frames_checked(tmp_path, capsys, edit, match):
+    bad = tmp_path / "frames.nid"
+    bad.write_bytes(edit((AFM / "circles.nid").read_bytes()))
+    assert main(["inspect", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(bad) in err and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert match in err, err
