@@ -31,7 +31,8 @@ def printed_quantum(x: np.ndarray) -> float:
     x = np.asarray(x, dtype=np.float64)
     for decimals in range(_MAX_DECIMALS + 1):
         scaled = x * 10.0 ** decimals
-        if np.all(np.abs(scaled - np.round(scaled)) <= 1e-9 * np.maximum(1.0, np.abs(scaled))):
+        # A decimal parsed to float64 is off by at most half an ulp (1.1e-16 of itself).
+        if np.all(np.abs(scaled - np.round(scaled)) <= 1e-6 + 1e-14 * np.abs(scaled)):
             return 10.0 ** -decimals
     return 0.0
 

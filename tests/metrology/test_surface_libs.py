@@ -235,3 +235,19 @@ def test_nid_header_frames_checked(tmp_path, capsys, edit, match):
     err = capsys.readouterr().err.strip()
     assert str(bad) in err and len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert match in err, err
+
+
+def test_line_pitch_takes_printed_rounding_only_where_the_format_rounds():
+    from metrology.formats.profile import line_pitch, printed_quantum
+
+    true = np.arange(2000) * 0.15625
+    printed = np.round(true, 1)
+    assert printed_quantum(printed) == pytest.approx(0.1) and printed_quantum(true) == pytest.approx(1e-5)
+    assert printed_quantum(np.arange(2000) / 3) == 0.0  # printed in full precision
+    assert line_pitch("p", printed, rounded=True) == pytest.approx(0.15625, rel=1e-6)
+    with pytest.raises(MeasurementFileError, match="not uniformly spaced"):
+        line_pitch("p", printed)  # an export that prints x in full does not round it
+    shifted = printed.copy()
+    shifted[1000] += 0.2  # two printed digits off: not rounding any more
+    with pytest.raises(MeasurementFileError, match="p: .* not uniformly spaced"):
+        line_pitch("p", shifted, rounded=True)
