@@ -593,6 +593,7 @@ LIB_FILES = {
     "dektak": REAL / "surface-formats" / "dektak-1.csv",
     "gwy": None,  # written by SurfaceTopography's own Gwyddion writer (no real file at hand)
     "opd": None,  # written here to the layout SurfaceTopography's OPD reader declares (no real file)
+    "plu": None,  # written here to the layout of its Sensofar PLU reader (no real file)
 }
 EXT = {"nid-1": ".nid", "dektak": ".csv"}
 MAGIC = {"nid": b"[DataSet]\r\n", "di": b"\\*File list\r\n", "spm": b"\\*File list\r\n", "sur": b"DIGITAL SURF",
@@ -616,11 +617,25 @@ def _opd_bytes(nx=64, ny=48):
     return head + b"".join(entry(n, k, len(p)) for n, k, p in blocks) + b"".join(p for _, _, p in blocks)
 
 
+def _plu_bytes(nx=64, ny=48):
+    """A Sensofar .plu: date, time, comment; calibration (rows, columns, um per pixel); the
+    measurement configuration (a topography); one layer of float32 heights in micrometres."""
+    z = np.random.default_rng(6).normal(0, 0.05, (ny, nx)).astype("<f4")
+    out = b"2026-12-02 10:00:00".ljust(128, b"\0") + struct.pack("<I", 0) + bytes(256)
+    out += struct.pack("<IIIfffffff", ny, nx, 0, 1.0, 0.5, 0.5, 0.0, 0.0, 1.0, 0.0)
+    out += struct.pack("<IIIII", 3, 0, 0, 0, 0)  # type 3: topography; area type 0
+    out += struct.pack("<IIIIIdfII", nx, ny, nx, ny, 0, 0.0, 0.0, 0, 0)
+    out += struct.pack("<BBBBB3BI", 0, 1, 0, 0, 0, 0, 0, 0, 0)  # one layer, no images
+    return out + struct.pack("<II", ny, nx) + z.tobytes() + struct.pack("<ff", float(z.min()), float(z.max()))
+
+
 def _lib_source(tmp_path, key):
     if LIB_FILES.get(key) is not None:
         return LIB_FILES[key].read_bytes()
     if key == "opd":
         return _opd_bytes()
+    if key == "plu":
+        return _plu_bytes()
     from SurfaceTopography import Topography
 
     path = tmp_path / "source.gwy"
@@ -680,6 +695,7 @@ HUGE_CLAIMS = {
     "gwy": lambda raw: _gwy_claim(raw, 100000),
     "opdx": lambda raw: _opdx_claim(raw, 10**12),
     "opd": lambda raw: raw.replace(struct.pack("<HHH", 64, 48, 4), struct.pack("<HHH", 65535, 65535, 4), 1),
+    "plu": lambda raw: raw.replace(struct.pack("<II", 48, 64), struct.pack("<II", 100000, 100000)),
 }
 
 
@@ -720,6 +736,10 @@ def test_library_format_sources_read(tmp_path):
     opd = read_measurement(_lib_path(tmp_path, "opd", "good"))
     assert opd.shape == (48, 64) and opd.pixel_size_m == pytest.approx(1e-6, rel=1e-6)
     assert opd.height_m.std() == pytest.approx(0.05 * 632.8e-9, rel=0.05)
+    # The .plu built here: 0.5 um pixels, heights 0.05 um rms.
+    plu = read_measurement(_lib_path(tmp_path, "plu", "good"))
+    assert plu.shape == (48, 64) and plu.pixel_size_m == pytest.approx(0.5e-6, rel=1e-6)
+    assert plu.height_m.std() == pytest.approx(0.05e-6, rel=0.05)
 
 
 @pytest.mark.parametrize("name,key,kind", LIB_CASES, ids=[c[0] for c in LIB_CASES])
