@@ -27,7 +27,7 @@ _MAX_DECIMALS = 12
 def printed_quantum(x: np.ndarray) -> float:
     """The unit of the last printed digit of positions ``x`` as the file prints them, in the
     file's unit (0.1 for "1.3, 1.4, 1.6"), or 0.0 when they carry more than
-    :data:`_MAX_DECIMALS` decimals (printed in full precision)."""
+    12 decimals (printed in full precision)."""
     x = np.asarray(x, dtype=np.float64)
     for decimals in range(_MAX_DECIMALS + 1):
         scaled = x * 10.0 ** decimals
