@@ -66,8 +66,10 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("inspect", help="summarize a design or measurement file",
-                       description="Summarize a design (.npz) or a profilometer measurement (.dat, .datx, .xyz, "
-                                   ".asc, .csv, .npy, .npz, .tif).")
+                       description="Summarize a design (.npz) or a measurement: Zygo .dat, .datx, .xyz, .asc, "
+                                   "Mx profile or Dektak .csv, .x3p, AFM and profiler formats (.nid, "
+                                   ".spm, .di, .mdt, .plu, .sur, .opd, .opdx, .vk4, .gwy), .npy, "
+                                   ".npz, .tif.")
     p.add_argument("file")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--pixel-size-m", type=Number(float, 0, RANGES["pixel_size_m"].hi, lo_open=True, unit="m"), default=None,

@@ -4,8 +4,10 @@ Formats: MetroPro ``.dat``, Mx ``.datx``, Zygo ASCII ``.xyz`` and ``.asc``, Mx p
 ``.csv``, ``.npy`` / ``.npz`` height maps in metres, TIFF images, ISO 25178-72 ``.x3p``
 (:mod:`metrology.formats.x3p`) and the AFM / optical-profiler formats of
 :mod:`metrology.formats.surface_libs` (``.nid``, ``.spm``, ``.di``, ``.mdt``, ``.plu``,
-``.sur``, ``.opd``, ``.opdx``, ``.vk4``, ``.gwy``). The format is
-taken from the file's magic bytes when it has one, else from the extension.
+``.sur``, ``.opd``, ``.opdx``, ``.vk4``, ``.gwy``) and Bruker Dektak CSV line scans. The
+format is taken from the file's magic bytes when it has one (a Dektak CSV from its
+``Scan Parameters`` header, so that it is not read as an Mx profile CSV), else from the
+extension.
 
 Every reader keeps the file's pixel order: row 0 is the first row stored, which for
 Zygo files is the top of the camera image. Nothing is flipped or transposed.
@@ -28,7 +30,8 @@ import numpy as np
 from doedesign.fileio import check_input_file, load_npy, parse_json, read_npz
 from metrology.formats.measurement import Measurement, MeasurementFileError, read_head
 from metrology.formats.plausibility import check_claimed_pixels, check_measurement, pixel_size
-from metrology.formats.surface_libs import LIB_EXTENSIONS, read_surface_lib
+from metrology.formats.profile import line_pitch
+from metrology.formats.surface_libs import LIB_EXTENSIONS, is_dektak, read_dektak, read_surface_lib
 from metrology.formats.x3p import read_x3p
 from metrology.formats.zygo_ascii import read_asc, read_xyz
 from metrology.formats.zygo_dat import MAGIC, read_dat
@@ -39,7 +42,7 @@ __all__ = ["CSV_UNITS_M", "EXTENSIONS", "FORMATS", "detect_format", "read_array"
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("dat", "datx", "xyz", "asc", "csv", "npy", "npz", "tiff", "x3p") + tuple(
+FORMATS = ("dat", "datx", "xyz", "asc", "csv", "dektak", "npy", "npz", "tiff", "x3p") + tuple(
     sorted({e.lstrip(".") for e in LIB_EXTENSIONS}))
 EXTENSIONS = {".dat": "dat", ".datx": "datx", ".xyz": "xyz", ".asc": "asc", ".csv": "csv",
               ".npy": "npy", ".npz": "npz", ".tif": "tiff", ".tiff": "tiff", ".x3p": "x3p",
@@ -73,7 +76,9 @@ def detect_format(path: str | Path) -> str:
         by_magic = "x3p" if by_ext == "x3p" else "npz"
     elif head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
         by_magic = "tiff"
-    if by_magic and by_ext and by_magic != by_ext:
+    elif is_dektak(head):
+        by_magic = "dektak"
+    if by_magic and by_ext and by_magic != by_ext and (by_magic, by_ext) != ("dektak", "csv"):
         log.warning("%s: content is %s although the extension says %s; reading as %s",
                     path, by_magic, by_ext, by_magic)
     fmt = by_magic or by_ext
@@ -111,7 +116,7 @@ def read_measurement(path: str | Path, format: str | None = None, pixel_size_m: 
     path = check_input_file(path, MeasurementFileError)
     fmt = format or detect_format(path)
     readers = {"dat": read_dat, "datx": read_datx, "xyz": read_xyz, "asc": read_asc,
-               "csv": read_profile_csv, "npy": read_array, "npz": read_array, "tiff": read_tiff,
+               "csv": read_profile_csv, "dektak": read_dektak, "npy": read_array, "npz": read_array, "tiff": read_tiff,
                "x3p": read_x3p, **{e.lstrip("."): read_surface_lib for e in LIB_EXTENSIONS}}
     if fmt not in readers:
         raise MeasurementFileError(f"{path}: unknown format '{fmt}' (known: {', '.join(FORMATS)})")
@@ -232,7 +237,8 @@ def read_profile_csv(path: str | Path, pixel_size_m: float | None = None) -> Mea
     Returns
     -------
     Measurement
-        A 1-row height map in file order; the pixel size is the median X step.
+        A 1-row height map in file order; the pixel size is the X step
+        (:func:`~metrology.formats.profile.line_pitch`).
     """
     path = Path(path)
     text = path.read_text(encoding="utf-8-sig", errors="replace")
@@ -255,15 +261,10 @@ def read_profile_csv(path: str | Path, pixel_size_m: float | None = None) -> Mea
             zs.append(float(cell) if cell else np.nan)
         except ValueError:
             raise MeasurementFileError(f"{path}: line {lineno} is not numeric: {','.join(row)!r}") from None
-    if len(xs) < 2:
-        raise MeasurementFileError(f"{path}: fewer than two profile points")
-    x = np.asarray(xs) * _csv_unit(path, names[0])
+    x_unit = _csv_unit(path, names[0])
+    step = line_pitch(path, np.asarray(xs), "X") * x_unit
     z = np.asarray(zs) * _csv_unit(path, names[zcol])
-    steps = np.diff(x)
-    step = float(np.median(steps))
-    if step <= 0 or np.max(np.abs(steps - step)) > 1e-3 * step:
-        raise MeasurementFileError(f"{path}: X is not uniformly increasing (median step {step:.4g} m)")
     metadata = {r[0].strip(): ",".join(r[1:]).strip() for r in rows[:start] if r and r[0].strip()}
-    metadata.update({"source_file": str(path), "format": "mx_profile_csv", "x0_m": float(x[0]),
+    metadata.update({"source_file": str(path), "format": "mx_profile_csv", "x0_m": float(xs[0]) * x_unit,
                      "height_column": names[zcol]})
     return Measurement(z[np.newaxis, :], _need_pixel(path, pixel_size_m, step, "the X column", "X step"), metadata)

@@ -79,7 +79,7 @@ def read_x3p(path: str | Path, pixel_size_m: float | None = None) -> Measurement
         check_claimed_pixels(path, tuple(info.shape) + (max(1, int(info.layer_count)),), what="main.xml")
         if str(getattr(info.feature_type, "value", info.feature_type)) != "SUR":
             raise MeasurementFileError(f"{path}: the x3p holds a {info.feature_type} (not a surface SUR); "
-                                       f"read a profile with metrology.formats.profile")
+                                       f"x3p profiles and point clouds are not read")
         surf = x3pio.read(path)
         layer = surf.layers[0]
         z = np.asarray(layer.z, dtype=np.float64)

@@ -11,7 +11,9 @@ clean and, when accepted, physically plausible.
 import json
 import os
 import struct
+import warnings
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -573,3 +575,213 @@ def test_hostile_json_in_metrology_files(tmp_path, capsys, name, text, match, ca
     np.savez(meas, height_m=np.zeros((4, 4)), pixel_size_m=np.float64(1e-6), metadata=np.str_(text))
     assert read_measurement(meas).metadata["format"] == "npz"
     assert match in caplog.text
+
+
+# -- formats read through libraries (SurfaceTopography, x3pio): real files damaged, through the CLI -------
+# Each case: a file cut at 50 %, random bytes with the format's extension (and behind its magic),
+# a header claiming a huge grid. Refused in one line naming the file, exit status 2, nothing on
+# stdout, and the traced peak memory small (nothing allocated from the claim).
+REAL = Path(__file__).resolve().parents[1] / "data" / "realdata"
+LIB_FILES = {
+    "nid": REAL / "afm-nanosurf-binary-arrays" / "circles.nid",
+    "nid-1": REAL / "surface-formats" / "nid-1.nid",
+    "di": REAL / "surface-formats" / "di-3.di",
+    "spm": REAL / "surface-formats" / "di-3.di",  # NanoScope files carry either extension
+    "sur": REAL / "surface-formats" / "sur-3.sur",
+    "opdx": REAL / "surface-formats" / "opdx-3.opdx",
+    "x3p": REAL / "surface-formats" / "x3p-2.x3p",
+    "dektak": REAL / "surface-formats" / "dektak-1.csv",
+    "gwy": None,  # written by SurfaceTopography's own Gwyddion writer (no real file at hand)
+    "opd": None,  # written here to the layout SurfaceTopography's OPD reader declares (no real file)
+    "plu": None,  # written here to the layout of its Sensofar PLU reader (no real file)
+}
+EXT = {"nid-1": ".nid", "dektak": ".csv"}
+MAGIC = {"nid": b"[DataSet]\r\n", "di": b"\\*File list\r\n", "spm": b"\\*File list\r\n", "sur": b"DIGITAL SURF",
+         "opdx": b"VCA DATA\x01\x00\x00\x55", "x3p": b"PK\x03\x04", "dektak": b"Scan Parameters\r\n",
+         "gwy": b"GWYP", "vk4": b"VK4_\0\0\0\0", "mdt": struct.pack("<I", 0xFF93B001), "plu": b"", "opd": b""}
+LIB_PEAK_BYTES = 64 * 2**20
+
+
+def _opd_bytes(nx=64, ny=48):
+    """A Wyko .opd: a directory of 24-byte entries (name, type, length, attribute), then the
+    payloads; the raster holds float32 heights in waves, scaled by Wavelength (nm) / Mult."""
+    data = np.random.default_rng(5).normal(0, 0.05, (nx, ny)).astype("<f4")
+    blocks = [("RAW_DATA", 3, struct.pack("<HHH", nx, ny, 4) + data.tobytes()),
+              ("Wavelength", 7, struct.pack("<f", 632.8)), ("Mult", 6, struct.pack("<h", 1)),
+              ("Pixel_size", 7, struct.pack("<f", 0.001)), ("Aspect", 7, struct.pack("<f", 1.0))]
+
+    def entry(name, kind, length):
+        return struct.pack("<16shlH", name.encode(), kind, length, 0)
+
+    head = b"\x01\x00" + entry("Directory", 0, 24 * (len(blocks) + 1))
+    return head + b"".join(entry(n, k, len(p)) for n, k, p in blocks) + b"".join(p for _, _, p in blocks)
+
+
+def _plu_bytes(nx=64, ny=48):
+    """A Sensofar .plu: date, time, comment; calibration (rows, columns, um per pixel); the
+    measurement configuration (a topography); one layer of float32 heights in micrometres."""
+    z = np.random.default_rng(6).normal(0, 0.05, (ny, nx)).astype("<f4")
+    out = b"2026-12-02 10:00:00".ljust(128, b"\0") + struct.pack("<I", 0) + bytes(256)
+    out += struct.pack("<IIIfffffff", ny, nx, 0, 1.0, 0.5, 0.5, 0.0, 0.0, 1.0, 0.0)
+    out += struct.pack("<IIIII", 3, 0, 0, 0, 0)  # type 3: topography; area type 0
+    out += struct.pack("<IIIIIdfII", nx, ny, nx, ny, 0, 0.0, 0.0, 0, 0)
+    out += struct.pack("<BBBBB3BI", 0, 1, 0, 0, 0, 0, 0, 0, 0)  # one layer, no images
+    return out + struct.pack("<II", ny, nx) + z.tobytes() + struct.pack("<ff", float(z.min()), float(z.max()))
+
+
+def _lib_source(tmp_path, key):
+    if LIB_FILES.get(key) is not None:
+        return LIB_FILES[key].read_bytes()
+    if key == "opd":
+        return _opd_bytes()
+    if key == "plu":
+        return _plu_bytes()
+    from SurfaceTopography import Topography
+
+    path = tmp_path / "source.gwy"
+    heights = np.random.default_rng(4).normal(0, 1e-8, (64, 48))
+    Topography(heights, (64e-6, 48e-6), unit="m").to_gwy(str(path))
+    return path.read_bytes()
+
+
+def _lib_path(tmp_path, key, name):
+    return tmp_path / f"{name}{EXT.get(key, '.' + key)}"
+
+
+def _x3p_claim(raw, size):
+    import hashlib
+    import io
+    import re
+
+    src, out = zipfile.ZipFile(io.BytesIO(raw)), io.BytesIO()
+    xml = src.read("main.xml")
+    xml = re.sub(rb"<SizeX>\d+</SizeX>", b"<SizeX>%d</SizeX>" % size, xml)
+    xml = re.sub(rb"<SizeY>\d+</SizeY>", b"<SizeY>%d</SizeY>" % size, xml)
+    with zipfile.ZipFile(out, "w") as dst:
+        dst.writestr("main.xml", xml)
+        dst.writestr("bindata/data.bin", src.read("bindata/data.bin"))
+        dst.writestr("md5checksum.hex", hashlib.md5(xml).hexdigest().encode() + b" *main.xml\n")
+    return out.getvalue()
+
+
+def _gwy_claim(raw, size):
+    for key in (b"xres\0i", b"yres\0i"):
+        at = raw.index(key) + len(key)
+        raw = raw[:at] + struct.pack("<i", size) + raw[at + 4:]
+    return raw
+
+
+def _opdx_claim(raw, size):
+    key = b"NumPoints\x0b"  # the profile's point count, a uint64 item
+    at = raw.index(key) + len(key)
+    return raw[:at] + struct.pack("<Q", size) + raw[at + 8:]
+
+
+def _sur_claim(raw, size):
+    raw = bytearray(raw)
+    struct.pack_into("<iiI", raw, 108, size, size, size * size)  # nb_grid_pts_x, _y, nb_points
+    return bytes(raw)
+
+
+HUGE_CLAIMS = {
+    "nid": lambda raw: raw.replace(b"Lines=256", b"Lines=999999999").replace(b"Points=256", b"Points=999999999"),
+    "nid-1": lambda raw: raw.replace(b"Lines=256", b"Lines=999999999").replace(b"Points=256", b"Points=999999999"),
+    "di": lambda raw: raw.replace(b"\\Samps/line: 256", b"\\Samps/line: 99999").replace(
+        b"\\Number of lines: 256", b"\\Number of lines: 99999"),
+    "spm": lambda raw: raw.replace(b"\\Samps/line: 256", b"\\Samps/line: 99999").replace(
+        b"\\Number of lines: 256", b"\\Number of lines: 99999"),
+    "sur": lambda raw: _sur_claim(raw, 60000),
+    "x3p": lambda raw: _x3p_claim(raw, 100000),
+    "gwy": lambda raw: _gwy_claim(raw, 100000),
+    "opdx": lambda raw: _opdx_claim(raw, 10**12),
+    "opd": lambda raw: raw.replace(struct.pack("<HHH", 64, 48, 4), struct.pack("<HHH", 65535, 65535, 4), 1),
+    "plu": lambda raw: raw.replace(struct.pack("<II", 48, 64), struct.pack("<II", 100000, 100000)),
+}
+
+
+def _lib_cases():
+    cases = [(f"{k} cut at 50 %", k, "half") for k in LIB_FILES]
+    cases += [(f"{k} random bytes", k, "random") for k in MAGIC]
+    cases += [(f"{k} magic then random bytes", k, "magic") for k in MAGIC if MAGIC[k]]
+    cases += [(f"{k} header claims a huge grid", k, "claim") for k in HUGE_CLAIMS]
+    return cases
+
+
+LIB_CASES = _lib_cases()
+
+
+def _lib_damaged(tmp_path, key, kind):
+    rng = np.random.default_rng(sum(map(ord, key + kind)))
+    noise = rng.integers(0, 256, 200_000, dtype=np.uint8).tobytes()
+    if kind == "random":
+        data = noise
+    elif kind == "magic":
+        data = MAGIC[key] + noise
+    else:
+        raw = _lib_source(tmp_path, key)
+        data = raw[:len(raw) // 2] if kind == "half" else HUGE_CLAIMS[key](raw)
+        assert data != raw
+    path = _lib_path(tmp_path, key, f"bad-{kind}")
+    path.write_bytes(data)
+    return path
+
+
+def test_library_format_sources_read(tmp_path):
+    """The undamaged sources read: each damage below is what makes its file refused."""
+    for key in LIB_FILES:
+        path = _lib_path(tmp_path, key, "good")
+        path.write_bytes(_lib_source(tmp_path, key))
+        assert read_measurement(path).height_m.size > 1000, key
+    # The .opd built here: 1 um pixels (Pixel_size 0.001 mm), heights 0.05 waves rms of 632.8 nm.
+    opd = read_measurement(_lib_path(tmp_path, "opd", "good"))
+    assert opd.shape == (48, 64) and opd.pixel_size_m == pytest.approx(1e-6, rel=1e-6)
+    assert opd.height_m.std() == pytest.approx(0.05 * 632.8e-9, rel=0.05)
+    # The .plu built here: 0.5 um pixels, heights 0.05 um rms.
+    plu = read_measurement(_lib_path(tmp_path, "plu", "good"))
+    assert plu.shape == (48, 64) and plu.pixel_size_m == pytest.approx(0.5e-6, rel=1e-6)
+    assert plu.height_m.std() == pytest.approx(0.05e-6, rel=0.05)
+
+
+@pytest.mark.parametrize("name,key,kind", LIB_CASES, ids=[c[0] for c in LIB_CASES])
+def test_library_format_damage_refused_in_one_line(tmp_path, capsys, name, key, kind):
+    import tracemalloc
+
+    import SurfaceTopography.IO  # noqa: F401  (imported before tracing: importing is not the file's cost)
+    import x3pio  # noqa: F401
+
+    from doedesign.cli import main
+
+    path = _lib_damaged(tmp_path, key, kind)
+    tracemalloc.start()
+    try:
+        with warnings.catch_warnings(record=True) as caught:  # a warning would print beside the error
+            warnings.simplefilter("always")
+            code = main(["inspect", str(path)])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert not caught, [str(w.message) for w in caught]
+    captured = capsys.readouterr()
+    assert code == 2, captured.out
+    err = captured.err.strip()
+    assert str(path) in err and len(err.splitlines()) == 1 and "Traceback" not in err and not captured.out, err
+    assert peak < LIB_PEAK_BYTES, f"{name}: traced peak {peak / 2**20:.0f} MB"
+
+
+LIB_CORRUPT = [(key, seed) for key in LIB_FILES for seed in range(4)]
+
+
+@pytest.mark.parametrize("key,seed", LIB_CORRUPT, ids=[f"{k}-corrupt-{s}" for k, s in LIB_CORRUPT])
+def test_library_file_with_corrupt_header_bytes_is_refused_or_plausible(tmp_path, key, seed):
+    raw = bytearray(_lib_source(tmp_path, key))
+    rng = np.random.default_rng(seed)
+    for i in rng.integers(0, min(len(raw), 40_000), 16):  # the header and the first data
+        raw[i] = int(rng.integers(0, 256))
+    path = _lib_path(tmp_path, key, "corrupt")
+    path.write_bytes(bytes(raw))
+    try:
+        meas = read_measurement(path)
+    except DoeError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc)
+        return
+    plausibility.check_measurement(path, meas)
