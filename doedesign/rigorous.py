@@ -66,7 +66,7 @@ from .errors import DoeError
 
 __all__ = ["DEFAULT_TERMS", "DEFAULT_TOLERANCE", "score_design", "FEATURE_MIN_WAVELENGTHS", "DEPTH_MAX_FEATURES", "INCIDENCES", "POLARIZATIONS",
            "RigorousResult", "compare", "relief_layers", "rigorous_efficiencies", "smallest_feature_m",
-           "thin_element_efficiencies", "validity"]
+           "stack_efficiency", "thin_element_efficiencies", "validity"]
 
 log = logging.getLogger(__name__)
 
@@ -259,26 +259,68 @@ def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m: A
         else:
             perms = [jnp.full((1, 1), eps_gap)] + slabs + [jnp.full((1, 1), eps_glass)]
             thick = [0.0] + thick_m + [0.0]
-        wl_um = jnp.asarray(wl * um)
-        k_in = fmmax.plane_wave_in_plane_wavevector(wavelength=wl_um, polar_angle=jnp.asarray(0.0),
-                                                    azimuthal_angle=jnp.asarray(0.0), permittivity=perms[0][0, 0])
-        solves = [solve(p, wl_um, k_in) for p in perms]
-        s = fmmax.stack_s_matrix(layer_solve_results=solves,
-                                 layer_thicknesses=[jnp.asarray(t * um) for t in thick])
-        a_in = jnp.zeros((2 * n, 2), dtype=complex).at[0, 0].set(1.0).at[n, 1].set(1.0)
-        inc_fwd, _ = fmmax.amplitude_poynting_flux(forward_amplitude=a_in, backward_amplitude=s.s21 @ a_in,
-                                                   layer_solve_result=solves[0])
-        out, _ = fmmax.amplitude_poynting_flux(forward_amplitude=s.s11 @ a_in,
-                                               backward_amplitude=jnp.zeros_like(a_in),
-                                               layer_solve_result=solves[-1])
-        total_in = np.asarray(jnp.sum(inc_fwd, axis=0)).real
-        t = np.asarray(out[:n] + out[n:]).real / total_in
+        t = stack_efficiency(perms, [d * um for d in thick], wl * um, lattice, expansion, form, solve)
+        t = np.asarray(t)
         eff[wi] = t.T
     orders = np.asarray(expansion.basis_coefficients, dtype=int).copy()
     # fmmax's second coordinate runs with the array's second axis: rows downward; report q upward.
     orders[:, 1] = -orders[:, 1]
     return RigorousResult(orders, wls, eff, n,
                           dict(incidence=incidence, formulation=form.name.lower(), layers=len(patterns)))
+
+
+def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: float, lattice, expansion,
+                     formulation, solve: Callable | None = None):
+    """Transmitted efficiency of a layer stack at normal incidence, per order and polarization.
+
+    The one place where this tool calls fmmax's eigensolves, scattering matrix and fluxes:
+    :func:`rigorous_efficiencies` calls it on a sliced height map, and the rigorous design
+    objective (:mod:`doedesign.optimizer.rigorous_objective`) on continuous densities. It is
+    traceable by JAX, so ``jax.grad`` of anything computed from it is the adjoint gradient.
+
+    Parameters
+    ----------
+    permittivities : list of arrays (x, y)
+        Incident medium first, exit medium last; a ``(1, 1)`` array is a uniform layer. fmmax's
+        arrays are (x, y): columns first.
+    thicknesses_um : list of float
+        One per layer (the first and last are not used: half-spaces).
+    wavelength_um : float
+    lattice : fmmax.LatticeVectors
+        The period, in micrometres.
+    expansion : fmmax.Expansion
+    formulation : fmmax.Formulation
+    solve : callable, optional
+        ``solve(permittivity, wavelength_um, in_plane_wavevector)``, e.g. a jitted eigensolve
+        shared by the layers of one shape; fmmax's ``eigensolve_isotropic_media`` if None.
+
+    Returns
+    -------
+    jax array (n_terms, 2)
+        Transmitted Poynting flux per order (the two exit polarizations summed) over the
+        incident flux, for the te (column 0) and tm (column 1) incident wave.
+    """
+    _, fmmax = _solver()
+    import jax.numpy as jnp
+
+    if solve is None:
+        def solve(perm, wl, k):
+            return fmmax.eigensolve_isotropic_media(wavelength=wl, in_plane_wavevector=k,
+                                                    primitive_lattice_vectors=lattice, permittivity=perm,
+                                                    expansion=expansion, formulation=formulation)
+    n = expansion.num_terms
+    wl_um = jnp.asarray(wavelength_um)
+    k_in = fmmax.plane_wave_in_plane_wavevector(wavelength=wl_um, polar_angle=jnp.asarray(0.0),
+                                                azimuthal_angle=jnp.asarray(0.0),
+                                                permittivity=jnp.asarray(permittivities[0]).reshape(-1)[0])
+    solves = [solve(p, wl_um, k_in) for p in permittivities]
+    s = fmmax.stack_s_matrix(layer_solve_results=solves, layer_thicknesses=[jnp.asarray(t) for t in thicknesses_um])
+    a_in = jnp.zeros((2 * n, 2), dtype=complex).at[0, 0].set(1.0).at[n, 1].set(1.0)
+    inc_fwd, _ = fmmax.amplitude_poynting_flux(forward_amplitude=a_in, backward_amplitude=s.s21 @ a_in,
+                                               layer_solve_result=solves[0])
+    out, _ = fmmax.amplitude_poynting_flux(forward_amplitude=s.s11 @ a_in, backward_amplitude=jnp.zeros_like(a_in),
+                                           layer_solve_result=solves[-1])
+    return (out[:n] + out[n:]).real / jnp.sum(inc_fwd, axis=0).real
 
 
 def thin_element_efficiencies(height_m: np.ndarray, wavelengths_m: ArrayLike, index: IndexLike,
