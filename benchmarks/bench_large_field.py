@@ -42,8 +42,10 @@ STAGE_NOTES = {"comparison": " (registration, levelling, edge fit and the instru
 
 
 def profile_case(instrument: str, effects: list[str], seed: int, design_px: int, field: int,
-                 directory: Path) -> dict:
-    """Make the case's files in ``directory``, diagnose them under the CPU-clock profiler; the figures."""
+                 directory: Path, pstats_path: Path | None = None) -> dict:
+    """Make the case's files in ``directory``, diagnose them under the CPU-clock profiler; the figures.
+
+    ``pstats_path``: where to keep the profile too (``pstats`` format), for the top functions."""
     from benchmarks import bench_instruments as bi
     from doedesign.cli import main
 
@@ -55,6 +57,8 @@ def profile_case(instrument: str, effects: list[str], seed: int, design_px: int,
                  str(directory / "measured.datx"), "--out", str(directory / "diag")])
     prof.disable()
     total = time.process_time() - cpu0
+    if pstats_path is not None:
+        prof.dump_stats(str(pstats_path))
     stats = pstats.Stats(prof).stats
     stage = {}
     for label, func in STAGES.items():
@@ -69,14 +73,15 @@ def profile_case(instrument: str, effects: list[str], seed: int, design_px: int,
             "field_px": field, "pixel_um": case.instrument.get("pixel_m", float("nan")) * 1e6}
 
 
-def run(quick: bool = False, case: dict | None = None) -> list[dict]:
-    """Rows of every case of :data:`CASES` (``quick``: the first), or of ``case`` alone."""
+def run(quick: bool = False, case: dict | None = None, pstats_path: Path | None = None) -> list[dict]:
+    """Rows of every case of :data:`CASES` (``quick``: the first), or of ``case`` alone (its profile
+    kept in ``pstats_path`` if given)."""
     if case is None:
         return [row for c in (CASES[:1] if quick else CASES) for row in run(case=c)]
     case = dict(CASE, **case)
     with tempfile.TemporaryDirectory() as tmp:
         got = profile_case(case["instrument"], case["effects"], case["seed"], case["design_px"], case["field"],
-                           Path(tmp))
+                           Path(tmp), pstats_path)
     name = (f"diagnose {case['instrument']} {'+'.join(case['effects']) or 'null'} seed {case['seed']}, "
             f"{case['field']} x {case['field']} camera px")
     notes = (f"named {', '.join(got['named']) or 'nothing'}; final {got['final_over_floor']:.2f}x the floor; "
@@ -100,9 +105,11 @@ def _main(argv=None) -> int:
     parser.add_argument("--field", type=int, default=CASE["field"])
     parser.add_argument("--all", action="store_true", help="every case of CASES (the other options ignored)")
     parser.add_argument("--rows", help="write the rows here (JSON)")
+    parser.add_argument("--pstats", help="keep the case's cProfile here (pstats format; one case only)")
     args = parser.parse_args(argv)
     rows = run() if args.all else run(case={"instrument": args.instrument, "effects": [e for e in args.effects.split(",") if e],
-                     "seed": args.seed, "design_px": args.design_px, "field": args.field})
+                     "seed": args.seed, "design_px": args.design_px, "field": args.field},
+                                      pstats_path=Path(args.pstats) if args.pstats else None)
     text = json.dumps(rows, indent=1)
     if args.rows:
         Path(args.rows).write_text(text)
