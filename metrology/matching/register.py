@@ -40,7 +40,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 import scipy.fft as sfft
 from scipy import ndimage, optimize
-from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 
@@ -352,10 +351,6 @@ def _normalized_xcorr(image, template, valid):
     return ncc
 
 
-# BLAS on one thread: the lattice search's thousands of comb read-outs are dot products of 10-20k
-# bins, where a second BLAS thread only spins (a 740 px field searched over the whole scale band:
-# 7.1 CPU s with two threads against 1.3 s with one, on the same answer to rounding).
-@threadpool_limits.wrap(limits=1, user_api="blas")
 def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, pixel_size_m: float | None = None,
              scale_tolerance: float = 0.15, scale_search: float = SCALE_SEARCH_FACTOR) -> Registration:
     """Find the affine map from the measurement's pixels to the design's pixels.
