@@ -101,8 +101,10 @@ def calibrate(instrument, case, directory, time_limit_s=TIME_LIMIT_S):
     return (out if code == 0 else None), cpu, err
 
 
-def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None):
-    """Draw the wafer and the instrument for one case and write its two files; return the case."""
+def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None, **overrides):
+    """Draw the wafer and the instrument for one case and write its two files; return the case.
+
+    ``overrides``: instrument parameters held instead of drawn (``pixel_m=0.7e-6``)."""
     rng = np.random.default_rng(seed)
     levels = filegen.random_levels((design_px, design_px), rng)
     truth = {name: filegen.draw_effect(name, rng) for name in names}
@@ -110,7 +112,8 @@ def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=No
     # The camera draws from its own stream, so every instrument sees the same wafer.
     cam_rng = np.random.default_rng([seed, list(INSTRUMENTS).index(instrument)])
     field = field or field_px(design_px)
-    height, inst = INSTRUMENTS[instrument].measure(surface, filegen.FINE_PER_PX, levels.shape, (field, field), cam_rng)
+    height, inst = INSTRUMENTS[instrument].measure(surface, filegen.FINE_PER_PX, levels.shape, (field, field), cam_rng,
+                                                 **overrides)
     case = filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
     case.write(directory)
     return case

@@ -60,6 +60,9 @@ RENDER_CACHE_BYTES = 640 * 2 ** 20
 # Fields larger than this (pixels per side) render in blocks of about RENDER_BLOCK_PX (_render_blocked).
 BLOCKED_FIELD_PX = 256
 RENDER_BLOCK_PX = 128
+# Sampled maps a problem keeps (:meth:`CameraHeightProblem._sampled`): a model's groups (one per
+# mask motion, at most one per mask) and a Jacobian's columns' new ones beside them.
+SAMPLES_KEPT = 32
 # Share of the window's pixels the robust rule must re-admit or newly exclude under the final model
 # for the selection (all of it) to run again: 3 of 25,000 cannot change what thousands of samples chose.
 RERUN_SHARE = 0.005
@@ -174,6 +177,9 @@ class CameraHeightProblem(dg.Problem):
         self.pixel_m = self.pitch_m * float(np.sqrt(abs(np.linalg.det(placement.matrix))))
         self._noise = noise
         self._maps = ArrayCache(cache_bytes, max_items=4)
+        # Each motion group's sampled map under its placement (:meth:`_render_masks`): a Jacobian
+        # column that moves or changes one mask resamples that mask's group only.
+        self._samples = ArrayCache(cache_bytes // 8, max_items=SAMPLES_KEPT)
 
     @property
     def noise(self) -> NoiseEstimate:
@@ -299,8 +305,19 @@ class CameraHeightProblem(dg.Problem):
                     spectra.append(spectrum)
                 coeffs = self.instrument.map_of(spectra, blur, factors=factors, beside=beside)
                 self._coeffs.put((keys, blur, surface_values), coeffs)
-            out += self.instrument.sample(coeffs, placements[motion])
+            out += self._sampled(coeffs, (keys, blur, surface_values), placements[motion])
         return out
+
+    def _sampled(self, coeffs, key, placement):
+        """``self.instrument.sample(coeffs, placement)``, kept per map ``key`` and placement (the
+        same numbers: a group a model step leaves alone is not sampled again)."""
+        key = (key, placement.matrix.tobytes(), placement.offset.tobytes())
+        values = self._samples.get(key)
+        if values is None:
+            values = self.instrument.sample(coeffs, placement)
+            values.flags.writeable = False
+            self._samples.put(key, values)
+        return values
 
     def _fourier_factor(self, effect, values, reach):
         """``effect``'s transfer on the instrument's FFT grid, or None when its taps reach
@@ -344,7 +361,7 @@ class CameraHeightProblem(dg.Problem):
         r0, c0 = rows.start, cols.start
         shape = (rows.stop - r0, cols.stop - c0)
         start = Placement(self.placement.matrix, self.placement.offset + self.placement.matrix @ np.array([r0, c0], float))
-        instrument = None
+        instrument = self.instrument.part(shape, start) if margin_px is None else None
         if margin_px is not None:
             instrument = InstrumentModel(self.levels, self.pitch_m, shape, start, step_m=self.instrument.step_m,
                                          margin_px=margin_px, transfers=transfers,

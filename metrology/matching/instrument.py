@@ -84,6 +84,9 @@ _WRAP_GUARD = 26
 # Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
 # all four masks of one model on a whole 512 px field (210 MB each in float64).
 ETCH_CACHE_BYTES = 1024 * 2 ** 20
+# Crops' models an instrument model keeps (:meth:`InstrumentModel.part`): an instrument stage's
+# window and a selection's screening square.
+PARTS_KEPT = 2
 # Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
 PLACEMENT_PARAMS = ("shift_row_px", "shift_col_px", "rotation_rad", "scale_row", "scale_col")
 
@@ -240,6 +243,26 @@ class InstrumentModel:
         self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
         self._beside = None  # the last transfer with edge responses beside it: (transfer, beside, sum)
+        self._parts: OrderedDict = OrderedDict()  # :meth:`part`'s models, the newest last
+        self._parts_lock = threading.Lock()
+
+    def part(self, shape: tuple[int, int], placement: Placement) -> InstrumentModel:
+        """The model of a crop of this camera field (``shape`` pixels from ``placement``), with the
+        default margin and caches, kept for the next request of the same crop: problems on one
+        window (an instrument stage's combinations) then share its etches, spectra and
+        transfers, computed once. The same numbers as a new model's; the last
+        :data:`PARTS_KEPT` crops are kept."""
+        key = (tuple(int(v) for v in shape), placement.matrix.tobytes(), placement.offset.tobytes())
+        with self._parts_lock:
+            model = self._parts.get(key)
+            if model is None:
+                model = InstrumentModel(self.levels, self.pitch_m, shape, placement, step_m=self.step_m,
+                                        moments=self.moments)
+                self._parts[key] = model
+                while len(self._parts) > PARTS_KEPT:
+                    self._parts.popitem(last=False)
+            self._parts.move_to_end(key)
+            return model
 
     @staticmethod
     def transfer_cache(max_items: int = 24) -> ArrayCache:
