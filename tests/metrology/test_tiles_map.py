@@ -201,3 +201,36 @@ def test_hdf5_map_is_read_by_tile(tmp_path):
     (tmp_path / "map.txt").write_text("1 2 3")
     with pytest.raises(Exception, match="must be .npy or .h5"):
         open_map(tmp_path / "map.txt")
+
+
+def test_a_tiles_model_surface_is_simulate_surface_bit_for_bit_on_random_models():
+    """The tile's model evaluations (masks' etches kept between them, the design checked once)
+    give simulate_surface's region bit for bit, on a design larger than the tile, for random
+    values of the map's effects, etch loading and the registration, in a fit-like sequence (one
+    effect moved at a time, moves taken back)."""
+    from masks.process import ProcessParams, simulate_surface
+    from metrology.diagnosis.effects import apply_process, effects_for
+    from metrology.diagnosis.heights import HeightProblem
+
+    levels = element_levels(160)
+    region, u = (60, 100, 40, 80), 2
+    meas = measure(levels, u, [region], {})[region[0] * u:region[1] * u, region[2] * u:region[3] * u]
+    problem = HeightProblem(levels, PITCH_M, meas, PITCH_M / u, region, ProcessParams.ideal(depths_m=list(DEPTHS_M)),
+                            effects_for("height", ["etch_depth", "mask_overlay", "linewidth_bias", "etch_loading"]))
+    rng = np.random.default_rng(7)
+    model = {n: np.zeros(len(e.params)) for n, e in problem.effects.items()}
+    names = list(model)
+    for i in range(60):
+        name = names[rng.integers(len(names))]
+        if name == "etch_loading" and i % 3:
+            model[name] = np.zeros(1)  # mostly off: the etches at unit depth are reused
+        else:
+            scales = problem.effects[name].scales()
+            model[name] = rng.uniform(-1, 1, scales.size) * scales * (rng.integers(1, 4))
+            lo, hi = problem.effects[name].bounds()
+            model[name] = np.clip(model[name], lo, hi)
+        chosen = sorted((problem.effects[n] for n in model), key=lambda e: e.order)
+        params = apply_process(problem.base, chosen, model)
+        np.testing.assert_array_equal(problem.process_surface(params),
+                                      simulate_surface(levels, PITCH_M, params, step_m=PITCH_M / u,
+                                                       region=region).height_m)
