@@ -195,7 +195,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
 def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: int, step_m: float = 0.25e-6,
               region: tuple[int, int, int, int] | None = None, pad_px: int = 0,
               backend: str | Backend | None = None, moments: bool = False,
-              levels_checked: bool = False) -> Array:
+              levels_checked: bool = False, density_cache: dict | None = None) -> Array:
     """Depth (m, >= 0) that one mask's etch removes, on the fine grid of a region.
 
     :func:`simulate_surface` is ``finish_surface(-sum of mask_etch over the masks, ...)``; one
@@ -219,6 +219,10 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
         ``levels`` is what :func:`check_levels` returned for ``params.n_masks`` masks: not
         checked again (the check reads the whole design, where the etch reads a window: a map
         tile's model evaluations on a 1024 px design spent half their time in it).
+    density_cache : dict, optional
+        Kept by the caller for one design and backend: the etch loading's pattern density of
+        each window and mask, on the fine grid, which depends on neither the depths nor the
+        loading's strength (a fit that moves them reuses it; the same array, so the same etch).
 
     Returns
     -------
@@ -233,7 +237,7 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design,
-                                litho.backend_of(backend), moments)
+                                litho.backend_of(backend), moments, density_cache)
     a = margin * u - int(pad_px)
     return etched[a:etched.shape[0] - a, a:etched.shape[1] - a]
 
@@ -306,7 +310,7 @@ def without_motion(params: ProcessParams) -> ProcessParams:
                        mask_rotation=np.zeros_like(params.mask_rotation))
 
 
-def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, moments=False):
+def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, moments=False, density_cache=None):
     """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
     of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``;
     ``moments``: the etch from the moment-corrected coverage (:func:`mask_etch`), and the area
@@ -340,7 +344,7 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
             printed = moment_corrected(coverage, be)
         else:
             printed = litho.move(moment_corrected(grown, be), shift_fine, rotation, centre_fine, be, order=3)
-    depth = _depth_map(levels, window, params, j, pitch_m, u, be)
+    depth = _depth_map(levels, window, params, j, pitch_m, u, be, density_cache)
     gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design, be)
     if gradient is not None:
         depth = depth * gradient
@@ -357,11 +361,26 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
     return coverage, etched
 
 
-def _depth_map(levels, window, params, j, pitch_m, u, be):
-    """Etch depth of mask ``j`` (m): a float, or a fine-grid map with etch loading."""
+def _depth_map(levels, window, params, j, pitch_m, u, be, density_cache=None):
+    """Etch depth of mask ``j`` (m): a float, or a fine-grid map with etch loading (its pattern
+    density kept in ``density_cache`` where one is given)."""
     if params.etch_loading == 0:
         return float(params.etch_depth[j])
-    sigma_px = params.loading_radius / pitch_m
+    key = (tuple(window), int(j), float(params.loading_radius), float(pitch_m), int(u))
+    cached = None if density_cache is None else density_cache.get(key)
+    if cached is None:
+        cached = _density_map(levels, window, params.loading_radius, j, pitch_m, u, be)
+        if density_cache is not None:
+            density_cache[key] = cached
+    rho_fine = be.xp.asarray(cached, copy=True)
+    rho_fine *= float(np.float32(-params.etch_loading * params.etch_depth[j]))
+    rho_fine += float(np.float32(params.etch_depth[j]))
+    return rho_fine
+
+
+def _density_map(levels, window, loading_radius, j, pitch_m, u, be):
+    """Mask ``j``'s pattern density (the loading's Gaussian of its openings) on the window's fine grid."""
+    sigma_px = loading_radius / pitch_m
     reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
     wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
     wide_mask = mask_bit(_window(levels, wide), j).astype(np.float32)
@@ -373,10 +392,7 @@ def _depth_map(levels, window, params, j, pitch_m, u, be):
     fine_c = reach + (np.arange(cols * u) + 0.5) / u - 0.5
     rho = be.ndimage.gaussian_filter(be.asarray(wide_mask), sigma_px, mode="constant", cval=0.0,
                                      truncate=_TRUNCATE)
-    rho_fine = litho.interpolate_separable(rho, fine_r, fine_c, be)
-    rho_fine *= float(np.float32(-params.etch_loading * params.etch_depth[j]))
-    rho_fine += float(np.float32(params.etch_depth[j]))
-    return rho_fine
+    return litho.interpolate_separable(rho, fine_r, fine_c, be)
 
 
 def _gradient_map(window, gradient, pitch_m, u, centre_design, be):

@@ -152,6 +152,8 @@ class HeightProblem(Problem):
         groups, _ = ndi.label(flat)
         self.noise = estimate_noise(meas, groups)
         self._etches = ArrayCache(ETCH_CACHE_BYTES, max_items=64)
+        # The etch loading's pattern density per window and mask (mask_etch's density_cache).
+        self._densities: dict = {}
 
     def surface(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model height map (m) on the fine grid with the effects in ``model`` applied."""
@@ -202,7 +204,7 @@ class HeightProblem(Problem):
                 depths[mask] = 1.0
                 params = params.copy(etch_depth=depths)
             etch = mask_etch(self._checked_levels, self.pitch_m, params, mask, step_m=self.step_m,
-                             region=self.region, pad_px=pad, levels_checked=True)
+                             region=self.region, pad_px=pad, levels_checked=True, density_cache=self._densities)
             self._etches.put(key, etch)
         return etch * depth if linear else etch
 
