@@ -156,6 +156,10 @@ def run(quick: bool = False) -> list[dict]:
     rows.append(_row("scaling efficiency 2 workers", round(eff, 2), "1",
                      f"t1 / (2 t2) on a running cluster; {round(eff_start, 2)} with the cluster's start; "
                      f"2 cores shared, load {two['load']:.1f}"))
+    eff_cpu = sum(one["cpu_s"]) / (2 * max(cpu2))
+    rows.append(_row("scaling efficiency 2 workers, from CPU", round(eff_cpu, 2), "1",
+                     "t1 CPU / (2 x the busier worker's CPU): the wall an idle machine would give, the "
+                     "cluster's start and the scheduler's latency aside"))
     rows.append(_row("load balance 2 workers", round(max(cpu2) / (sum(cpu2) / 2), 2), "1",
                      "max / mean worker CPU over the run (1 = even); tiles_per_task 4"))
     rows.append(_row("scatter of the 1024 px design", round(two["scatter_s"], 2), "s", "broadcast to 2 workers, once a run"))
@@ -174,40 +178,85 @@ def run(quick: bool = False) -> list[dict]:
     return rows
 
 
-def map2048(out: str) -> list[dict]:
-    """The 2048 x 2048 map through ``doe map`` (2 workers, progress bar on stderr): wall, CPU, load."""
+def _tree_sample(proc, seen):
+    """CPU seconds and RSS of ``proc`` and its descendants, latest per pid, into ``seen``."""
+    import psutil
+
+    try:
+        procs = [proc] + proc.children(recursive=True)
+    except psutil.NoSuchProcess:
+        return
+    for p in procs:
+        try:
+            t = p.cpu_times()
+            rss = p.memory_info().rss
+            name = " ".join(p.cmdline()[:3])
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        old = seen.get(p.pid, {"peak_rss": 0})
+        seen[p.pid] = {"cpu": t.user + t.system, "peak_rss": max(old["peak_rss"], rss), "name": name}
+
+
+def map2048(out: str, limit_s: float = 1800.0) -> list[dict]:
+    """The 2048 x 2048 map through ``doe map`` (2 workers, progress bar on stderr): wall, CPU
+    (the process tree's, sampled every 2 s), each process's peak RSS, and the load. A run past
+    ``limit_s`` is interrupted (resumable) and reported with the tiles it finished."""
+    import signal
+
+    import psutil
+
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     levels = elementgen.element_levels(N_DESIGN)
-    masks = np.stack([(levels >> j) & 1 for j in range(4)])
-    from doedesign.design import Design
+    if not (out_dir / "map.npy").is_file():
+        from doedesign.design import Design
 
-    Design(height_m=-np.tensordot(np.array(elementgen.DEPTHS_M), masks, 1), pitch_m=elementgen.PITCH_M,
-           levels=levels.astype(np.int16)).save(out_dir / "design.npz")
-    np.save(out_dir / "map.npy", elementgen.measure(levels, 2, [(0, N_DESIGN, 0, N_DESIGN)], TRUTH))
+        masks = np.stack([(levels >> j) & 1 for j in range(4)])
+        Design(height_m=-np.tensordot(np.array(elementgen.DEPTHS_M), masks, 1), pitch_m=elementgen.PITCH_M,
+               levels=levels.astype(np.int16)).save(out_dir / "design.npz")
+        np.save(out_dir / "map.npy", elementgen.measure(levels, 2, [(0, N_DESIGN, 0, N_DESIGN)], TRUTH))
     cmd = [str(Path(sys.executable).with_name("doe")), "map", "--design", str(out_dir / "design.npz"), "--measured",
            str(out_dir / "map.npy"), "--upsample", "2", "--out", str(out_dir / "run"), "--workers", "2",
            "--effects", ",".join(EFFECTS)]
     load0 = os.getloadavg()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    seen = {}
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True)
+    child = subprocess.Popen(cmd)
+    proc = psutil.Process(child.pid)
+    finished = True
+    while child.poll() is None:
+        _tree_sample(proc, seen)
+        if time.perf_counter() - t0 > limit_s:
+            finished = False
+            child.send_signal(signal.SIGINT)
+            try:
+                child.wait(60)
+            except subprocess.TimeoutExpired:
+                child.kill()
+            break
+        time.sleep(2)
     wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     load1 = os.getloadavg()
-    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    cpu = sum(v["cpu"] for v in seen.values())
+    workers = [v["peak_rss"] / 2 ** 20 for v in seen.values() if "multiprocessing" in v["name"]]
+    done = (out_dir / "run" / "tiles.jsonl").read_text().count("\n") if (out_dir / "run" / "tiles.jsonl").is_file() else 0
     load = f"load at start {load0[0]:.1f} (15 min {load0[2]:.1f}), at end {load1[0]:.1f} (15 min {load1[2]:.1f})"
+    what = "1024 tiles of 40/8 px" if finished else f"interrupted at {limit_s / 60:.0f} min: {done} of 1024 tiles"
     return [_row("2048 x 2048 map, doe map on 2 workers, wall", round(wall / 60, 1), "min",
-                 f"1024 tiles of 40/8 px, progress bar; {load}", limit=10),
+                 f"{what}, progress bar; {load}", limit=10),
             _row("2048 x 2048 map, CPU", round(cpu / 60, 1), "CPU min",
-                 f"doe map and its workers (children's rusage); CPU / 2 = {cpu / 2 / 60:.1f} min, "
-                 "the wall an idle 2-core machine would take")]
+                 f"doe map, its nanny and workers (sampled every 2 s); CPU / 2 = {cpu / 2 / 60:.1f} min, the wall "
+                 f"an idle 2-core machine would take; {cpu / max(done, 1):.2f} CPU s per tile"),
+            _row("2048 x 2048 map, peak RSS per worker", round(max(workers, default=0.0)), "MiB",
+                 f"psutil, sampled every 2 s; workers {', '.join(f'{w:.0f}' for w in workers)} MiB")]
 
 
 if __name__ == "__main__":
     import json
 
     if "--map2048" in sys.argv:
-        print(json.dumps(map2048(sys.argv[sys.argv.index("--map2048") + 1]), indent=1))
+        i = sys.argv.index("--map2048")
+        limit = float(sys.argv[i + 2]) if len(sys.argv) > i + 2 else 1800.0
+        print(json.dumps(map2048(sys.argv[i + 1], limit), indent=1))
     else:
         print(json.dumps(run(quick="--quick" in sys.argv), indent=1))
