@@ -221,7 +221,7 @@ def map2048(out: str, limit_s: float = 1800.0) -> list[dict]:
     load0 = os.getloadavg()
     seen = {}
     t0 = time.perf_counter()
-    child = subprocess.Popen(cmd)
+    child = subprocess.Popen(cmd, env={**os.environ, "DOE_PROGRESS": "1"})  # the bar on a non-terminal stderr too
     proc = psutil.Process(child.pid)
     finished = True
     while child.poll() is None:
@@ -238,7 +238,8 @@ def map2048(out: str, limit_s: float = 1800.0) -> list[dict]:
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
     cpu = sum(v["cpu"] for v in seen.values())
-    workers = [v["peak_rss"] / 2 ** 20 for v in seen.values() if "multiprocessing" in v["name"]]
+    # The driver's descendants (the workers, the resource tracker); their command lines vary.
+    workers = [v["peak_rss"] / 2 ** 20 for pid, v in seen.items() if pid != child.pid and v["peak_rss"] > 2 ** 27]
     done = (out_dir / "run" / "tiles.jsonl").read_text().count("\n") if (out_dir / "run" / "tiles.jsonl").is_file() else 0
     load = f"load at start {load0[0]:.1f} (15 min {load0[2]:.1f}), at end {load1[0]:.1f} (15 min {load1[2]:.1f})"
     what = "1024 tiles of 40/8 px" if finished else f"interrupted at {limit_s / 60:.0f} min: {done} of 1024 tiles"
