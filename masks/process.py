@@ -51,6 +51,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from doedesign.engine.backend import Array, Backend
 from doedesign.errors import DoeError
@@ -61,8 +62,8 @@ from .effects import EFFECTS
 from .moments import moment_corrected
 from .process_params import ProcessParams, finite_float
 
-__all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "etch_key", "fine_upsample", "finish_surface",
-           "design_centre", "mask_etch", "mask_motion", "proximity_optics", "simulate_surface", "surface_key",
+__all__ = ["EFFECTS", "ProcessParams", "SimulatedSurface", "check_levels", "etch_key", "fine_upsample",
+           "finish_surface", "design_centre", "mask_etch", "mask_motion", "proximity_optics", "simulate_surface", "surface_key",
            "without_motion"]
 
 log = logging.getLogger(__name__)
@@ -162,7 +163,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
     if not isinstance(params, ProcessParams):
         raise DoeError(f"params must be a ProcessParams, got {type(params).__name__}")
     n = params.n_masks
-    levels = _check_levels(levels, n)
+    levels = check_levels(levels, n)
     pitch_m = _positive(pitch_m, "pitch_m")
     step_m = _positive(step_m, "step_m")
     region = _check_region(region, levels.shape)
@@ -193,7 +194,8 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
 
 def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: int, step_m: float = 0.25e-6,
               region: tuple[int, int, int, int] | None = None, pad_px: int = 0,
-              backend: str | Backend | None = None, moments: bool = False) -> Array:
+              backend: str | Backend | None = None, moments: bool = False,
+              levels_checked: bool = False, density_cache: dict | None = None) -> Array:
     """Depth (m, >= 0) that one mask's etch removes, on the fine grid of a region.
 
     :func:`simulate_surface` is ``finish_surface(-sum of mask_etch over the masks, ...)``; one
@@ -213,12 +215,21 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
         The printed coverage's partly covered pixels with their first moments folded into their
         neighbours (:func:`masks.moments.moment_corrected`): for a model that treats each fine
         pixel as uniform (the camera render), not an area coverage.
+    levels_checked : bool
+        ``levels`` is what :func:`check_levels` returned for ``params.n_masks`` masks: not
+        checked again (the check reads the whole design, where the etch reads a window: a map
+        tile's model evaluations on a 1024 px design spent half their time in it).
+    density_cache : dict, optional
+        Kept by the caller for one design and backend: the etch loading's pattern density of
+        each window and mask, on the fine grid, which depends on neither the depths nor the
+        loading's strength (a fit that moves them reuses it; the same array, so the same etch).
 
     Returns
     -------
     array of float64 (of ``backend``), shape ``((row1 - row0) * u + 2 pad_px, (col1 - col0) * u + 2 pad_px)``
     """
-    levels = _check_levels(levels, params.n_masks)
+    if not levels_checked:
+        levels = check_levels(levels, params.n_masks)
     region = _check_region(region, levels.shape)
     u = fine_upsample(_positive(pitch_m, "pitch_m"), _positive(step_m, "step_m"))
     row0, row1, col0, col1 = region
@@ -226,7 +237,7 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design,
-                                litho.backend_of(backend), moments)
+                                litho.backend_of(backend), moments, density_cache)
     a = margin * u - int(pad_px)
     return etched[a:etched.shape[0] - a, a:etched.shape[1] - a]
 
@@ -299,7 +310,7 @@ def without_motion(params: ProcessParams) -> ProcessParams:
                        mask_rotation=np.zeros_like(params.mask_rotation))
 
 
-def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, moments=False):
+def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, moments=False, density_cache=None):
     """Printed coverage (float32) and etched depth (float64, m) of mask ``j`` on the fine grid
     of ``window`` (design pixels, may extend beyond the design), arrays of backend ``be``;
     ``moments``: the etch from the moment-corrected coverage (:func:`mask_etch`), and the area
@@ -333,7 +344,7 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
             printed = moment_corrected(coverage, be)
         else:
             printed = litho.move(moment_corrected(grown, be), shift_fine, rotation, centre_fine, be, order=3)
-    depth = _depth_map(levels, window, params, j, pitch_m, u, be)
+    depth = _depth_map(levels, window, params, j, pitch_m, u, be, density_cache)
     gradient = _gradient_map(window, params.etch_gradient, pitch_m, u, centre_design, be)
     if gradient is not None:
         depth = depth * gradient
@@ -350,11 +361,26 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
     return coverage, etched
 
 
-def _depth_map(levels, window, params, j, pitch_m, u, be):
-    """Etch depth of mask ``j`` (m): a float, or a fine-grid map with etch loading."""
+def _depth_map(levels, window, params, j, pitch_m, u, be, density_cache=None):
+    """Etch depth of mask ``j`` (m): a float, or a fine-grid map with etch loading (its pattern
+    density kept in ``density_cache`` where one is given)."""
     if params.etch_loading == 0:
         return float(params.etch_depth[j])
-    sigma_px = params.loading_radius / pitch_m
+    key = (tuple(window), int(j), float(params.loading_radius), float(pitch_m), int(u))
+    cached = None if density_cache is None else density_cache.get(key)
+    if cached is None:
+        cached = _density_map(levels, window, params.loading_radius, j, pitch_m, u, be)
+        if density_cache is not None:
+            density_cache[key] = cached
+    rho_fine = be.xp.asarray(cached, copy=True)
+    rho_fine *= float(np.float32(-params.etch_loading * params.etch_depth[j]))
+    rho_fine += float(np.float32(params.etch_depth[j]))
+    return rho_fine
+
+
+def _density_map(levels, window, loading_radius, j, pitch_m, u, be):
+    """Mask ``j``'s pattern density (the loading's Gaussian of its openings) on the window's fine grid."""
+    sigma_px = loading_radius / pitch_m
     reach = int(math.ceil(_TRUNCATE * sigma_px)) + 1
     wide = (window[0] - reach, window[1] + reach, window[2] - reach, window[3] + reach)
     wide_mask = mask_bit(_window(levels, wide), j).astype(np.float32)
@@ -366,10 +392,7 @@ def _depth_map(levels, window, params, j, pitch_m, u, be):
     fine_c = reach + (np.arange(cols * u) + 0.5) / u - 0.5
     rho = be.ndimage.gaussian_filter(be.asarray(wide_mask), sigma_px, mode="constant", cval=0.0,
                                      truncate=_TRUNCATE)
-    rho_fine = litho.interpolate_separable(rho, fine_r, fine_c, be)
-    rho_fine *= float(np.float32(-params.etch_loading * params.etch_depth[j]))
-    rho_fine += float(np.float32(params.etch_depth[j]))
-    return rho_fine
+    return litho.interpolate_separable(rho, fine_r, fine_c, be)
 
 
 def _gradient_map(window, gradient, pitch_m, u, centre_design, be):
@@ -412,7 +435,14 @@ def _window(levels, window):
     return out
 
 
-def _check_levels(levels, n_masks):
+def check_levels(levels: ArrayLike, n_masks: int) -> np.ndarray:
+    """``levels`` as the integer array the simulation reads (whole-number floats converted).
+
+    Raises
+    ------
+    DoeError
+        Not a non-empty 2-D array, non-integer values, or levels outside ``0 .. 2**n_masks - 1``.
+    """
     arr = np.asarray(levels)
     if arr.ndim != 2 or arr.size == 0:
         raise DoeError(f"levels must be a non-empty 2-D array, got shape {arr.shape}")

@@ -108,9 +108,11 @@ class HeightProblem(Problem):
                  region: tuple[int, int, int, int], base_params: ProcessParams, effects: Sequence[Effect],
                  border_m: float = 3e-6, fit_registration: bool = True) -> None:
         from masks.decompose import levels_to_masks
-        from masks.process import fine_upsample
+        from masks.process import check_levels, fine_upsample
 
         self.levels = np.asarray(levels)
+        # The masks' etches read the design checked once here (mask_etch's check reads it whole).
+        self._checked_levels = check_levels(self.levels, base_params.n_masks)
         self.pitch_m = float(pitch_m)
         self.region = tuple(int(v) for v in region)
         u = fine_upsample(pitch_m, step_m)
@@ -150,6 +152,8 @@ class HeightProblem(Problem):
         groups, _ = ndi.label(flat)
         self.noise = estimate_noise(meas, groups)
         self._etches = ArrayCache(ETCH_CACHE_BYTES, max_items=64)
+        # The etch loading's pattern density per window and mask (mask_etch's density_cache).
+        self._densities: dict = {}
 
     def surface(self, model: dict[str, np.ndarray]) -> np.ndarray:
         """Model height map (m) on the fine grid with the effects in ``model`` applied."""
@@ -199,8 +203,8 @@ class HeightProblem(Problem):
                 depths = np.array(params.etch_depth, dtype=float)
                 depths[mask] = 1.0
                 params = params.copy(etch_depth=depths)
-            etch = mask_etch(self.levels, self.pitch_m, params, mask, step_m=self.step_m, region=self.region,
-                             pad_px=pad)
+            etch = mask_etch(self._checked_levels, self.pitch_m, params, mask, step_m=self.step_m,
+                             region=self.region, pad_px=pad, levels_checked=True, density_cache=self._densities)
             self._etches.put(key, etch)
         return etch * depth if linear else etch
 

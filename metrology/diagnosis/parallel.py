@@ -22,6 +22,7 @@ pieces in its thread, in order: the workers are already busy.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -29,12 +30,54 @@ from typing import Any
 
 from doedesign.engine.threaded_fft import cpu_threads
 
-__all__ = ["WORKERS", "in_worker", "parallel_map"]
+__all__ = ["WORKERS", "in_worker", "one_thread", "parallel_map"]
 
 # Threads that share the work: beyond two the Python-level part of each evaluation, which holds
 # the GIL, leaves little to gain (and the machines this is measured on have two cores).
 WORKERS = min(2, cpu_threads())
 _local = threading.local()
+
+
+_one_lock = threading.Lock()
+_one_state: dict[str, Any] = {"depth": 0, "limits": None}
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """BLAS and OpenMP limited to one thread inside the block, as in a Dask worker.
+
+    A Dask nanny starts its workers with ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS`` and
+    ``OPENBLAS_NUM_THREADS`` at 1; a computation run here (``--scheduler inline``, the
+    ``threads`` scheduler, a benchmark, a test) would otherwise get the machine's BLAS threads,
+    which split a factorization's work in another order (an SVD in a least-squares step: results
+    differ in the last bits, and a fit's path with them) and spin beside the caller.
+
+    The limit is the process's (OpenBLAS's pool is shared), so blocks entered from several
+    threads at once share it: the first sets it, the last to leave restores what was there.
+    threadpoolctl lets only one thread (the first to set a limit, until its ``with`` ends) set
+    OpenBLAS's count and silently ignores the others; a thread that set one without a ``with``
+    would keep that right for good. Here any thread may: the right is taken for the set and the
+    restore and released at once. SciPy's FFTs run on one thread unless asked (``workers``), and
+    :mod:`doedesign.engine.threaded_fft` splits only transforms far larger than a map tile's.
+    """
+    from threadpoolctl import OpenBLASController, threadpool_limits
+
+    with _one_lock:
+        if _one_state["depth"] == 0:
+            OpenBLASController.clear_controlling_thread(force=True)
+            _one_state["limits"] = threadpool_limits(limits=1)
+            OpenBLASController.clear_controlling_thread(force=True)
+        _one_state["depth"] += 1
+    try:
+        yield
+    finally:
+        with _one_lock:
+            _one_state["depth"] -= 1
+            if _one_state["depth"] == 0:
+                OpenBLASController.clear_controlling_thread(force=True)
+                _one_state["limits"].restore_original_limits()
+                OpenBLASController.clear_controlling_thread(force=True)
+                _one_state["limits"] = None
 
 
 def in_worker() -> bool:

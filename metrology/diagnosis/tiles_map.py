@@ -77,7 +77,18 @@ def map_tiles(design_shape: tuple[int, int], tile_px: int, overlap_px: int) -> l
 def diagnose_tile(levels: np.ndarray, pitch_m: float, map_path: str, upsample: int, tile: dict,
                   depths_m: list[float], candidates: list[str] | None, threshold: float) -> dict:
     """One tile's result: where it lies, what the selection named, and each map parameter's value
-    and standard error (the refit); ``status`` says why a tile could not be diagnosed."""
+    and standard error (the refit); ``status`` says why a tile could not be diagnosed.
+
+    Computed on one BLAS thread (:func:`~metrology.diagnosis.parallel.one_thread`) wherever it
+    runs, so a tile's result is the same inline, in threads and in any Dask worker, bit for bit.
+    """
+    from metrology.diagnosis.parallel import one_thread
+
+    with one_thread():
+        return _diagnose_tile(levels, pitch_m, map_path, upsample, tile, depths_m, candidates, threshold)
+
+
+def _diagnose_tile(levels, pitch_m, map_path, upsample, tile, depths_m, candidates, threshold):
     from masks.process import ProcessParams
     from metrology.diagnosis.effects import effects_for
     from metrology.diagnosis.fitting import fit_effects

@@ -167,3 +167,50 @@ print(before, len(os.listdir("/proc/self/task")))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     before, after = map(int, out.stdout.split())
     assert after == before
+
+
+def test_one_thread_limits_blas_and_restores_it_after_the_last_block():
+    from threadpoolctl import threadpool_info
+
+    from metrology.diagnosis.parallel import one_thread
+
+    def blas():
+        return {d["filepath"]: d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"}
+
+    before = blas()
+    inside = threading.Event()
+    leave = threading.Event()
+
+    def other():
+        with one_thread():
+            inside.set()
+            leave.wait(10)
+
+    t = threading.Thread(target=other)
+    t.start()
+    inside.wait(10)
+    with one_thread():
+        assert set(blas().values()) <= {1}
+    assert set(blas().values()) <= {1}  # the other block still holds the limit
+    leave.set()
+    t.join()
+    assert blas() == before
+    # A thread after the main thread's block, and after a limit the main thread set without a
+    # ``with`` (threadpoolctl would then ignore every other thread's): limited all the same.
+    from threadpoolctl import threadpool_limits
+
+    with one_thread():
+        pass
+    held = threadpool_limits(limits=2)
+    seen = []
+
+    def later():
+        with one_thread():
+            seen.append(blas())
+
+    t = threading.Thread(target=later)
+    t.start()
+    t.join()
+    held.restore_original_limits()
+    assert set(seen[0].values()) == {1}
+    assert blas() == before
