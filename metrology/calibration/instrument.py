@@ -118,7 +118,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     dict
         The calibration (see the module docstring); :func:`read_instrument` reads it back.
     """
-    from threadpoolctl import threadpool_limits
+    from metrology.diagnosis.parallel import one_thread
 
     from doedesign.levels import design_levels
     from masks.process import ProcessParams
@@ -146,7 +146,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         raise DoeError(f"the artefact's step heights: one per mask ({design.n_masks}), got {len(depths)}")
     placement = comp.instrument_fit.placement
     meas = np.asarray(measurement.height_m, float)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_thread():
         r0, c0 = busiest_camera_window(levels, placement, meas.shape, window_px)
         size = min(window_px, *meas.shape)
         crop = meas[r0:r0 + size, c0:c0 + size]

@@ -53,6 +53,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_compare(args: argparse.Namespace) -> int:
+    """Run ``doe compare`` on one BLAS thread (:func:`metrology.diagnosis.parallel.one_thread`), so
+    that its fits do not depend on the machine's core count."""
+    from metrology.diagnosis.parallel import one_thread
+
+    with one_thread():
+        return _run_compare(args)
+
+
+def _run_compare(args: argparse.Namespace) -> int:
     from doedesign.budget import check_memory, measurement_bytes
     from doedesign.cli.common import print_json
     from doedesign.design import Design

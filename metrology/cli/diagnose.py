@@ -87,6 +87,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``doe diagnose`` on one BLAS thread from its start (:func:`metrology.diagnosis.parallel.one_thread`):
+    the registration and levelling before the fits too, so that the answer does not depend on the
+    machine's core count (a least-squares SVD split over two threads differs in its last bits, and
+    a fit's path with it)."""
+    from metrology.diagnosis.parallel import one_thread
+
+    with one_thread():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from metrology.diagnosis.budget import Deadline
 
     args.limit = Deadline.after(args.cpu_budget_s, args.wall_limit_s)  # from the command's start

@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.ndimage as ndi
-from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 from doedesign.progress import Progress
@@ -37,7 +36,7 @@ from metrology.diagnosis.camera_nuisance import (BATWING, CAMERA, DEFAULT_TRANSF
 from metrology.diagnosis.effects import Effect, effects_for, get_effect
 from metrology.diagnosis.heights import INTERIOR_MARGIN_M, sampled_edge_distance_m
 from metrology.diagnosis.noise import NoiseEstimate, estimate_noise
-from metrology.diagnosis.parallel import parallel_map
+from metrology.diagnosis.parallel import one_thread, parallel_map
 from metrology.diagnosis.tiles import TILE_MARGIN_PX, TILED_WINDOW_PX, TiledCameraProblem
 from metrology.matching.instrument import ETCH_CACHE_BYTES, ArrayCache, InstrumentModel, Placement
 from metrology.matching.level import Leveller, levelling_plane, robust_valid
@@ -471,7 +470,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     from masks.process import ProcessParams
 
     # Small linear algebra: BLAS threads would only spin beside the renders and worker threads.
-    with threadpool_limits(limits=1, user_api="blas"), Progress(3, desc="camera diagnosis") as bar:
+    with one_thread(), Progress(3, desc="camera diagnosis") as bar:
         deadline = limit if limit is not None else clock.Deadline()
         meas = np.asarray(measured_height_m, float)
         r0, c0 = busiest_camera_window(np.asarray(design_levels), placement, meas.shape, window_px)

@@ -13,14 +13,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.ndimage as ndi
-from threadpoolctl import threadpool_limits
 
 from doedesign.errors import DoeError
 from doedesign.levels import printed_height_m
 from metrology.diagnosis.breakdown import binned, radial_psd
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.engine import DEFAULT_THRESHOLD, Problem, run_diagnosis
-from metrology.diagnosis.parallel import WORKERS
+from metrology.diagnosis.parallel import WORKERS, one_thread
 from metrology.diagnosis.noise import estimate_noise
 from metrology.matching.window import window_sums
 
@@ -110,7 +109,7 @@ class PsfRenderer:
             # mid-sized (a crop has 128 rows) and BLAS threads spin while they wait; measured on the
             # full-size case at a load of 11-12 on 2 cores, two BLAS threads took 2-2.5x the CPU
             # time of one for each screening fit.
-            with threadpool_limits(limits=1, user_api="blas"):
+            with one_thread():
                 fresh = self._engine(missing, depth).psf(height_m, views=VIEWS, threads=WORKERS).psf[:, 0]
             for i, w in enumerate(missing):
                 found[w] = np.ascontiguousarray(fresh[:, i])
