@@ -48,6 +48,8 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,6 +76,8 @@ _MARGIN_PX = 2
 _TRUNCATE = 4.0
 # Microtrench feet reach this many decay widths (exp(-12) ~ 6e-6) into the margin.
 _TRENCH_REACH = 12.0
+# Bytes of aerial images through the gap kept between prints (:func:`_gap_image`).
+IMAGE_CACHE_BYTES = 96 * 2 ** 20
 
 
 @dataclass
@@ -172,7 +176,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
     row0, row1, col0, col1 = region
     centre_design = design_centre(levels.shape)
 
-    margin = _margin_px(params, pitch_m, region, centre_design)
+    margin = _margin_px(params, pitch_m, region, centre_design, upsample=u)
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     log.debug("process model: region %s + %d px margin, %d fine px per design px (step %.4g m)",
               region, margin, u, step)
@@ -234,7 +238,7 @@ def mask_etch(levels: np.ndarray, pitch_m: float, params: ProcessParams, mask: i
     u = fine_upsample(_positive(pitch_m, "pitch_m"), _positive(step_m, "step_m"))
     row0, row1, col0, col1 = region
     centre_design = design_centre(levels.shape)
-    margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask]), -(-int(pad_px) // u))
+    margin = max(_margin_px(params, pitch_m, region, centre_design, masks=[mask], upsample=u), -(-int(pad_px) // u))
     window = (row0 - margin, row1 + margin, col0 - margin, col1 + margin)
     _, etched = _print_and_etch(levels, window, params, mask, pitch_m, u, centre_design,
                                 litho.backend_of(backend), moments, density_cache)
@@ -329,11 +333,11 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
     coverage = printed = None
     gap = params.proximity_gap > 0
     if not moments or params.proximity_blur > 0 or trenched or gap:
-        coverage = litho.move(grown, shift_fine, rotation, centre_fine, be)
         if gap:
-            coverage = proximity.print_coverage(coverage, step, proximity_optics(params), params.resist_threshold,
-                                                params.cr_undercut, be)
+            image = _gap_image(mask, params, j, pitch_m, u, centre_design, window, be)
+            coverage = proximity.resist_print(image, step, params.resist_threshold, params.cr_undercut, be)
         else:
+            coverage = litho.move(grown, shift_fine, rotation, centre_fine, be)
             coverage = litho.expose(coverage, params.proximity_blur / step, params.resist_threshold, u, be)
         printed = coverage
     if moments:
@@ -359,6 +363,82 @@ def _print_and_etch(levels, window, params, j, pitch_m, u, centre_design, be, mo
     else:
         etched = xp.astype(printed * depth, xp.float64, copy=False)
     return coverage, etched
+
+
+def image_upsample(params: ProcessParams, pitch_m: float, upsample: int) -> int:
+    """Samples per design pixel of the aerial image through the gap: the coarsest that keeps the
+    print model's sampling rule (:func:`masks.proximity.recommended_step_m`), never finer than the
+    fine grid's ``upsample``."""
+    rule = proximity.recommended_step_m(proximity_optics(params))
+    return min(fine_upsample(pitch_m, rule), int(upsample))
+
+
+def _gap_image(mask, params, j, pitch_m, u, centre_design, window, be):
+    """Mask ``j``'s aerial image through the gap on the fine grid (``u`` per design pixel).
+
+    The image is computed on the grid of :func:`image_upsample` (the print model's sampling rule:
+    finer samples add nothing the collimation's average keeps) and interpolated bilinearly onto
+    the fine grid, where the resist's threshold reads it. It does not depend on the threshold or
+    the chromium undercut, so it is kept (:data:`_IMAGES`): a fit that moves only the dose
+    reprints a mask for the cost of a threshold."""
+    uc = image_upsample(params, pitch_m, u)
+    step_c = pitch_m / uc
+    optics = proximity_optics(params)
+    shift_px, rotation = mask_motion(params, j, pitch_m)
+    centre_c = ((centre_design[0] - window[0] + 0.5) * uc - 0.5, (centre_design[1] - window[2] + 0.5) * uc - 0.5)
+    key = (np.packbits(mask).tobytes(), mask.shape, uc, float(params.linewidth_bias[j]), shift_px, rotation,
+           centre_c, optics, pitch_m) if be.is_numpy else None
+    image = _IMAGES.get(key) if key is not None else None
+    if image is None:
+        grown = litho.grown_mask(mask, uc, float(params.linewidth_bias[j] / step_c), be)
+        cov = litho.move(grown, (shift_px[0] * uc, shift_px[1] * uc), rotation, centre_c, be)
+        image = proximity.aerial_image(cov, step_c, optics, be)
+        if key is not None:
+            _IMAGES.put(key, image)
+    if uc == u:
+        return be.xp.asarray(image, copy=True)  # the threshold overwrites its input
+    n_r, n_c = mask.shape[0] * u, mask.shape[1] * u
+    # Fine pixel a sits at design coordinate (a + 0.5) / u - 0.5 of the window, image sample k at
+    # (k + 0.5) / uc - 0.5.
+    return litho.interpolate_separable(image, (np.arange(n_r) + 0.5) * uc / u - 0.5,
+                                       (np.arange(n_c) + 0.5) * uc / u - 0.5, be)
+
+
+class _ImageStore:
+    """The last aerial images through the gap (host arrays, bounded in bytes), thread-safe; an
+    image is a deterministic function of its key, so keeping it changes no result."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key):
+        with self._lock:
+            value = self._items.get(key)
+            if value is not None:
+                self._items.move_to_end(key)
+            return value
+
+    def put(self, key, value) -> None:
+        with self._lock:
+            if key in self._items or value.nbytes > self.max_bytes:
+                return
+            self._items[key] = value
+            self._bytes += value.nbytes
+            while self._bytes > self.max_bytes:
+                _, old = self._items.popitem(last=False)
+                self._bytes -= old.nbytes
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+
+# Aerial images through the gap kept between prints (a fit's dose steps reuse them).
+_IMAGES = _ImageStore(IMAGE_CACHE_BYTES)
 
 
 def _depth_map(levels, window, params, j, pitch_m, u, be, density_cache=None):
@@ -408,7 +488,15 @@ def _gradient_map(window, gradient, pitch_m, u, centre_design, be):
     return 1.0 + float(gradient[1]) * y_m[:, None] + float(gradient[0]) * x_m[None, :]
 
 
-def _margin_px(params, pitch_m, region, centre_design, masks=slice(None)):
+def _gap_reach_m(params, pitch_m, upsample):
+    """How far (m) a mask point's print through the gap reaches on its image grid, or the
+    farthest any grid holds when the fine grid is not known."""
+    optics = proximity_optics(params)
+    step = 1e-9 if upsample is None else pitch_m / image_upsample(params, pitch_m, upsample)
+    return proximity.reach_m(optics, step)
+
+
+def _margin_px(params, pitch_m, region, centre_design, masks=slice(None), upsample=None):
     """Design pixels of padding so that no effect of ``masks`` reaching the region is cut off."""
     row0, row1, col0, col1 = region
     corners = np.array([[r - 0.5, c - 0.5] for r in (row0, row1) for c in (col0, col1)])
@@ -419,7 +507,7 @@ def _margin_px(params, pitch_m, region, centre_design, masks=slice(None)):
     trench = _TRENCH_REACH * np.max(trenches[:, 1] * (trenches[:, 0] > 0))
     reach = (np.max(overlay) + np.max(np.abs(params.linewidth_bias[masks]))
              + _TRUNCATE * params.proximity_blur + params.sidewall_slope + trench
-             + (proximity.reach_m(proximity_optics(params), 1e-9) + params.cr_undercut
+             + (_gap_reach_m(params, pitch_m, upsample) + params.cr_undercut
                 if params.proximity_gap > 0 else 0.0))
     return _MARGIN_PX + int(math.ceil(reach / pitch_m))
 

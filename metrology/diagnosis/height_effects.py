@@ -93,6 +93,12 @@ def _proximity_blur(params, values):
     return params.copy(proximity_blur=float(values[0]))
 
 
+def _proximity_print(params, values):
+    # The print through the gap replaces the contact print's Gaussian stand-in (the two exclude
+    # each other in ProcessParams): applied after it (order 1), it wins where both are fitted.
+    return params.copy(proximity_gap=float(values[0]), resist_threshold=float(values[1]), proximity_blur=0.0)
+
+
 def _sidewall_slope(params, values):
     return params.copy(sidewall_slope=float(values[0]))
 
@@ -195,6 +201,13 @@ BUILTIN_HEIGHT = [
            [Parameter("sigma_m", "m", 0.0, 4 * _UM, 0.5 * _UM)], _proximity_blur,
            "The contact-print gap blurs the mask's aerial image before the resist threshold: corners round "
            "and small isolated features shrink.", start=(0.8 * _UM,)),
+    Effect("proximity_print", "height", "process",
+           [Parameter("gap_m", "m", 0.0, 100 * _UM, 5 * _UM),
+            Parameter("threshold", "1", 0.15, 0.85, 0.05, 0.5)], _proximity_print,
+           "The masks printed through a gap between chrome and resist (masks.proximity: Fresnel diffraction "
+           "of the lamp's lines, collimation, resist threshold): each edge moves by an amount that depends on "
+           "the feature's size and the dose, small openings print smaller or vanish, edges ripple.",
+           start=(30 * _UM, 0.4), order=1),
     Effect("sidewall_slope", "height", "process",
            [Parameter("ramp_width_m", "m", 0.0, 3 * _UM, 0.3 * _UM)], _sidewall_slope,
            "The etch leaves sloped sidewalls: steps become ramps of a finite width.", start=(1.5 * _UM,)),

@@ -8,7 +8,7 @@ from metrology.diagnosis import effects as fx
 from metrology.diagnosis import psf_effects
 from metrology.diagnosis.effects import Effect, EffectError, Parameter, get_effect, register_effect
 
-BUILTIN = {"etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope", "etch_loading",
+BUILTIN = {"etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "proximity_print", "sidewall_slope", "etch_loading",
            "mask_rotation", "microtrenching", "etch_gradient", "instrument_blur", "batwing", "dual_pixel_crosstalk", "source_bandwidth", "defocus", "depth_scale",
            "background"}
 
