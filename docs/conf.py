@@ -2,8 +2,9 @@
 
 The pages are Markdown (MyST); the API reference comes from the docstrings (autodoc,
 autosummary, numpydoc), the CLI reference from the real ``doe`` parser (``_ext/doe_cli.py``), and
-the notebooks of ``notebooks/`` are rendered by myst-nb without running them (the test suite
-runs them: tests/cli/test_notebooks.py).
+the notebooks of ``notebooks/`` are rendered by myst-nb without running them: the test suite
+runs them (tests/cli/test_notebooks.py) and leaves executed copies in ``build/notebooks/``, which
+``_ext/notebook_pages.py`` shows when they match the stored notebooks.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ root_doc = "index"
 # MyST: $...$ and $$...$$ maths, heading anchors for links between pages.
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
-# The notebooks are run by the test suite; the site shows them as they are stored.
+# The notebooks are run by the test suite, never here; the site shows its executed copies (with
+# outputs) when current, else the notebooks as stored (docs/_ext/notebook_pages.py).
 nb_execution_mode = "off"
 
 autosummary_generate = True
