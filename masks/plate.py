@@ -120,7 +120,7 @@ def plate_layout(designs: Sequence[PlateDesign], *, layers: Sequence[int] = DEFA
     Each mask plate is written from its own layer of the one library. Dies sit on a square
     grid of ``die_pitch_m`` centred on the wafer; each die (with its marks and test
     structures) must lie inside the wafer minus a 5 mm edge exclusion. Global alignment
-    marks sit outside that circle (see :func:`_plate_cell`).
+    marks sit outside that circle (see ``_plate_cell``).
 
     Returns
     -------

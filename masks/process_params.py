@@ -247,7 +247,7 @@ class ProcessParams:
 
 
 def finite_float(value: Any, what: str) -> float:
-    """``value`` as a finite float, or a :class:`DoeError` that names ``what`` and the value.
+    """``value`` as a finite float, or a :class:`~doedesign.errors.DoeError` that names ``what`` and the value.
 
     The one check of a scalar process or tolerance number (masks.tolerance reads its spec
     files with it too).

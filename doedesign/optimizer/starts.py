@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 
 __all__ = ["INITS", "initial_height", "multistart"]
 
+#: Names of the optimizer's starting height maps (:func:`initial_height`).
 INITS = ("random", "zeros", "streak", "grating", "lens", "router")
 
 

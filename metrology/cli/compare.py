@@ -18,6 +18,7 @@ __all__ = ["register", "run_compare"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe compare`` to the subcommands ``sub``."""
     p = sub.add_parser("compare", help="compare a profilometer measurement with its design",
                        description="Level, register and compare a measurement with its design; etch depths, "
                                    "overlay and linewidth bias are fitted in the camera's own pixels (objective "
@@ -53,6 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_compare(args: argparse.Namespace) -> int:
+    """Run ``doe compare`` with the parsed options; return the exit code."""
     from doedesign.budget import check_memory, measurement_bytes
     from doedesign.cli.common import print_json
     from doedesign.design import Design

@@ -3,7 +3,7 @@
 Formats: Nanosurf ``.nid``, Bruker NanoScope ``.spm`` / ``.di``, NT-MDT ``.mdt``, Sensofar
 ``.plu``, Digital Surf ``.sur``, Wyko ``.opd`` and Vision64 ``.opdx``, Keyence ``.vk4``,
 Gwyddion ``.gwy``. ISO 25178-72 ``.x3p`` is read by :mod:`metrology.formats.x3p` (x3pio) and
-stylus line scans by :mod:`metrology.formats.profile`.
+stylus line scans by ``metrology.formats.profile``.
 
 Libraries compared (licence; wheel without a compiler on CPython 3.11.7; CPU time and peak
 traced Python memory reading a 2000 x 2000 float64 x3p written by x3pio, measured once on this
@@ -52,7 +52,7 @@ __all__ = ["LIB_EXTENSIONS", "RASTER_FORMATS", "UNITS_M", "height_channel", "ope
 
 log = logging.getLogger(__name__)
 
-# Extension -> SurfaceTopography's format name (passed, so one reader parses the file).
+#: Extension -> SurfaceTopography's format name (passed, so one reader parses the file).
 LIB_EXTENSIONS = {".nid": "ezd", ".spm": "di", ".di": "di", ".mdt": "mdt", ".plu": "plu", ".sur": "sur",
                   ".opd": "opd", ".opdx": "opdx", ".vk4": "vk", ".gwy": "gwy"}
 UNITS_M = {"km": 1e3, "m": 1.0, "mm": 1e-3, "µm": 1e-6, "μm": 1e-6, "um": 1e-6, "nm": 1e-9, "Å": 1e-10,

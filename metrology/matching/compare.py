@@ -104,7 +104,7 @@ class Comparison:
     texture: Texture | None = None
 
     def fitted_params(self) -> ProcessParams:
-        """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
+        """:class:`~masks.process_params.ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
         return fitted_process(self.instrument_fit, n_masks=self.nominal_depths_m.size)
 
     def artefacts(self) -> dict:

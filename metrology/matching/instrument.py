@@ -84,7 +84,7 @@ _WRAP_GUARD = 26
 # Memory kept for the masks' etches between renders: a Jacobian's columns on a small window, and
 # all four masks of one model on a whole 512 px field (210 MB each in float64).
 ETCH_CACHE_BYTES = 1024 * 2 ** 20
-# Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
+#: Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
 PLACEMENT_PARAMS = ("shift_row_px", "shift_col_px", "rotation_rad", "scale_row", "scale_col")
 
 
