@@ -43,9 +43,9 @@ from threadpoolctl import threadpool_limits
 from ..camera import DEFAULT_SURROUND, Camera, check_surround
 from ..errors import DoeError, SamplingError
 from ..materials import get_material
+from . import adjoint
 from .backend import Array, Backend, select_backend
-from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags, phase_gradient
-from .reads import apply_energy_operator, read_axis, read_pixels, read_pixels_adjoint
+from .lags import axis_kernel, axis_nodes, folded_psf, paired_lags
 from .result import MAX_WAVELENGTHS, VIEWS, PSFResult, parse_wavelengths_nm, read_psf_arrays
 
 if TYPE_CHECKING:
@@ -476,35 +476,7 @@ class PSFEngine:
         loss : float
         grad : ndarray, shape ``self.shape``, d loss / d height (per metre).
         """
-        h = self._check_height(height_m)
-        reads = getattr(loss_fn, "reads", None)
-        if reads is not None and not full_window:
-            value, grad = self._value_and_grad_reads(h, loss_fn, reads)
-            return value, self.backend.to_host(grad) if host else grad
-        nd, nw = self.depths_m.size, self.wavelengths_m.size
-        xp = self.xp
-        psf = np.empty((nd, nw) + self.camera.window_shape)
-        saved = {}
-        for di, depth in enumerate(self.depths_m):
-            for wi, wl in enumerate(self.wavelengths_m):
-                psf[di, wi] = self.backend.to_host(self._view_psf("coded", h, wl, depth))
-                t = self._pupil("coded", h, wl, depth)
-                kern_y, kern_x, const = self._kernels("coded", wl)
-                saved[di, wi] = (t, kern_y, kern_x, const / self._energy["coded"])
-        loss, dpsf = loss_fn(psf)
-        dpsf = np.asarray(dpsf, dtype=float)
-        if dpsf.shape != psf.shape:
-            raise DoeError(f"loss gradient has shape {dpsf.shape}, expected {psf.shape}")
-        (r0, r1, c0, c1), _ = self._views["coded"]
-        grad_pupil = xp.zeros((r1 - r0, c1 - c0), dtype=xp.float64)
-        for (di, wi), (t, kern_y, kern_x, scale) in saved.items():
-            wl = self.wavelengths_m[wi]
-            # dL/dC_k for lags with ky >= 0 (the fold factor 2 of ky > 0 splits over +-ky).
-            d_half = scale * (kern_y.T @ xp.astype(self.backend.asarray(dpsf[di, wi]), xp.complex128) @ kern_x)
-            d_half[1:, ...] *= 0.5
-            grad_pupil += self._phase_per_m(wl) * phase_gradient(t, d_half, self.backend)
-        grad = self._height_gradient(grad_pupil)
-        return float(loss), self.backend.to_host(grad) if host else grad
+        return adjoint.value_and_grad(self, height_m, loss_fn, full_window, host)
 
     def value_and_grad_free(self, x: ArrayLike, free: np.ndarray,
                             loss_fn: Callable[[np.ndarray], tuple[float, ArrayLike]],
@@ -517,86 +489,7 @@ class PSFEngine:
         gathered, where the engine computes. ``free`` is a boolean mask shaped like the map (kept
         on the device for as long as the same mask is passed); ``x`` a host or backend vector.
         """
-        xp = self.xp
-        if self._free is None or self._free[0] is not free:
-            self._free = (free, self.backend.asarray(np.asarray(free, dtype=bool)))
-        mask = self._free[1]
-        h = xp.zeros(self.shape, dtype=xp.float64)
-        h[mask] = xp.astype(self.backend.asarray(x), xp.float64)
-        value, grad = self.value_and_grad(h, loss_fn, full_window, host=False)
-        return value, grad[mask]
-
-    def _height_gradient(self, grad_pupil):
-        """d loss / d height on the design grid (a backend array) from d loss / d height on the coded
-        view's samples."""
-        xp = self.xp
-        (r0, r1, c0, c1), _ = self._views["coded"]
-        grad = xp.zeros((self.grid_shape[0] * self.q, self.grid_shape[1] * self.q), dtype=xp.float64)
-        grad[r0:r1, c0:c1] = grad_pupil
-        if self.q > 1:
-            grad = xp.sum(xp.reshape(grad, (self.grid_shape[0], self.q, self.grid_shape[1], self.q)), axis=(1, 3))
-        if self.surround == "repeat":  # every tile's samples are the design's heights
-            (t0, t1), (s0, s1) = self._tiles()
-            (n0, n1), (g0, g1) = self.shape, self.grid_shape
-            tiled = xp.zeros((t0 * n0, t1 * n1), dtype=xp.float64)
-            tiled[s0:s0 + g0, s1:s1 + g1] = grad
-            return xp.sum(xp.reshape(tiled, (t0, n0, t1, n1)), axis=(0, 2))
-        oy, ox = self._offset
-        return grad[oy:oy + self.shape[0], ox:ox + self.shape[1]]
-
-    def _read_axes(self, wavelength, rows, cols, energy):
-        """Cached :class:`~doedesign.engine.reads.ReadAxis` pair for the coded view."""
-        key = ("reads", float(wavelength), tuple(rows), tuple(cols), bool(energy))
-        found = self._kernel_cache.get(key)
-        if found is not None:
-            return found
-        (r0, r1, c0, c1), _ = self._views["coded"]
-        cam = self.camera
-        lz = wavelength * cam.sensor_distance_m
-        out = []
-        for n, n_pix, axis, lines in ((r1 - r0, cam.window_shape[0], cam.axis_pixel[0], rows),
-                                      (c1 - c0, cam.window_shape[1], cam.axis_pixel[1], cols)):
-            centres, u, w = self._axis_nodes(n_pix, axis, n - 1, lz)
-            lag_sum = (self.xp.sum(self._axis_kernel(n_pix, axis, np.arange(-(n - 1), n), lz), axis=0)
-                       if energy else None)
-            out.append(read_axis(centres[np.asarray(lines)], u, w, self.step_m / lz, n, lag_sum, self.backend))
-        self._cache_put(key, tuple(out))
-        return tuple(out)
-
-    def _value_and_grad_reads(self, h, loss_fn, reads):
-        """:meth:`value_and_grad` for a loss of a few pixels and the window energy (see :mod:`.reads`)."""
-        rows, r_idx = np.unique(np.asarray(reads.rows, dtype=int), return_inverse=True)
-        cols, c_idx = np.unique(np.asarray(reads.cols, dtype=int), return_inverse=True)
-        nd, nw = self.depths_m.size, self.wavelengths_m.size
-        values = np.empty((nd, nw, r_idx.size))
-        energy = np.zeros((nd, nw))
-        saved = {}
-        for di, depth in enumerate(self.depths_m):
-            for wi, wl in enumerate(self.wavelengths_m):
-                t = self._pupil("coded", h, wl, depth)
-                ay, ax = self._read_axes(wl, rows, cols, reads.energy)
-                scale = float(self.step_m ** 2 / (wl * self.camera.sensor_distance_m) ** 2 / self._energy["coded"])
-                grid, field = read_pixels(t, ay, ax, scale, self.backend)
-                values[di, wi] = self.backend.to_host(grid)[r_idx, c_idx]
-                v = apply_energy_operator(t, ay, ax, self.backend, self._work) if reads.energy else None
-                if v is not None:
-                    energy[di, wi] = scale * float(self.xp.sum(self.xp.real(self.xp.conj(t) * v)))
-                saved[di, wi] = (t, field, v, scale)
-        loss, dvalues, denergy = loss_fn.sparse(values, energy)
-        xp = self.xp
-        (r0, r1, c0, c1), _ = self._views["coded"]
-        grad_pupil = xp.zeros((r1 - r0, c1 - c0), dtype=xp.float64)
-        for (di, wi), (t, field, v, scale) in saved.items():
-            wl = self.wavelengths_m[wi]
-            ay, ax = self._read_axes(wl, rows, cols, reads.energy)
-            dgrid = np.zeros((rows.size, cols.size))
-            np.add.at(dgrid, (r_idx, c_idx), dvalues[di, wi])
-            g = read_pixels_adjoint(self.backend.asarray(dgrid), field, ay, ax, scale, self.backend)
-            if v is not None:
-                g += (float(denergy[di, wi]) * scale) * v
-            grad_pupil += self._phase_per_m(wl) * 2.0 * xp.imag(xp.conj(t) * g)
-        return float(loss), self._height_gradient(grad_pupil)
-
+        return adjoint.value_and_grad_free(self, x, free, loss_fn, full_window)
 
 
 def compute_psf(design: Design, camera: Camera | None = None, wavelengths_m: ArrayLike = (486e-9, 589e-9, 656e-9),

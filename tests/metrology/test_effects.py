@@ -5,6 +5,7 @@ import pytest
 from scipy.special import erf
 
 from metrology.diagnosis import effects as fx
+from metrology.diagnosis import psf_effects
 from metrology.diagnosis.effects import Effect, EffectError, Parameter, get_effect, register_effect
 
 BUILTIN = {"etch_depth", "mask_overlay", "linewidth_bias", "proximity_blur", "sidewall_slope", "etch_loading",
@@ -152,7 +153,7 @@ def test_defocus_and_bandwidth_wrap_the_renderer():
     avg = get_effect("source_bandwidth").apply(render, np.array([20e-9]), {})(None, [500e-9, 600e-9], 5.0)
     assert np.allclose(avg[0, :, 0, 0], [500, 600])
     # The Gauss-Hermite rule has the variance of the Gaussian spectrum: sigma = FWHM / 2.355.
-    var = np.sum(fx._GH_WEIGHTS * (fx._GH_NODES * 20e-9 / fx.FWHM_PER_SIGMA) ** 2)
+    var = np.sum(psf_effects._GH_WEIGHTS * (psf_effects._GH_NODES * 20e-9 / fx.FWHM_PER_SIGMA) ** 2)
     assert np.sqrt(var) == pytest.approx(20e-9 / 2.3548, rel=1e-3)
     h = np.ones((3, 3))
     assert np.allclose(get_effect("depth_scale").apply(h, np.array([0.05])), 1.05)

@@ -16,7 +16,8 @@ from masks import litho
 from masks.process import ProcessParams, mask_motion, without_motion
 from metrology.diagnosis import camera
 from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
-from metrology.diagnosis.effects import _gaussian_taps, effects_for
+from metrology.diagnosis.effects import effects_for
+from metrology.diagnosis.height_effects import _gaussian_taps
 from metrology.matching.instrument import Placement
 
 QUIET = {"noise_m": 0.0, "n_spikes": 0, "invalid_fraction": 0.0, "tilt_rad": np.zeros(2), "piston_m": 0.0}
