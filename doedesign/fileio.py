@@ -1,5 +1,6 @@
 """File output: atomic writes (a temporary name beside the target, then rename) and the one
-strict JSON encoder (:func:`json_ready`, :func:`dumps_json`, :func:`write_json`).
+strict JSON encoder (:func:`~doedesign.fileio.json_ready`, :func:`~doedesign.fileio.dumps_json`,
+:func:`~doedesign.fileio.write_json`).
 
 A failure part-way leaves no partial file behind, so a mask shop or a later
 pipeline step never sees a half-written result. Temporary names are short and never end

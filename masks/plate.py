@@ -1,7 +1,7 @@
 """Mask plates: dies on a 4-inch wafer inside a 5-inch plate frame, one layer per mask,
 written as one GDSII library and verified die by die: one die each of several designs
-(:func:`plate_layout`), or a full wafer of one design placed by array references
-(:func:`wafer_plate`), with global alignment marks.
+(:func:`~masks.plate.plate_layout`), or a full wafer of one design placed by array references
+(:func:`~masks.plate.wafer_plate`), with global alignment marks.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Process parameters: one :class:`ProcessParams` holds every fabrication effect of a run.
+"""Process parameters: one :class:`~masks.process_params.ProcessParams` holds every fabrication effect of a run.
 
 Each field is an effect of :mod:`masks.effects` (``etch_depth`` per mask, ``mask_overlay`` per
 mask as (dx, dy, rotation), ``linewidth_bias``, ``proximity_blur``, ...); SI units (m, rad;

@@ -84,7 +84,7 @@ CAMERA = Effect(
     _no_op, "Placement of the camera field on the design and the instrument's lateral transfer (nuisance).",
     kind="artefact", order=-1)
 #: The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
-#: for it (chosen before any fabrication effect, :func:`instrument_stage`), never named.
+#: for it (chosen before any fabrication effect, ``instrument_stage``), never named.
 OBJECTIVE = Effect(
     "objective", "height", "surface",
     [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4, smooth=True)],

@@ -71,13 +71,13 @@ EARLY_EXCESS_SHARE = 0.5
 # ... and above which a final unexplained residual shared by every mask's edges is the
 # instrument's (fabrication names then withheld).
 FINAL_ODD_SHARE = 0.5
-#: Share of the noise floor's power (per sample) the best candidate must explain to be named: less
-#: is within what the instrument model's own mismatch to a real instrument leaves (a CSI null
-#: through its fitted transfer: 0.18 nm rms on a 1.2 nm floor, 2 % of its power), however well the
-#: data resolve it. At the instruments' true floors, false names bought 0.2-3.2 % (a 0.04 % etch
-#: loading beside an overlay; etch depths beside a bias, beside a loading, and on a null, on CSI and
-#: blurred-pixel files); the smallest true second effect measured, 9.9 % (a 2.8 % per mm gradient
-#: beside a depth).
+# Share of the noise floor's power (per sample) the best candidate must explain to be named: less
+# is within what the instrument model's own mismatch to a real instrument leaves (a CSI null
+# through its fitted transfer: 0.18 nm rms on a 1.2 nm floor, 2 % of its power), however well the
+# data resolve it. At the instruments' true floors, false names bought 0.2-3.2 % (a 0.04 % etch
+# loading beside an overlay; etch depths beside a bias, beside a loading, and on a null, on CSI and
+# blurred-pixel files); the smallest true second effect measured, 9.9 % (a 2.8 % per mm gradient
+# beside a depth).
 MIN_POWER_SHARE = 0.05
 # Share of the best screening score (a short fit) within which a candidate is fitted to convergence,
 # and within which the backward pass tries it in the named one's place (one fit at the end): a true

@@ -1,4 +1,4 @@
-"""What a diagnosis found: its named steps and the :class:`Diagnosis` a report is written from.
+"""What a diagnosis found: its named steps and the :class:`~metrology.diagnosis.result.Diagnosis` a report is written from.
 
 A diagnosis is *complete* when its selection ended by its own rules (the criterion); a limit the
 user asked for (:class:`~metrology.diagnosis.budget.Deadline`) that ended any part of it makes it
@@ -84,7 +84,7 @@ class Diagnosis:
         instrument's fit left no room for a candidate tested none.
     below_resolution : dict or None
         The candidate that earned its parameters but would explain under
-        :data:`~metrology.diagnosis.engine.MIN_POWER_SHARE` of the floor's power (``effect``, ``criterion_change``,
+        ``MIN_POWER_SHARE`` (:mod:`metrology.diagnosis.engine`) of the floor's power (``effect``, ``criterion_change``,
         ``floor_power_share``): not named, and the selection ended there.
     """
 

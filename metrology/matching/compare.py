@@ -75,7 +75,7 @@ TERRACE_MARGIN_SIGMAS = 3.0
 
 @dataclass
 class Comparison:
-    """Everything :func:`compare_measurement` found; :meth:`report` is the JSON summary.
+    """Everything :func:`compare_measurement` found; :meth:`~metrology.matching.compare.Comparison.report` is the JSON summary.
 
     Maps are on the measurement grid (row 0 at the top, camera order).
     """
