@@ -52,4 +52,4 @@ bench: $(STAMP_BENCH)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache docs/_build docs/api/generated docs/notebooks
+	rm -rf $(VENV) demo-output .pytest_cache docs/_build docs/api/generated docs/notebooks build/notebooks

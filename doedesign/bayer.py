@@ -98,7 +98,7 @@ def delta_kernels(offsets: Sequence[tuple[int, int]]) -> np.ndarray:
 
 
 def rggb_target_kernels() -> np.ndarray:
-    """Kernels (3, 3, 3) of the RGGB target (:func:`doedesign.targets.bayer` with ``rggb=True``):
+    """Kernels (3, 3, 3) of the RGGB target (:func:`doedesign.targets.builtin.bayer` with ``rggb=True``):
     green split evenly between (1, 0) and (0, 1)."""
     return targets.bayer(Camera(window_shape=(3, 3), axis_pixel=(1, 1)), rggb=True).intensity[0]
 

@@ -105,7 +105,7 @@ def process_limits() -> list[tuple[int, str]]:
 
 
 def _share_limit() -> int:
-    """``DOE_MEMORY_LIMIT``, else :data:`SHARE` of the available memory."""
+    """``DOE_MEMORY_LIMIT``, else ``SHARE`` of the available memory."""
     text = os.environ.get(LIMIT_ENV, "").strip().upper().removesuffix("B")
     if text:
         number, unit = (text[:-1], text[-1]) if text[-1] in _SUFFIX else (text, "")
@@ -130,15 +130,15 @@ def _limit() -> tuple[int, str]:
 
 
 def memory_limit_bytes() -> int:
-    """The most one run may plan to allocate: ``DOE_MEMORY_LIMIT``, else :data:`SHARE` of the
-    available memory, and no more than :data:`SHARE` of the room under :func:`process_limits`."""
+    """The most one run may plan to allocate: ``DOE_MEMORY_LIMIT``, else ``SHARE`` of the
+    available memory, and no more than ``SHARE`` of the room under :func:`process_limits`."""
     return _limit()[0]
 
 
 def check_memory(nbytes: int, what: str) -> None:
     """Refuse ``what`` when its estimated peak ``nbytes`` exceeds the tightest limit the run is under.
 
-    The limits: :func:`memory_limit_bytes` (:data:`SHARE` of the available memory, or
+    The limits: :func:`memory_limit_bytes` (``SHARE`` of the available memory, or
     ``DOE_MEMORY_LIMIT``) and the room left under each of :func:`process_limits`.
 
     Raises

@@ -96,6 +96,7 @@ class Camera:
         return self.focal_length_m / self.aperture_diameter_m
 
     def to_dict(self) -> dict:
+        """The camera's fields as a plain dict (how a design file stores its camera)."""
         d = asdict(self)
         d["focal_length_m"] = self.focal_length_m
         # Strict JSON has no Infinity: a lens focused at infinity is written "inf".
@@ -171,6 +172,7 @@ def _view_weights(grid_shape, pitch_m, diameter_m, side, oversample):
     return out
 
 
+#: What surrounds a design inside the lens aperture (the module docstring): clear glass, chrome, or the design tiled.
 SURROUNDS = ("open", "opaque", "repeat")
 DEFAULT_SURROUND = "open"
 _TEXT = {"open": "open glass (unetched, no phase) around the design inside the lens aperture",

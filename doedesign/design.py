@@ -110,7 +110,7 @@ class Design:
         return tuple(step * 2 ** j for j in range(self.n_masks))
 
     def validate(self, source: str = "design") -> None:
-        """Raise :class:`DesignFileError` naming the field when anything is wrong."""
+        """Raise :class:`~doedesign.errors.DesignFileError` naming the field when anything is wrong."""
         h = self.height_m
         if h.ndim != 2 or min(h.shape) < 1:
             raise DesignFileError(f"{source}: height_m must be a 2-D array, got shape {h.shape}")
@@ -153,7 +153,7 @@ class Design:
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
 
     def camera(self, missing: str = "seed") -> Camera | None:
-        """The camera recorded in the metadata (``metadata["camera"]``, :meth:`Camera.to_dict`).
+        """The camera recorded in the metadata (``metadata["camera"]``, :meth:`Camera.to_dict <doedesign.camera.Camera.to_dict>`).
 
         Parameters
         ----------

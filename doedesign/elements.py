@@ -150,6 +150,7 @@ def cylinder_streak_start(camera: Camera, size_px: int, arm_length_px: int, mate
 
 
 def streak_element(size_px: int = 160, iterations: int = 30) -> dict:
+    """Design the HDR streak element and score the light on the streak against its two bounds."""
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
     target = targets.hdr_streak(cam)
     start = cylinder_streak_start(cam, size_px, WINDOW[0] // 4)
@@ -162,6 +163,7 @@ def streak_element(size_px: int = 160, iterations: int = 30) -> dict:
 
 def hyperspectral_element(size_px: int = 160, iterations: int = 30,
                           wavelengths_m: ArrayLike = (450e-9, 550e-9, 650e-9)) -> dict:
+    """Design the hyperspectral element and score each band's first-order light against the staircase limit."""
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, window_shape=WINDOW, axis_pixel=AXIS)
     target = targets.hyperspectral(cam, wavelengths_m=wavelengths_m)
     run = _run(target, cam, size_px, OptimizerSettings(max_iter=iterations, anneal_iter=4, init="grating"))
@@ -176,6 +178,7 @@ def hyperspectral_element(size_px: int = 160, iterations: int = 30,
 
 
 def depth_element(size_px: int = 160, iterations: int = 30, depths_m: ArrayLike = (1.0, 2.0, 3.0, 4.0)) -> dict:
+    """Design the depth element (a ring per depth) and score its ring radii against the reachable schedule."""
     from .engine.psf import PSFEngine
 
     cam = Camera(aperture_diameter_m=size_px * PITCH_M, focus_distance_m=3.5, window_shape=WINDOW, axis_pixel=AXIS)

@@ -1,5 +1,6 @@
 """File output: atomic writes (a temporary name beside the target, then rename) and the one
-strict JSON encoder (:func:`json_ready`, :func:`dumps_json`, :func:`write_json`).
+strict JSON encoder (:func:`~doedesign.fileio.json_ready`, :func:`~doedesign.fileio.dumps_json`,
+:func:`~doedesign.fileio.write_json`).
 
 A failure part-way leaves no partial file behind, so a mask shop or a later
 pipeline step never sees a half-written result. Temporary names are short and never end
@@ -211,7 +212,7 @@ def ensure_output_file(path: str | Path, what: str = "--out") -> Path:
 def output_run(folder: str | Path, command: str, keep_partial: bool = False) -> Iterator[Path]:
     """Mark ``folder`` incomplete while ``command`` writes its outputs there.
 
-    The marker file :data:`INCOMPLETE_MARKER` is written first and removed only when the
+    The marker file ``INCOMPLETE_MARKER`` is written first and removed only when the
     block finishes without an exception, so after a kill or a failure the folder says that
     its files may come from different runs. When the block fails with an error (a full
     disk, a refused input), the results it wrote through :func:`atomic_path` that did not
@@ -273,7 +274,7 @@ def _snapshot(folder):
 def make_temporary(folder: str | Path) -> Path:
     """A new empty file ``.tmp.<pid>-<random>.part`` in ``folder`` (at most 30 bytes of name).
 
-    Named so that :func:`remove_stale_temporaries` removes it once its process is gone, and
+    Named so that ``remove_stale_temporaries`` removes it once its process is gone, and
     short so that it fits wherever the final name fits.
     """
     fd, tmp = tempfile.mkstemp(prefix=f".tmp.{os.getpid()}-", suffix=TEMP_SUFFIX, dir=folder)
@@ -413,7 +414,7 @@ def check_npy_header(fh: BinaryIO, available_bytes: int, where: str,
     ------
     error
         Object arrays (never unpickled), a claimed size beyond the data present or beyond
-        :data:`MAX_INPUT_ARRAY_BYTES`.
+        ``MAX_INPUT_ARRAY_BYTES``.
     """
     error = error or DoeError
     fmt = np.lib.format
@@ -486,7 +487,7 @@ def read_npz(path: str | Path, required: Iterable[str], what: str,
     """All arrays of an ``.npz`` after checking the ``required`` fields.
 
     Claimed array sizes are checked against the data present and
-    :data:`MAX_INPUT_ARRAY_BYTES` before anything is inflated. Errors (of class ``error``,
+    ``MAX_INPUT_ARRAY_BYTES`` before anything is inflated. Errors (of class ``error``,
     default :class:`~doedesign.errors.DoeError`) name the file, say it is not a ``what``
     and list what is missing.
     """

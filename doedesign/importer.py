@@ -34,6 +34,7 @@ __all__ = ["EXPORT_WHAT", "FORMATS", "export_map", "import_design", "read_map"]
 
 log = logging.getLogger(__name__)
 
+#: File extensions ``doe import`` reads (and ``doe export`` writes where the format allows).
 FORMATS = (".npy", ".npz", ".mat", ".tif", ".tiff", ".png", ".csv", ".txt", ".h5", ".hdf5")
 EXPORT_WHAT = ("phase", "height", "levels")
 HEIGHT_UNITS = {"m": 1.0, "um": 1e-6, "nm": 1e-9}

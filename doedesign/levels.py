@@ -47,7 +47,7 @@ LEVEL_COUNTS = (2, 4, 8, 16, 32)
 
 
 def check_level_count(n_levels: object, where: str = "levels") -> int:
-    """The level count as an int, refused (:class:`DoeError` naming ``where``) unless it is one of
+    """The level count as an int, refused (:class:`~doedesign.errors.DoeError` naming ``where``) unless it is one of
     :data:`LEVEL_COUNTS`: M binary masks etch 2**M levels, so no other count can be made."""
     if isinstance(n_levels, bool) or not isinstance(n_levels, (int, np.integer)) or int(n_levels) not in LEVEL_COUNTS:
         raise DoeError(f"{where}: the level count must be one of {', '.join(map(str, LEVEL_COUNTS))} "

@@ -70,7 +70,7 @@ __all__ = ["DEFAULT_TERMS", "DEFAULT_TOLERANCE", "score_design", "FEATURE_MIN_WA
 
 log = logging.getLogger(__name__)
 
-#: A refractive index, or a function of the wavelength (m) giving one.
+# A refractive index, or a function of the wavelength (m) giving one.
 IndexLike = complex | float | Callable[[float], complex]
 
 DEFAULT_TERMS = 200

@@ -1,7 +1,7 @@
 """Spectral weights for polychromatic PSFs: colour-channel responses, LEDs and bandpasses.
 
 Each function returns non-negative weights on a given wavelength grid (metres); use them
-with :meth:`doedesign.engine.psf.PSFResult.polychromatic`. The colour responses are smooth
+with :meth:`doedesign.engine.result.PSFResult.polychromatic`. The colour responses are smooth
 Gaussian approximations of a typical CMOS Bayer sensor (not a measured camera curve);
 pass measured curves with :func:`tabulated` when you have them.
 """

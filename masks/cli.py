@@ -92,16 +92,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 NO_LIMIT = "none"
-#: Side (design px) of the default print-check window: the fine grid of a whole 1600 px element
-#: at the sampling rule's 0.5 um step is 17280^2 cells, minutes and gigabytes; a central window
-#: holds the element's feature sizes.
+# Side (design px) of the default print-check window: the fine grid of a whole 1600 px element
+# at the sampling rule's 0.5 um step is 17280^2 cells, minutes and gigabytes; a central window
+# holds the element's feature sizes.
 PRINT_WINDOW_PX = 128
-#: Bytes per fine cell of the print check (two surfaces, the printed masks, the aerial image's work).
+# Bytes per fine cell of the print check (two surfaces, the printed masks, the aerial image's work).
 PRINT_BYTES_PER_CELL = 64
 
 
 class VertexLimit(Number):
-    """``--max-vertices``: an integer >= :data:`MIN_VERTICES`, or ``none`` (no limit)."""
+    """``--max-vertices``: an integer >= :data:`~masks.grid.MIN_VERTICES`, or ``none`` (no limit)."""
 
     def __init__(self) -> None:
         super().__init__(int, MIN_VERTICES)

@@ -23,8 +23,8 @@ if TYPE_CHECKING:
 __all__ = ["DEFAULT_DEPTHS_M", "DEFAULT_ETCH_ORDER", "binary_depths_m", "check_etch_order",
            "levels_to_masks", "mask_bit", "masks_to_height", "masks_to_levels", "process_depths_m"]
 
-# Nominal etch depths of the four masks (m): 1, 2, 4 and 8 steps of ~75 nm (fused silica,
-# 550 nm, 16 levels). Real runs should pass 2**j * level_step_m(...).
+#: Nominal etch depths of the four masks (m): 1, 2, 4 and 8 steps of ~75 nm (fused silica,
+#: 550 nm, 16 levels). Real runs should pass 2**j * level_step_m(...).
 DEFAULT_DEPTHS_M = (75e-9, 150e-9, 300e-9, 600e-9)
 
 # Mask j is etched in step j: shallowest first.

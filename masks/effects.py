@@ -1,7 +1,7 @@
 """The vocabulary of fabrication effects of the masks process model.
 
 One table, :data:`PROCESS_EFFECTS`, lists every effect :mod:`masks.process` can print: its
-name (also the :class:`~masks.process.ProcessParams` field that holds it), its physical
+name (also the :class:`~masks.process_params.ProcessParams` field that holds it), its physical
 parameters with the unit in each name, their plausible bounds, whether they repeat per mask,
 and a one-sentence description. Simulation, tolerance analysis and diagnosis read their
 effect names and bounds from here. Conventions as in :mod:`masks.process`: x toward
@@ -65,6 +65,7 @@ def _p(name, unit, lower, upper, per_mask=True):
     return EffectParameter(name, unit, lower, upper, per_mask)
 
 
+#: Every effect the process model can print, with its parameters, units and bounds (the module docstring).
 PROCESS_EFFECTS = (
     ProcessEffect("etch_depth", (_p("depth_m", "m", 0.0, 5e-6),),
                   "Each mask's etch removes a depth that differs from its nominal value."),

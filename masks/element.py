@@ -52,7 +52,7 @@ def clear_aperture_m(design: Design) -> float | None:
 LEVEL_COLOURS = np.array([[68, 1, 84], [72, 26, 108], [71, 47, 125], [65, 68, 135], [57, 86, 140], [49, 104, 142],
                           [42, 120, 142], [35, 136, 142], [31, 152, 139], [34, 168, 132], [53, 183, 121],
                           [84, 197, 104], [122, 209, 81], [165, 219, 54], [210, 226, 27], [253, 231, 37]], np.uint8)
-PREVIEW_PX = 360  # longest side of each panel
+PREVIEW_PX = 360  #: longest side of each panel
 
 
 def preview(levels: np.ndarray, masks: np.ndarray, path: str | Path, title: str) -> None:

@@ -43,7 +43,7 @@ STRNAME, ENDSTR, UNITS, ENDLIB = 0x0606, 0x0700, 0x0305, 0x0400
 
 def boundary_records(pset: PolygonSet, grid: PixelGrid, layer: int, datatype: int = 0,
                      max_vertices: int = MAX_VERTICES) -> bytes:
-    """GDSII BOUNDARY elements for a :class:`PolygonSet`, as one big-endian byte string.
+    """GDSII BOUNDARY elements for a :class:`~masks.polygons.PolygonSet`, as one big-endian byte string.
 
     Each polygon is written as BOUNDARY, LAYER, DATATYPE, XY (its vertices in database
     units, closed by repeating the first) and ENDEL, all built with numpy in one pass.

@@ -31,8 +31,8 @@ __all__ = ["narrowest_runs_px", "APERTURE_LAYER", "DEFAULT_LAYERS", "DIE_LAYER",
 
 UNIT_M = 1e-6
 PRECISION_M = 1e-9
-MAX_VERTICES = 199  # GDSII default: the vertex limit most mask-shop tools accept
-MIN_VERTICES = 5  # gdstk's fracture returns nothing for 4 and write_gds then ignores the limit
+MAX_VERTICES = 199  #: GDSII default: the vertex limit most mask-shop tools accept
+MIN_VERTICES = 5  #: gdstk's fracture returns nothing for 4 and write_gds then ignores the limit
 GDS_VERTEX_CEILING = 8190  # an XY record's 16-bit length holds 8191 points, the closing one included
 FORMATS = ("gds", "oasis")
 SUFFIXES = {"gds": ".gds", "oasis": ".oas"}

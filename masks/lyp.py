@@ -24,8 +24,8 @@ __all__ = ["LayerStyle", "MASK_COLOURS", "die_layer_styles", "layer_properties_x
 #: Mask j's colour (frame and fill), j = 0, 1, ...: well apart in hue, none close to the grey
 #: of the die outline or the yellow of the labels.
 MASK_COLOURS = ("#ff3030", "#2f7fff", "#20b040", "#b040ff", "#ff8c00", "#00b8b8", "#c0a000", "#ff40a0")
-#: Stipples (KLayout's built-in dither patterns): each mask hatched its own way, so where
-#: masks overlap both stay visible.
+# Stipples (KLayout's built-in dither patterns): each mask hatched its own way, so where
+# masks overlap both stay visible.
 MASK_PATTERNS = ("I5", "I9", "I13", "I17", "I6", "I10", "I14", "I18")
 
 

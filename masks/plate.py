@@ -1,7 +1,7 @@
 """Mask plates: dies on a 4-inch wafer inside a 5-inch plate frame, one layer per mask,
 written as one GDSII library and verified die by die: one die each of several designs
-(:func:`plate_layout`), or a full wafer of one design placed by array references
-(:func:`wafer_plate`), with global alignment marks.
+(:func:`~masks.plate.plate_layout`), or a full wafer of one design placed by array references
+(:func:`~masks.plate.wafer_plate`), with global alignment marks.
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def plate_layout(designs: Sequence[PlateDesign], *, layers: Sequence[int] = DEFA
     Each mask plate is written from its own layer of the one library. Dies sit on a square
     grid of ``die_pitch_m`` centred on the wafer; each die (with its marks and test
     structures) must lie inside the wafer minus a 5 mm edge exclusion. Global alignment
-    marks sit outside that circle (see :func:`_plate_cell`).
+    marks sit outside that circle (see ``_plate_cell``).
 
     Returns
     -------

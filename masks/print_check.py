@@ -39,7 +39,7 @@ def in_place_threshold(optics: ProximityOptics, step_m: float) -> float:
 
     The exposure through the gap of a half-plane opening, read at its drawn edge (the mean of the
     two fine cells beside it): one period of a strip, endless along the edge, whose other edge
-    lies :data:`_EDGE_CELLS` cells away (many Fresnel zones at any gap the model takes).
+    lies ``_EDGE_CELLS`` cells away (many Fresnel zones at any gap the model takes).
     """
     cov = np.zeros((8, 2 * _EDGE_CELLS), dtype=np.float32)
     cov[:, _EDGE_CELLS:] = 1.0

@@ -139,7 +139,7 @@ def simulate_surface(levels: np.ndarray, pitch_m: float, params: ProcessParams |
     pitch_m : float
         Design pixel pitch (m).
     params : ProcessParams, optional
-        Process; default :meth:`ProcessParams.ideal` with 4 masks.
+        Process; default :meth:`ProcessParams.ideal <masks.process_params.ProcessParams.ideal>` with 4 masks.
     step_m : float
         Requested fine-grid spacing (m); the actual one is ``pitch_m / upsample`` with
         ``upsample = ceil(pitch_m / step_m)``.

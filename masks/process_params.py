@@ -1,4 +1,4 @@
-"""Process parameters: one :class:`ProcessParams` holds every fabrication effect of a run.
+"""Process parameters: one :class:`~masks.process_params.ProcessParams` holds every fabrication effect of a run.
 
 Each field is an effect of :mod:`masks.effects` (``etch_depth`` per mask, ``mask_overlay`` per
 mask as (dx, dy, rotation), ``linewidth_bias``, ``proximity_blur``, ...); SI units (m, rad;
@@ -247,7 +247,7 @@ class ProcessParams:
 
 
 def finite_float(value: Any, what: str) -> float:
-    """``value`` as a finite float, or a :class:`DoeError` that names ``what`` and the value.
+    """``value`` as a finite float, or a :class:`~doedesign.errors.DoeError` that names ``what`` and the value.
 
     The one check of a scalar process or tolerance number (masks.tolerance reads its spec
     files with it too).

@@ -104,6 +104,7 @@ __all__ = ["GAUSSIAN_ERROR", "HG_LINES_M", "HG_WEIGHTS", "ProximityOptics", "aer
 
 #: Mercury g, h, i lines (m) and their exposure weights (sum 1), see the module docstring.
 HG_LINES_M = (435.8e-9, 404.7e-9, 365.0e-9)
+#: Exposure weights of the g, h and i lines of :data:`HG_LINES_M` (sum 1).
 HG_WEIGHTS = (0.35, 0.25, 0.40)
 #: The Gaussian stand-in's measured error (module docstring): rms printed-coverage difference per
 #: fine pixel and per DOE pixel's open area (each at its in-place threshold), and a long edge's

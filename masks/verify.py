@@ -1,7 +1,7 @@
 """Read-back verification: every export is read back and each mask layer is rasterized on
 the pixel grid (GDSII by :func:`masks.gds_read.read_gds_boundaries`, OASIS by gdstk, then
 :func:`masks.grid.rasterize_points`); the recomposed levels must equal the design's, else
-:class:`DoeError` and no file.
+:class:`~doedesign.errors.DoeError` and no file.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def verify_file(path: str | Path, masks: np.ndarray, grid: PixelGrid, layers: Se
                 max_vertices: int | None = MAX_VERTICES) -> dict:
     """Read an exported file back, rasterize every mask layer, recompose and compare levels.
 
-    GDSII files are read by :func:`read_gds_boundaries` (numpy, written apart from the
+    GDSII files are read by :func:`~masks.gds_read.read_gds_boundaries` (numpy, written apart from the
     writer), OASIS files by gdstk. The file's coordinates map back to pixels by
     :class:`masks.grid.PixelGrid`: rows row-major, row 0 at the top, rows toward decreasing y.
 
@@ -114,7 +114,7 @@ def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid
     """Write ``lib`` to ``path`` (.gds, or .oas for OASIS), verify, then rename into place.
 
     With ``element_inline`` (GDSII only) the element cell in ``lib`` is empty and its
-    polygons are streamed in by :func:`write_element_gds` (``progress`` advanced per mask);
+    polygons are streamed in by :func:`~masks.gds_records.write_element_gds` (``progress`` advanced per mask);
     otherwise ``lib`` holds them. No polygon written has more than ``max_vertices``
     vertices (None: no limit, OASIS only): gdstk fractures the other cells' larger ones
     (for OASIS in ``lib`` itself, before writing), the element's come within the limit.

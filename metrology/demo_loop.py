@@ -1,6 +1,6 @@
 """The demo's closing fab loop: its diagnosis -> ``doe correct`` -> the next wafer, diagnosed.
 
-:func:`correct_step` hands the demo's diagnosed field to :func:`metrology.correction.correct`
+:func:`correct_step` hands the demo's diagnosed field to :func:`metrology.correction.run.correct`
 (corrected masks, job sheet, the predicted figure of merit of the design, the measured wafer and
 the corrected next wafer), short: no Monte Carlo draws, the central values only.
 :func:`next_wafer_params` is the demo fab following the job sheet: its hidden process with the

@@ -120,6 +120,7 @@ def demo_camera(cfg: DemoConfig) -> Camera:
 
 
 def design_step(cfg: DemoConfig, camera: Camera, out: Path) -> DesignRun:
+    """The demo's design step: optimize the element of ``cfg`` for ``camera`` and save it under ``out``."""
     from doedesign import targets
     from doedesign.optimizer.losses import LossSpec
     from doedesign.optimizer.optimize import OptimizerSettings, design_doe
@@ -137,6 +138,7 @@ def design_step(cfg: DemoConfig, camera: Camera, out: Path) -> DesignRun:
 
 
 def psf_step(design: Design, camera: Camera, out: Path) -> PSFResult:
+    """The demo's PSF step: the design's PSFs at the RGB wavelengths, with their figure under ``out``."""
     from doedesign.plots import psf_figure, save
 
     result = compute_psf(design, camera, wavelengths_m=np.array(RGB_NM) * 1e-9)
@@ -146,13 +148,14 @@ def psf_step(design: Design, camera: Camera, out: Path) -> PSFResult:
 
 
 def masks_step(design: Design, design_path: Path, out: Path) -> dict:
+    """The demo's masks step: write the design's masks (GDSII, verified) under ``out / 'masks'``."""
     from masks.element import write_element
 
     return write_element(design, out / "masks", source=str(design_path))
 
 
 def hidden_process(cfg: DemoConfig) -> ProcessParams:
-    """The demo wafer's hidden process (:class:`masks.process.ProcessParams`): the overlay error, roughness."""
+    """The demo wafer's hidden process (:class:`masks.process_params.ProcessParams`): the overlay error, roughness."""
     from masks.process import ProcessParams
 
     overlay = np.zeros((4, 3))

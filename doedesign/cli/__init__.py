@@ -84,6 +84,7 @@ def _keep_freed_memory() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``doe`` command with ``argv`` (default the process's arguments); return the exit code."""
     _files_only_backend()
     _keep_freed_memory()
     argv = sys.argv[1:] if argv is None else list(argv)

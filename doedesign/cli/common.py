@@ -104,6 +104,7 @@ def add_camera_options(parser: argparse.ArgumentParser) -> None:
 
 
 def camera_from_args(args: argparse.Namespace) -> Camera:
+    """The :class:`~doedesign.camera.Camera` the options of :func:`add_camera_options` describe."""
     window = int(args.window)
     return Camera(aperture_diameter_m=None if args.aperture_mm == 0 else args.aperture_mm * 1e-3,
                   focus_distance_m=float(args.focus_m), window_shape=(window, window),

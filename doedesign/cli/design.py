@@ -57,6 +57,7 @@ Heights are written z up, 0 = unetched top, etched pixels negative; arrays row 0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the design subcommands (``doe design``, ``doe evaluate-bayer``, ...) to ``subparsers``."""
     p = subparsers.add_parser("design", help="optimize a multi-level DOE (2-32 levels, 16 by default) for a target PSF",
                               description="Optimize a DOE height map for a target PSF with nlopt and analytic "
                                           "gradients, then quantize it to the process levels (--levels: 2, 4, 8, "
@@ -158,6 +159,7 @@ def _floats(text, what):
 
 
 def cmd_design(args: argparse.Namespace) -> int:
+    """Run ``doe design`` with the parsed options; return the exit code."""
     from ..engine.psf import parse_wavelengths_nm
 
     # Refuse an unwritable result now, not after minutes of optimization.
@@ -298,6 +300,7 @@ def quick_bayer_design(size_px: int = 128, iterations: int = 60, seed: int = 0, 
 
 
 def cmd_evaluate_bayer(args: argparse.Namespace) -> int:
+    """Run ``doe evaluate-bayer`` with the parsed options; return the exit code."""
     out = ensure_output_dir(args.out)
     # table.json, fig2.png and front.png are one result: INCOMPLETE until all are written.
     with output_run(out, "doe evaluate-bayer"):

@@ -20,6 +20,7 @@ log = logging.getLogger(__name__)
 
 
 def cmd_psf(args: argparse.Namespace) -> int:
+    """Run ``doe psf`` with the parsed options; return the exit code."""
     from ..fileio import ensure_output_file
     from ..plots import psf_figure, save
 
@@ -53,6 +54,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe psf`` to the subcommands ``sub``."""
     p = sub.add_parser("psf", help="coded and uncoded PSFs of a design",
                        description="Compute the split-aperture PSFs of a design on the sensor window. Writes psf "
                                    "(views, depths, wavelengths, rows, cols): fraction of each view's light per "

@@ -59,6 +59,7 @@ def _markdown(report: dict) -> list[str]:
 
 
 def cmd_rigorous(args: argparse.Namespace) -> int:
+    """Run ``doe rigorous`` with the parsed options; return the exit code."""
     from ..engine.psf import parse_wavelengths_nm
     from ..report_md import write_markdown
     from ..rigorous import score_design
@@ -82,6 +83,7 @@ def cmd_rigorous(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe rigorous`` to the subcommands ``sub``."""
     from ..rigorous import DEFAULT_TERMS, DEFAULT_TOLERANCE, INCIDENCES, POLARIZATIONS
 
     p = sub.add_parser("rigorous", help="rigorous (Fourier modal) efficiencies of one period beside the thin-element ones",

@@ -50,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_import(args: argparse.Namespace) -> int:
+    """Run ``doe import`` with the parsed options; return the exit code."""
     from ..fileio import ensure_output_file
     from ..importer import import_design
     from .common import print_json
@@ -68,6 +69,7 @@ def run_import(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    """Run ``doe export`` with the parsed options; return the exit code."""
     from ..design import Design
     from ..fileio import ensure_output_file
     from ..importer import export_map

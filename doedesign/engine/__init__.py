@@ -3,10 +3,10 @@ gradient of a loss on it.
 
 Public:
 
-- :class:`PSFEngine` (``.psf``, ``.value_and_grad``, ``.value_and_grad_free`` for a design loop's
-  free heights) and :func:`compute_psf` (one call);
-- :class:`PSFResult`, the PSF file (``.save`` / ``.load``), :data:`VIEWS`;
-- :func:`parse_wavelengths_nm`, the CLI's wavelength lists.
+- :class:`~doedesign.engine.psf.PSFEngine` (``.psf``, ``.value_and_grad``, ``.value_and_grad_free`` for a design loop's
+  free heights) and :func:`~doedesign.engine.psf.compute_psf` (one call);
+- :class:`~doedesign.engine.result.PSFResult`, the PSF file (``.save`` / ``.load``), :data:`~doedesign.engine.result.VIEWS`;
+- :func:`~doedesign.engine.result.parse_wavelengths_nm`, the CLI's wavelength lists.
 
 Inside: ``psf`` (the engine), ``lags`` (pupil autocorrelation lags and the pixel kernels),
 ``reads`` (reading a few pixels and their adjoint), ``result`` (the result and its file),

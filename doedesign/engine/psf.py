@@ -394,7 +394,7 @@ class PSFEngine:
 
     def psf(self, height_m: ArrayLike, views: Sequence[str] = VIEWS, progress: Progress | None = None,
             threads: int = 1) -> PSFResult:
-        """PSFs of the requested views for every depth and wavelength (see :class:`PSFResult`).
+        """PSFs of the requested views for every depth and wavelength (see :class:`~doedesign.engine.result.PSFResult`).
 
         ``threads`` > 1 computes that many wavelengths side by side, each with one FFT and one
         BLAS thread (the transforms release the GIL), for the same result; each thread holds one

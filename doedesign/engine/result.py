@@ -18,6 +18,7 @@ from ..fileio import dumps_json, read_npz, write_npz
 
 __all__ = ["MAX_WAVELENGTHS", "PSFResult", "VIEWS", "parse_wavelengths_nm", "read_psf_arrays"]
 
+#: The PSF's views in array order: through the DOE's half of the aperture, then through the other half.
 VIEWS = ("coded", "uncoded")
 
 @dataclass

@@ -104,6 +104,7 @@ def _axes(x: np.ndarray, s: Sequence[int] | None, axes: Sequence[int] | None) ->
 
 
 def fft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int = 1) -> np.ndarray:
+    """``scipy.fft.fft`` along ``axis``, split across ``threads`` short-lived threads."""
     return _along("fft", x, n, axis, threads)
 
 
@@ -113,11 +114,13 @@ def power_fft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int 
 
 
 def ifft(x: np.ndarray, n: int | None = None, axis: int = -1, threads: int = 1) -> np.ndarray:
+    """``scipy.fft.ifft`` along ``axis``, split across ``threads`` short-lived threads."""
     return _along("ifft", x, n, axis, threads)
 
 
 def fftn(x: np.ndarray, s: Sequence[int] | None = None, axes: Sequence[int] | None = None,
          threads: int = 1) -> np.ndarray:
+    """``scipy.fft.fftn`` over ``axes``, axis by axis, split across ``threads`` short-lived threads."""
     for i, (axis, n) in enumerate(reversed(_axes(np.asarray(x), s, axes))):
         x = _along("fft", x, n, axis, threads, in_place=i > 0)
     return x
@@ -125,6 +128,7 @@ def fftn(x: np.ndarray, s: Sequence[int] | None = None, axes: Sequence[int] | No
 
 def ifftn(x: np.ndarray, s: Sequence[int] | None = None, axes: Sequence[int] | None = None,
           threads: int = 1) -> np.ndarray:
+    """``scipy.fft.ifftn`` over ``axes``, axis by axis, split across ``threads`` short-lived threads."""
     for i, (axis, n) in enumerate(reversed(_axes(np.asarray(x), s, axes))):
         x = _along("ifft", x, n, axis, threads, in_place=i > 0)
     return x

@@ -2,8 +2,8 @@
 
 Public:
 
-- :func:`design_doe` and its :class:`OptimizerSettings`, returning a :class:`DesignRun`;
-- :class:`LossSpec` and :func:`make_loss`, the target's loss (``losses``).
+- :func:`~doedesign.optimizer.optimize.design_doe` and its :class:`~doedesign.optimizer.settings.OptimizerSettings`, returning a :class:`~doedesign.optimizer.optimize.DesignRun`;
+- :class:`~doedesign.optimizer.losses.LossSpec` and :func:`~doedesign.optimizer.losses.make_loss`, the target's loss (``losses``).
 
 Inside: ``optimize`` (the run), ``settings`` (its settings and height bounds), ``losses`` (loss
 terms on the PSF), ``objectives`` (soft-min and max-min of colour planes), ``robust_loss``

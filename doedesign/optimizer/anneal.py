@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike
 
 __all__ = ["ANNEAL_SCHEDULE", "anneal", "level_penalty"]
 
-# Weights of the level penalty relative to the continuous loss, one re-optimization each.
+#: Weights of the level penalty relative to the continuous loss, one re-optimization each.
 ANNEAL_SCHEDULE = (0.03, 0.1, 0.3, 1.0, 3.0)
 
 

@@ -1,4 +1,4 @@
-"""Losses between a simulated PSF and a :class:`~doedesign.targets.Target`, with gradients.
+"""Losses between a simulated PSF and a :class:`~doedesign.targets.base.Target`, with gradients.
 
 Every loss takes the coded PSF shaped (depths, wavelengths, rows, cols), as
 :meth:`doedesign.engine.psf.PSFEngine.value_and_grad` hands it over, and returns
@@ -279,7 +279,7 @@ class Loss:
         return PixelReads(rows=rows, cols=cols, energy=bool(spec.l1))
 
     def sparse(self, values: np.ndarray, energy: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """The loss from the pixels in :attr:`reads` and the window energies.
+        """The loss from the pixels in ``reads`` and the window energies.
 
         Parameters
         ----------

@@ -33,10 +33,10 @@ log = logging.getLogger(__name__)
 
 # Gradient algorithms of nlopt that take bounds.
 ALGORITHMS = ("LD_LBFGS", "LD_MMA", "LD_CCSAQ")
-# The largest n for which PLIS's int product 999 * n does not overflow (2,149,633).
+#: The largest n for which PLIS's int product 999 * n does not overflow (2,149,633).
 LBFGS_MAX_VARIABLES = (2**31 - 1) // 999
-# What runs LD_LBFGS's problems above that size: bounded, gradient-based, no O(n * m) int products,
-# and the cheapest per evaluation of nlopt's bounded gradient methods (see the module docstring).
+#: What runs LD_LBFGS's problems above that size: bounded, gradient-based, no O(n * m) int products,
+#: and the cheapest per evaluation of nlopt's bounded gradient methods (see the module docstring).
 LARGE_ALGORITHM = "LD_CCSAQ"
 # L-BFGS's stored correction pairs from LBFGS_SHORT_MEMORY_FROM free variables on (nlopt's
 # default, 10, below). Its own work per evaluation grows with them and runs on the host while a
@@ -74,7 +74,7 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
     algorithm : str
         An nlopt gradient algorithm. LD_LBFGS above its size limit runs as LD_CCSAQ
         (:func:`choose_algorithm`) on the objective scaled to a unit mean gain per variable
-        (:func:`_unit_gain_scale`); the history and the callback see the unscaled values.
+        (``_unit_gain_scale``); the history and the callback see the unscaled values.
     callback : callable, optional
         ``callback(evaluation, value, x)``; returning True stops the run.
 

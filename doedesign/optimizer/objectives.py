@@ -66,7 +66,7 @@ def plane_energies(psf: np.ndarray, target: Target) -> np.ndarray:
 class PlaneLoss:
     """Engine loss ``f(E)`` of the plane energies ``E`` (depths, wavelengths) on ``mask``.
 
-    Reads only the target pixels: :attr:`reads` and :meth:`sparse` let the engine evaluate it
+    Reads only the target pixels: ``reads`` and :meth:`sparse` let the engine evaluate it
     from those pixels alone (:mod:`doedesign.engine.reads`) when they lie on few rows and columns.
 
     Parameters

@@ -39,7 +39,7 @@ def height_bounds(step_m: float, n_levels: int = N_LEVELS, height_range: str = "
 
 @dataclass
 class OptimizerSettings:
-    """Settings of :func:`design_doe` (see the module docstring)."""
+    """Settings of :func:`~doedesign.optimizer.optimize.design_doe` (see the module docstring)."""
 
     algorithm: str = "LD_LBFGS"
     max_iter: int = 100

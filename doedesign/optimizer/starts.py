@@ -1,4 +1,4 @@
-"""Starting designs: the initial height maps (:data:`INITS`) and the multi-start among them.
+"""Starting designs: the initial height maps (:data:`~doedesign.optimizer.starts.INITS`) and the multi-start among them.
 
 ``init`` picks one start for :func:`doedesign.optimizer.optimize.design_doe`; ``starts`` adds others, each
 optimized for a short stage, and the best goes on (all are in the report). ``router`` comes from
@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 
 __all__ = ["INITS", "initial_height", "multistart"]
 
+#: Names of the optimizer's starting height maps (:func:`initial_height`).
 INITS = ("random", "zeros", "streak", "grating", "lens", "router")
 
 

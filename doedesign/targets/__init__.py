@@ -1,24 +1,24 @@
 """Target PSFs: what the sensor window should see, per depth and wavelength.
 
-A :class:`Target` holds the wanted intensity shaped (depths, wavelengths, rows, cols) on the
+A :class:`~doedesign.targets.base.Target` holds the wanted intensity shaped (depths, wavelengths, rows, cols) on the
 camera's sensor window (row 0 at the top, column 0 at the left, the optical axis at
 ``axis_pixel``). Each (depth, wavelength) plane is the fraction of the light through the coded
 half-aperture wanted in each pixel, so its sum is the energy wanted in the window (at most 1).
 Targets are plain objects: build them with the functions below, add them (``a + b`` or
-:func:`combine`) and reweight them (:meth:`Target.with_weights`) in a script or notebook.
+:func:`~doedesign.targets.base.combine`) and reweight them (:meth:`Target.with_weights <doedesign.targets.base.Target.with_weights>`) in a script or notebook.
 
 Built-in targets (positions are (row, col) offsets from the axis pixel unless stated):
 
-- :func:`bayer`: the colour-sorting PSF of the seed supplement, Eq. (1): red on (0, 0),
+- :func:`~doedesign.targets.builtin.bayer`: the colour-sorting PSF of the seed supplement, Eq. (1): red on (0, 0),
   green on (+1, 0), blue on (+1, +1) -- pixels (256, 256), (257, 256), (257, 257) of the
   512 x 512 window -- at optical infinity; ``rggb=True`` puts half the green on (0, +1) too.
-- :func:`hdr_streak`: streaks through the axis ("+" cross of 2-px arms, or one direction),
+- :func:`~doedesign.targets.builtin.hdr_streak`: streaks through the axis ("+" cross of 2-px arms, or one direction),
   with a peak penalty for the loss.
-- :func:`hyperspectral`: diffraction orders along the axis row, positions from the grating
+- :func:`~doedesign.targets.builtin.hyperspectral`: diffraction orders along the axis row, positions from the grating
   equation ``sin(theta) = m lambda / period`` and ``x = z tan(theta)``.
-- :func:`depth_ring`: a ring whose radius follows a schedule of depth (seed: 25 - 5 d px).
-- :func:`spots`: spots with given window positions and weights.
-- :func:`image`: any user image (PNG/TIFF or ``.npy``) as the intensity.
+- :func:`~doedesign.targets.builtin.depth_ring`: a ring whose radius follows a schedule of depth (seed: 25 - 5 d px).
+- :func:`~doedesign.targets.builtin.spots`: spots with given window positions and weights.
+- :func:`~doedesign.targets.builtin.image`: any user image (PNG/TIFF or ``.npy``) as the intensity.
 
 TOML schema (``doe design TARGET.toml``)
 ----------------------------------------
@@ -44,8 +44,8 @@ depth ``depths_m`` and ``radii_px`` (default 1..5 m, 25 - 5 d px), ``ring_width_
 image ``path`` (relative to the TOML file), ``wavelengths_nm``, ``depths_m``.
 The camera (window shape, axis pixel, sensor distance) comes from the run configuration.
 
-The package holds three rooms: :mod:`.base` (the :class:`Target` container and
-:func:`combine`), :mod:`.builtin` (the built-in targets and each kind's optimizer defaults) and
+The package holds three rooms: :mod:`.base` (the :class:`~doedesign.targets.base.Target` container and
+:func:`~doedesign.targets.base.combine`), :mod:`.builtin` (the built-in targets and each kind's optimizer defaults) and
 :mod:`.files` (targets by name and from TOML).
 """
 

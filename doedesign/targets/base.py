@@ -1,4 +1,4 @@
-"""The :class:`Target` container: wanted sensor intensity per depth and wavelength, and sums of targets."""
+"""The :class:`~doedesign.targets.base.Target` container: wanted sensor intensity per depth and wavelength, and sums of targets."""
 
 from __future__ import annotations
 

@@ -19,6 +19,7 @@ __all__ = ["DEFAULT_INIT", "DEFAULT_LOSS", "DEFAULT_OBJECTIVE", "HYPERSPECTRAL_W
 RGB_WAVELENGTHS_M = (656e-9, 589e-9, 486e-9)
 HYPERSPECTRAL_WAVELENGTHS_M = tuple(np.arange(400, 701, 10) * 1e-9)
 SEED_GRATING_PERIOD_M = 86.4e-6
+#: Names of the built-in target kinds, as a target file or ``doe design`` names them.
 KINDS = ("bayer", "hdr-streak", "hyperspectral", "depth", "spots", "image")
 # The optimizer's start for each kind (names from doedesign.optimizer.starts.INITS).
 DEFAULT_INIT = {"bayer": "router", "hdr-streak": "streak", "hyperspectral": "grating", "depth": "lens",

@@ -18,7 +18,7 @@ __all__ = ["build", "from_dict", "load_toml"]
 
 
 def build(kind: str, camera: Camera | None = None, **options: Any) -> Target:
-    """Build a built-in target by its name (see :data:`KINDS`) with keyword options."""
+    """Build a built-in target by its name (see :data:`~doedesign.targets.builtin.KINDS`) with keyword options."""
     builders = {"bayer": bayer, "hdr-streak": hdr_streak, "hyperspectral": hyperspectral,
                 "depth": depth_ring, "spots": spots, "image": image}
     if kind not in builders:

@@ -75,6 +75,7 @@ def evaluation_bytes(ev: Evaluator) -> int:
 
 
 def sampling_description(ev: Evaluator) -> dict:
+    """How the evaluator ``ev`` samples the element (grids, wavelengths, depths, surround), for the report."""
     u = ev.process_upsample or ev.oversample
     return {"oversample": ev.oversample, "process_upsample": u,
             "psf_grid_m": ev.pitch_m / ev.oversample, "process_grid_m": ev.pitch_m / u,

@@ -25,6 +25,7 @@ distributions.png and tornado.png.
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe tolerance`` to ``subparsers``."""
     p = subparsers.add_parser("tolerance", help="Monte Carlo tolerance analysis, yield and sensitivity",
                               description=TOLERANCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("design", help="design file (.npz)")
@@ -52,6 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def cmd_tolerance(args: argparse.Namespace) -> int:
+    """Run ``doe tolerance`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.engine.psf import parse_wavelengths_nm

@@ -82,7 +82,7 @@ class Evaluator:
         return self.engine.backend
 
     def height(self, values: dict, seed: int | None = None) -> Array:
-        """Fabricated height map (m) for parameter values (SI, by :attr:`Param.name`), an
+        """Fabricated height map (m) for parameter values (SI, by :attr:`Param.name <masks.tolerance.spec.Param.name>`), an
         array of :attr:`backend` (NumPy on the CPU)."""
         params = self.spec.params_for(values, self.base, seed=seed)
         return fabricated_height(self.levels, self.pitch_m, params, self.oversample, self.process_upsample,

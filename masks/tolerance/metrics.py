@@ -275,7 +275,7 @@ def design_target(design: Design, camera: Camera, wavelengths_m: np.ndarray,
                   depths_m: np.ndarray) -> targets.Target | None:
     """The built-in target a design was made for, rebuilt from its metadata for ``camera``.
 
-    The design file stores its target as ``metadata["target"]`` (:meth:`doedesign.targets.Target.summary`:
+    The design file stores its target as ``metadata["target"]`` (:meth:`doedesign.targets.base.Target.summary`:
     kind and options); the same built-in target is rebuilt at ``wavelengths_m`` (and, but for
     Bayer, ``depths_m``).
 

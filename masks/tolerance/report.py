@@ -62,7 +62,7 @@ def samples_to_show(goal: float = YIELD_GOAL, confidence: float = CONFIDENCE) ->
 
 
 def default_thresholds(primary: str, nominal: dict, direction: str) -> dict:
-    """The primary metric keeps :data:`DEFAULT_KEEP` of its nominal value."""
+    """The primary metric keeps ``DEFAULT_KEEP`` of its nominal value."""
     value = nominal[primary]
     if direction == "lower":
         return {primary: ("<=", value / DEFAULT_KEEP)}

@@ -101,7 +101,7 @@ def _load_one(samples_dir, job_id):
 
 
 def batch_size(seconds_per_job: float, n_jobs: int, n_workers: int) -> int:
-    """Jobs per task: about :data:`TARGET_TASK_S` of work, at least two tasks per worker."""
+    """Jobs per task: about ``TARGET_TASK_S`` of work, at least two tasks per worker."""
     by_time = max(1, int(TARGET_TASK_S / max(seconds_per_job, 1e-3)))
     by_spread = max(1, math.ceil(n_jobs / (2 * max(n_workers, 1))))
     return max(1, min(by_time, by_spread))

@@ -22,7 +22,7 @@ from doedesign.errors import DoeError
 
 __all__ = ["MAX_HANDSHAKE_BYTES", "PROBE_TIMEOUT_S", "parse_address", "probe_scheduler"]
 
-# Whole time allowed for connecting and reading the scheduler's handshake (s).
+#: Whole time allowed for connecting and reading the scheduler's handshake (s).
 PROBE_TIMEOUT_S = 20.0
 # A scheduler's handshake is a few hundred bytes of msgpack; more is not a dask scheduler.
 MAX_HANDSHAKE_BYTES = 1 << 20

@@ -62,8 +62,8 @@ __all__ = ["DEFAULT_SPEC", "EFFECTS", "Param", "ToleranceSpec", "YIELD_GOAL", "b
            "default_spec", "load_spec", "meets", "nominal_process", "parse_threshold", "sample_seed",
            "spec_from_compare"]
 
-# The yield a process is judged against unless the spec or the command says otherwise: nine
-# elements in ten within the thresholds.
+#: The yield a process is judged against unless the spec or the command says otherwise: nine
+#: elements in ten within the thresholds.
 YIELD_GOAL = 0.9
 
 # The effects of masks.effects, as a tolerance spec names them (mask_rotation in urad here,
@@ -97,6 +97,7 @@ COMPONENTS = {"mask_overlay": {"dx": "um", "dy": "um"}, "microtrenching": {"dept
               "etch_gradient": {"x": "percent_per_mm", "y": "percent_per_mm"}}
 REPORT_SCALE = {"nm": 1e9, "um": 1e6, "urad": 1e6, "percent_per_mm": 0.1, "deg": 180 / math.pi, "": 1.0}
 DISTRIBUTIONS = {"normal": ("mean", "sigma"), "uniform": ("low", "high"), "fixed": ("value",)}
+#: The tolerance analysis's default process spread per effect (relative or absolute sigmas).
 DEFAULT_SPEC = {
     "etch_depth": {"sigma_rel": 0.02},
     "mask_overlay": {"sigma_um": 0.25},
@@ -211,7 +212,7 @@ class ToleranceSpec:
         return {p.name: float(p.ppf(0.5)) for p in self.params}
 
     def params_for(self, values: dict, base: ProcessParams, seed: int | None = None) -> ProcessParams:
-        """The :class:`ProcessParams` of one sample: ``base`` plus the drawn errors."""
+        """The :class:`~masks.process_params.ProcessParams` of one sample: ``base`` plus the drawn errors."""
         depth = np.array(base.etch_depth, float)
         overlay = np.array(base.mask_overlay, float)
         bias = np.array(base.linewidth_bias, float)
@@ -278,6 +279,7 @@ def check_yield_goal(value: object, what: str) -> float:
 
 
 def meets(value: float, threshold: tuple[str, float]) -> bool:
+    """Whether ``value`` meets ``threshold``, an ``(operator, limit)`` pair such as ``(">=", 0.8)``."""
     op, limit = threshold
     return bool(_OPS[op](value, limit))
 

@@ -1,4 +1,4 @@
-"""One narrowband capture to a calibrated PSF window, and captures to a :class:`PSFStack`.
+"""One narrowband capture to a calibrated PSF window, and captures to a :class:`~metrology.calibration.stack.PSFStack`.
 
 Per capture: background subtraction, centring on the uncoded view's peak (or a given axis),
 normalization (see :mod:`metrology.calibration.psfstack` for the energy bookkeeping) and
@@ -157,7 +157,7 @@ def build_stack(captures: Sequence[tuple[np.ndarray, np.ndarray]], wavelengths_m
                 background: str = "border", normalization: str = "uncoded",
                 spectrum_wavelengths_m: ArrayLike | None = None, spectra: ArrayLike | None = None,
                 depth_m: float = np.inf, names: Sequence[str] | None = None) -> PSFStack:
-    """A :class:`PSFStack` from one (coded, uncoded) view pair per wavelength.
+    """A :class:`~metrology.calibration.stack.PSFStack` from one (coded, uncoded) view pair per wavelength.
 
     ``darks`` is one (coded, uncoded) dark pair for all captures or None; ``spectra`` the
     measured spectrum of each band on ``spectrum_wavelengths_m`` (optional).

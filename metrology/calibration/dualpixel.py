@@ -43,6 +43,7 @@ __all__ = ["CFA_PATTERNS", "CHANNELS", "CrosstalkCalibration", "MAX_NEGATIVE_FRA
 
 log = logging.getLogger(__name__)
 
+#: Colour channels of a 2 x 2 colour filter array cell, in the order results list them.
 CHANNELS = ("R", "G1", "G2", "B")
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 RAW_SUFFIXES = (".cr2", ".cr3", ".dng", ".nef", ".arw", ".raf", ".orf", ".rw2")

@@ -55,18 +55,19 @@ __all__ = ["FORMAT", "HEIGHT_SCALE_LIMIT", "PIXEL_TOLERANCE", "STEP_TOLERANCE", 
 
 log = logging.getLogger(__name__)
 
+#: The ``format`` field of an instrument calibration file.
 FORMAT = "doe-toolkit instrument calibration"
 VERSION = 1
-# The most a profilometer's height scale departs from 1: vendors specify step-height accuracy
-# within 0.5-1 % (CSI, confocal); an instrument out of calibration may be off by a few percent.
-# Beyond 5 % the certified height given is more likely wrong than the instrument.
+#: The most a profilometer's height scale departs from 1: vendors specify step-height accuracy
+#: within 0.5-1 % (CSI, confocal); an instrument out of calibration may be off by a few percent.
+#: Beyond 5 % the certified height given is more likely wrong than the instrument.
 HEIGHT_SCALE_LIMIT = 0.05
-# How far one mask's scale may stray from the common one beyond its fitted uncertainty: a
-# certified step's own uncertainty (about 1 %).
+#: How far one mask's scale may stray from the common one beyond its fitted uncertainty: a
+#: certified step's own uncertainty (about 1 %).
 STEP_TOLERANCE = 0.01
-# A calibration holds for the objective and zoom it was made with: a measurement whose pixel
-# differs by more than this (relative) was taken with another, and the fill factor (a fraction
-# of the camera pixel) and the blur would not carry over.
+#: A calibration holds for the objective and zoom it was made with: a measurement whose pixel
+#: differs by more than this (relative) was taken with another, and the fill factor (a fraction
+#: of the camera pixel) and the blur would not carry over.
 PIXEL_TOLERANCE = 0.01
 
 
@@ -238,7 +239,7 @@ def height_scale(steps_m: Sequence[float], errors_m: Sequence[float], certified_
 
     Each mask whose step the fit determined (a finite uncertainty under 5 % of the step: a
     mask absent from the window is not) gives ``step / certified``; the scale is their
-    inverse-variance mean. Raises :class:`DoeError` (unless ``force``) when one mask's ratio
+    inverse-variance mean. Raises :class:`~doedesign.errors.DoeError` (unless ``force``) when one mask's ratio
     strays from their median by more than three times its uncertainty combined with
     :data:`STEP_TOLERANCE`, or when the scale lies beyond :data:`HEIGHT_SCALE_LIMIT` of 1: a
     certified height given wrong.

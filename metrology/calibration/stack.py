@@ -35,13 +35,13 @@ class PSFStack:
     Attributes
     ----------
     psf : ndarray (2, wavelengths, rows, cols)
-        Views in :data:`doedesign.engine.psf.VIEWS` order (coded, uncoded), normalized as
+        Views in :data:`doedesign.engine.result.VIEWS` order (coded, uncoded), normalized as
         ``normalization`` says; row 0 at the top, the axis at ``axis_pixel``.
     wavelengths_m : ndarray, strictly increasing
     pixel_pitch_m : float
     axis_pixel : (int, int)
     measured : ndarray of bool
-        False for wavelengths filled in by :func:`extrapolate_orders`.
+        False for wavelengths filled in by :func:`~metrology.calibration.orders.extrapolate_orders`.
     normalization : str
     depth_m : float
         Point-source distance (inf: collimated source).
@@ -131,7 +131,7 @@ def _match_wavelength(wavelengths_m, wl, what):
 
 
 def as_stack(psf_result: PSFResult | PSFStack, depth_index: int = 0) -> PSFStack:
-    """A :class:`PSFStack` from a :class:`doedesign.engine.psf.PSFResult` (one depth) or a stack."""
+    """A :class:`PSFStack` from a :class:`doedesign.engine.result.PSFResult` (one depth) or a stack."""
     if isinstance(psf_result, PSFStack):
         return psf_result
     try:
@@ -167,10 +167,10 @@ def save_network_npy(stacks: PSFStack | Sequence[PSFStack], path: str | Path) ->
 
 
 def save_stack(stack: PSFStack, path: str | Path) -> Path:
-    """Write the tool's PSF ``.npz``: the fields of :meth:`doedesign.engine.psf.PSFResult.save` plus calibration ones.
+    """Write the tool's PSF ``.npz``: the fields of :meth:`doedesign.engine.result.PSFResult.save` plus calibration ones.
 
     ``psf`` is (views, depths=1, wavelengths, rows, cols) with views (coded, uncoded), so
-    :meth:`PSFResult.load` and the diagnosis stage read it; ``measured`` flags extrapolated
+    :meth:`PSFResult.load <doedesign.engine.result.PSFResult.load>` and the diagnosis stage read it; ``measured`` flags extrapolated
     bands; ``bandwidth_fwhm_m`` / ``band_centroid_m`` come from the spectra (NaN without).
     """
     stats = stack.band_stats()
@@ -194,7 +194,7 @@ def read_stack(path: str | Path) -> dict:
 
     The one set of rules for PSF-stack files: ``psf`` is (views, wavelengths, rows, cols),
     (wavelengths, rows, cols) for one view, or 5-D with a single depth; ``views`` names each
-    view from :data:`doedesign.engine.psf.VIEWS` (default ``("coded",)`` for one view);
+    view from :data:`doedesign.engine.result.VIEWS` (default ``("coded",)`` for one view);
     ``wavelengths_m`` are in metres; ``depths_m`` (first) or ``depth_m`` give the source
     distance; ``axis_pixel`` is (row, col), row 0 at the top.
 

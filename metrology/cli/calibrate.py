@@ -48,6 +48,7 @@ views coded/uncoded, normalized to the uncoded view's whole-frame total), psf_ne
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe calibrate`` and its subcommands (crosstalk, PSF, instrument) to ``subparsers``."""
     cal = subparsers.add_parser("calibrate", help="dual-pixel crosstalk, measured PSF and profilometer calibration")
     sub = cal.add_subparsers(dest="calibrate_command", metavar="WHAT")
 
@@ -150,6 +151,7 @@ def _orders(text):
 
 # -- instrument ------------------------------------------------------------------------------------------
 def run_instrument(args: argparse.Namespace) -> int:
+    """Run ``doe calibrate instrument`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
 
@@ -174,6 +176,7 @@ def run_instrument(args: argparse.Namespace) -> int:
 
 # -- crosstalk -------------------------------------------------------------------------------------------
 def run_crosstalk(args: argparse.Namespace) -> int:
+    """Run ``doe calibrate crosstalk`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
 
     if args.cfa.lower() == "none":
@@ -312,6 +315,7 @@ def _views_of(sum_path, view_path, args, cal, coded_name):
 
 
 def run_psf(args: argparse.Namespace) -> int:
+    """Run ``doe calibrate psf`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
 
     # Every option and the small input files are checked before the captures are read and

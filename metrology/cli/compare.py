@@ -18,6 +18,7 @@ __all__ = ["register", "run_compare"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe compare`` to the subcommands ``sub``."""
     p = sub.add_parser("compare", help="compare a profilometer measurement with its design",
                        description="Level, register and compare a measurement with its design; etch depths, "
                                    "overlay and linewidth bias are fitted in the camera's own pixels (objective "

@@ -34,6 +34,7 @@ predicted merit, under the same process model and draws, stands beside the other
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe correct`` to ``subparsers``."""
     p = subparsers.add_parser("correct", help="diagnosed fields -> corrected masks, job sheet, predicted merit",
                               description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--design", required=True, help="design file (.npz)")
@@ -68,6 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``doe correct`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.errors import DoeError

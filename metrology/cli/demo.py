@@ -18,6 +18,7 @@ ELEMENTS_PX, ELEMENTS_ITERATIONS = 800, 30
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Run ``doe demo`` with the parsed options; return the exit code."""
     from doedesign.fileio import ensure_output_dir
     from metrology.pipeline import DemoConfig, run_demo
 
@@ -52,6 +53,7 @@ def seed_elements(args: argparse.Namespace) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe demo`` to the subcommands ``sub``."""
     p = sub.add_parser("demo", help="run the whole chain on the default Bayer element and write a report",
                        description="Design (nlopt) -> 16 levels -> four masks as GDSII (verified) -> simulated "
                                    "fabrication with a hidden process error -> simulated Zygo .datx -> read, "

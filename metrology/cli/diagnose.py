@@ -20,14 +20,15 @@ from pathlib import Path
 from doedesign.cli.common import Number, NumberList, add_device_option
 
 log = logging.getLogger(__name__)
-# Exit status of a diagnosis a user's limit ended (its report written whole, marked INCOMPLETE):
-# not 0 (a finished diagnosis) and not 2 (bad input, nothing written).
+#: Exit status of a diagnosis a user's limit ended (its report written whole, marked INCOMPLETE):
+#: not 0 (a finished diagnosis) and not 2 (bad input, nothing written).
 EXIT_INCOMPLETE = 3
 
 __all__ = ["EXIT_INCOMPLETE", "load_effects_file", "parse_effects", "register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe diagnose`` to ``subparsers``."""
     p = subparsers.add_parser(
         "diagnose", help="find and fit the effects explaining a measurement (heights or PSFs)",
         description="Compare a measured height map or PSF stack with the design's ideal model, name the "

@@ -52,6 +52,7 @@ def inspect_file(path: str | Path, pixel_size_m: float | None = None) -> dict:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    """Run ``doe inspect`` with the parsed options; return the exit code."""
     summary = inspect_file(args.file, args.pixel_size_m)
     if args.json:
         print_json(summary)
@@ -65,6 +66,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``doe inspect`` to the subcommands ``sub``."""
     p = sub.add_parser("inspect", help="summarize a design or measurement file",
                        description="Summarize a design (.npz) or a measurement: Zygo .dat, .datx, .xyz, .asc, "
                                    "Mx profile or Dektak .csv, .x3p, AFM and profiler formats (.nid, "

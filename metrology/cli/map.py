@@ -14,6 +14,7 @@ __all__ = ["register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``doe map`` to ``subparsers``."""
     p = subparsers.add_parser("map", help="diagnose a whole-element height map in tiles; overlay and depth models",
                               description="Cut a height map on the design grid into overlapping tiles, diagnose each "
                                           "(as doe diagnose --frame design) on Dask, and fit overlay (translation, "
@@ -40,6 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``doe map`` with the parsed options; return the exit code."""
     from doedesign.cli.common import print_json
     from doedesign.design import Design
     from doedesign.fileio import ensure_output_dir, output_run

@@ -4,7 +4,7 @@ Modules: :mod:`.diagnoses` (reading ``doe diagnose`` reports, design fingerprint
 :mod:`.systematic` (fields combined: mean, standard error, spread, what is systematic),
 :mod:`.jobsheet` (per-mask settings for the next run), :mod:`.merit` (the figure of merit of
 the design, the measured and the corrected wafer), :mod:`.process_spec` (the measured process
-as a ``doe tolerance`` spec), :mod:`.page` (report.md) and :mod:`.run` (:func:`correct`, what
+as a ``doe tolerance`` spec), :mod:`.page` (report.md) and :mod:`.run` (:func:`~metrology.correction.run.correct`, what
 ``doe correct`` calls).
 """
 

@@ -44,19 +44,19 @@ __all__ = ["DETECTION_LIMITS", "DISAGREEMENT_CHI2", "Estimate", "KNOBS", "SIGNIF
            "parameter_mask"]
 
 SIGNIFICANCE = 3.0
-# chi2 per degree of freedom above which fields disagree beyond their fitted uncertainties
-# (p < 1e-4 for 2 degrees of freedom, three fields).
+#: chi2 per degree of freedom above which fields disagree beyond their fitted uncertainties
+#: (p < 1e-4 for 2 degrees of freedom, three fields).
 DISAGREEMENT_CHI2 = 9.0
-# Smallest systematic value worth correcting, in the diagnosis's units: the aligner's dial
-# (0.05 um, 0.002 deg = 35 urad), the mask writer's edge placement (0.02 um), etch-depth control
-# (0.5 % of the depth), a 1 % loading, 0.1 um of blur or sidewall, 2 nm of trench, 0.1 %/mm of
-# gradient. Each is also above what one diagnosed field resolves (its fitted uncertainty).
+#: Smallest systematic value worth correcting, in the diagnosis's units: the aligner's dial
+#: (0.05 um, 0.002 deg = 35 urad), the mask writer's edge placement (0.02 um), etch-depth control
+#: (0.5 % of the depth), a 1 % loading, 0.1 um of blur or sidewall, 2 nm of trench, 0.1 %/mm of
+#: gradient. Each is also above what one diagnosed field resolves (its fitted uncertainty).
 DETECTION_LIMITS = {
     "etch_depth": 0.005, "mask_overlay": 0.05e-6, "mask_rotation": 0.002, "linewidth_bias": 0.02e-6,
     "etch_loading": 0.01, "proximity_blur": 0.1e-6, "sidewall_slope": 0.1e-6, "microtrenching": 2e-9,
     "etch_gradient": 1.0,
 }
-# The knob that takes a systematic effect out of the next run.
+#: The knob that takes a systematic effect out of the next run.
 KNOBS = {"etch_depth": "etch target depth", "mask_overlay": "aligner offset", "mask_rotation": "aligner rotation",
          "linewidth_bias": "drawn edges offset", "etch_loading": "etch target depth (mean loss over the openings)"}
 _MASK = re.compile(r"mask(\d+)")

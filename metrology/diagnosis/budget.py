@@ -54,7 +54,7 @@ class Deadline:
         return self.cpu is not None or self.wall is not None
 
     def past(self) -> bool:
-        """Whether a limit is passed (recorded in :attr:`hit`); always False without a limit."""
+        """Whether a limit is passed (recorded in ``hit``); always False without a limit."""
         if self.hit is None:
             if self.cpu is not None and cpu_seconds() > self.cpu:
                 self.hit = "cpu"

@@ -108,9 +108,9 @@ class CameraHeightProblem(dg.Problem):
         Memory for rendered camera maps, as much for the masks' spectra, a quarter for fine surfaces.
     transfer : LateralTransfer, optional
         A calibrated lateral transfer, held fixed (only the placement fitted); default: fitted (blur,
-        fill factor, the objective's NA with ``objective``; the rest from :data:`DEFAULT_TRANSFER`).
+        fill factor, the objective's NA with ``objective``; the rest from :data:`~metrology.diagnosis.camera_nuisance.DEFAULT_TRANSFER`).
     objective : bool
-        Fit the objective's NA-limited transfer (:data:`OBJECTIVE`) as a nuisance too.
+        Fit the objective's NA-limited transfer (:data:`~metrology.diagnosis.camera_nuisance.OBJECTIVE`) as a nuisance too.
     batwing : bool or (float, float)
         True: fit the batwing (the registered ``batwing`` effect) as a nuisance of the
         instrument, not as a candidate; (amplitude, sigma_m): a calibration's, held.
@@ -201,7 +201,7 @@ class CameraHeightProblem(dg.Problem):
         """Model heights in the camera frame (before levelling).
 
         Each mask's etch is rendered in place and sampled under the camera's placement taken into
-        that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of`): a change of
+        that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of <metrology.matching.instrument.Placement.in_frame_of>`): a change of
         placement or of a mask's motion costs a spline sampling, not a new surface. Blur, pixel box,
         sidewall ramp and linear surface effects commute with the sum of the masks and with their
         motions; a non-linear surface effect, roughness, or a motion that would sample beyond the
@@ -452,7 +452,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
     transfer : LateralTransfer, optional
         A calibrated lateral transfer (``doe calibrate instrument``), held fixed; default: fitted
         as a nuisance, the objective's NA and the batwing included when the data ask for it
-        (:func:`choose_transfer`: before any fabrication effect, and again with those named
+        (:func:`~metrology.diagnosis.camera_nuisance.choose_transfer`: before any fabrication effect, and again with those named
         once they hold most of the residual, the selection going on through a family that grew).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
@@ -502,7 +502,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             return problem, fit
 
         def stage(named=None):
-            # The instrument stage (:func:`choose_transfer`) on the busiest square, then the floor
+            # The instrument stage (:func:`~metrology.diagnosis.camera_nuisance.choose_transfer`) on the busiest square, then the floor
             # again through what it chose beyond blur and fill (an objective or a batwing rings into
             # the interiors), only ever lowered: a higher one is process error leaking in.
             stage_px = min(size, RESTAGE_WINDOW_PX if named else STAGE_WINDOW_PX)

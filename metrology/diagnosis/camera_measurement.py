@@ -52,7 +52,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
     batwing, limit
-        As for :func:`diagnose_camera` (no limit by default).
+        As for :func:`~metrology.diagnosis.camera.diagnose_camera` (no limit by default).
 
     Returns
     -------

@@ -52,15 +52,15 @@ STAGE_AMPLITUDES = (0.25, 4.0)
 STAGE_SHARE = 0.3
 # The batwing: a candidate, or a nuisance of the instrument once the instrument stage chose it.
 BATWING = "batwing"
-# The combinations of the family's members beyond blur and fill factor that are tried.
+#: The combinations of the family's members beyond blur and fill factor that are tried.
 MEMBERS = (("objective",), ("batwing",), ("objective", "batwing"))
-# Fabrication effects freed, once the stage has fitted its combinations, in a second short fit
-# of each from its optimum, whose criteria then choose (never named by it, left out of what it
-# returns): an objective's transfer lowers the steps of fine features, which an etch depth that
-# is not the design's can pay for. On a boxcar instrument's file with etch loading and a
-# gradient, objective and batwing earned 4283 on an instrument that has neither, and the
-# selection ended at 4.2x the floor. Freed in the first fits instead, the depths slowed the
-# short fits into a wrong optimum (a CSI null: fill factor 0 against 0.96, a false loading).
+#: Fabrication effects freed, once the stage has fitted its combinations, in a second short fit
+#: of each from its optimum, whose criteria then choose (never named by it, left out of what it
+#: returns): an objective's transfer lowers the steps of fine features, which an etch depth that
+#: is not the design's can pay for. On a boxcar instrument's file with etch loading and a
+#: gradient, objective and batwing earned 4283 on an instrument that has neither, and the
+#: selection ended at 4.2x the floor. Freed in the first fits instead, the depths slowed the
+#: short fits into a wrong optimum (a CSI null: fill factor 0 against 0.96, a false loading).
 STAGE_FREE = ("etch_depth",)
 # Members that can act as nothing (the batwing at zero amplitude; the objective cannot: its
 # widest aperture still lowers the transfer at mid frequencies).
@@ -72,8 +72,8 @@ def _no_op(*args):
     return args[0]
 
 
-# The camera placement and the instrument's lateral transfer (Gaussian blur, pixel fill
-# factor: :mod:`metrology.matching.transfer`): always fitted, never named.
+#: The camera placement and the instrument's lateral transfer (Gaussian blur, pixel fill
+#: factor: :mod:`metrology.matching.transfer`): always fitted, never named.
 CAMERA = Effect(
     "camera", "height", "surface",
     [Parameter("shift_row_px", "design px", -1.0, 1.0, 0.01), Parameter("shift_col_px", "design px", -1.0, 1.0, 0.01),
@@ -83,18 +83,18 @@ CAMERA = Effect(
      Parameter("fill_factor", "1", 0.0, 1.0, 0.05, 1.0, smooth=True)],
     _no_op, "Placement of the camera field on the design and the instrument's lateral transfer (nuisance).",
     kind="artefact", order=-1)
-# The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
-# for it (chosen before any fabrication effect, :func:`instrument_stage`), never named.
+#: The objective's NA-limited optical transfer: a nuisance of the instrument when the data ask
+#: for it (chosen before any fabrication effect, ``instrument_stage``), never named.
 OBJECTIVE = Effect(
     "objective", "height", "surface",
     [Parameter("na", "1", NA_BOUNDS[0], NA_BOUNDS[1], 0.02, 0.4, smooth=True)],
     _no_op, "The objective's NA-limited optical transfer, cut-off 2 NA / lambda (nuisance).",
     kind="artefact", order=-1)
-# The placement alone: the camera nuisance of an instrument whose transfer a calibration holds.
+#: The placement alone: the camera nuisance of an instrument whose transfer a calibration holds.
 PLACED = Effect("camera", "height", "surface", CAMERA.params[:5], _no_op,
                 "Placement of the camera field on the design (nuisance; the lateral transfer calibrated).",
                 kind="artefact", order=-1)
-# The lateral transfer's parameters a model does not hold (full pixels, no optical cut-off).
+#: The lateral transfer's parameters a model does not hold (full pixels, no optical cut-off).
 DEFAULT_TRANSFER = LateralTransfer(sigma_m=0.4 * _UM, fill_factor=1.0, na=0.0)
 
 def instrument_report(t: LateralTransfer, sigma_err_m: float = np.nan, fill_err: float = np.nan,

@@ -1,6 +1,6 @@
 """The effect registry: named, parametrized departures of the real part from the ideal model.
 
-Each :class:`Effect` has a name, parameters with physical units and bounds, a function that
+Each :class:`~metrology.diagnosis.effect_model.Effect` has a name, parameters with physical units and bounds, a function that
 applies it to the model, a one-sentence explanation, and the *stage* of the forward model it
 acts on. The diagnosis (:mod:`metrology.diagnosis.engine`) fits every candidate's parameters to a
 measurement and keeps those that earn their parameters.
@@ -30,7 +30,7 @@ Users add their own effect from a script::
 and rerun: the library's ``candidates`` (``None`` = every registered effect of the domain) or
 ``doe diagnose --effects-file mine.py`` (the file registers them). A ``"surface"`` effect acts on
 the model heights (m) on the fine grid in the design frame, before the instrument's blur and
-pixels; a ``"process"`` effect maps :class:`masks.process.ProcessParams` to new ones.
+pixels; a ``"process"`` effect maps :class:`masks.process_params.ProcessParams` to new ones.
 ``kind="artefact"`` marks a measurement artefact. :func:`unregister_effect` removes it. When no
 registered effect explains a structured residual, the diagnosis names none and reports where
 the residual lives (:mod:`metrology.diagnosis.locate`): that is when to write one.
@@ -95,7 +95,7 @@ def register_effect(effect: Effect | None = None, *, replace: bool = False,
     replace : bool
         Allow replacing an existing effect of the same name.
     **kwargs
-        The :class:`Effect` fields except ``apply`` (decorator form).
+        The :class:`~metrology.diagnosis.effect_model.Effect` fields except ``apply`` (decorator form).
 
     Returns
     -------
@@ -125,6 +125,7 @@ def unregister_effect(name: str) -> None:
 
 
 def get_effect(name: str) -> Effect:
+    """The registered effect called ``name``; an ``EffectError`` naming the registered ones if none is."""
     try:
         return REGISTRY[name]
     except KeyError:
@@ -135,7 +136,7 @@ def effects_for(domain: str, names: Sequence[str] | None = None, n_masks: int | 
     """Registered effects of ``domain`` (optionally only ``names``), in forward-model order.
 
     With ``n_masks``, per-mask effects carry the parameters of that many masks
-    (:meth:`Effect.for_masks`); one that no mask of such an element can show (an overlay of a
+    (:meth:`Effect.for_masks <metrology.diagnosis.effect_model.Effect.for_masks>`); one that no mask of such an element can show (an overlay of a
     binary element) is left out, or refused when ``names`` asks for it.
     """
     if domain not in DOMAINS:

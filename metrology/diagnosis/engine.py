@@ -26,7 +26,7 @@ Method
    (the fits and their uncertainties: :mod:`metrology.diagnosis.fitting`).
 
 A domain (:mod:`~metrology.diagnosis.heights`, :mod:`~metrology.diagnosis.psf`) supplies a
-:class:`Problem`: the candidate effects, the noise estimate and the residual of a model.
+:class:`~metrology.diagnosis.problem.Problem`: the candidate effects, the noise estimate and the residual of a model.
 """
 
 from __future__ import annotations

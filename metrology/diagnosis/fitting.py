@@ -6,7 +6,7 @@ finite-difference Jacobians whose columns may be computed in worker threads
 at a parameter of exactly zero, where most effects start. Uncertainties are
 ``cov = s^2 (J^T J)^-1 A`` with ``A`` the noise's correlation area.
 
-A fit to convergence that ``trf`` does not finish in :data:`TRF_EVALS` evaluations is finished
+A fit to convergence that ``trf`` does not finish in ``TRF_EVALS`` evaluations is finished
 by ``dogbox``. Near a bound (a fill factor running to point sampling) ``trf``'s scaling by the
 distance to the bound makes it zig-zag: on a coherence-scanning interferometer's file its
 instrument fit stopped at the 60-evaluation cap 1580 cost units (17 criterion units) above the
@@ -15,8 +15,8 @@ batwing at their true values. ``dogbox`` alone stalls elsewhere: on another such
 evaluations 0.5 % above the cost ``trf`` reached in 8.
 
 Tolerances are in the information criterion's units, which decide: a fit ends where a step
-lowers the criterion by less than :data:`CRITERION_TOL`, or :data:`CRAWL_STEPS` steps together by
-less than :data:`CRAWL_TOL`. A limit the user asked for (``stop``) ends one under way.
+lowers the criterion by less than ``CRITERION_TOL``, or ``CRAWL_STEPS`` steps together by
+less than ``CRAWL_TOL``. A limit the user asked for (``stop``) ends one under way.
 """
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ class _Stopped(Exception):
 
 
 class _Crawled(Exception):
-    """Raised with ``(x, residual, Jacobian)`` at a point where the fit crawls (:data:`CRAWL_STEPS`)."""
+    """Raised with ``(x, residual, Jacobian)`` at a point where the fit crawls (``CRAWL_STEPS``)."""
 
 
 def standard_errors(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str]) -> dict[str, np.ndarray]:

@@ -6,7 +6,7 @@ is judged against the noise alone: a bin of ``N`` pixels whose residual mean is 
 significance ``z = m / (sigma sqrt(A / N))`` (``A`` the noise correlation area in pixels); a
 grouping carries structure when its bins' excess ``sum(z^2) - n_bins`` is large.
 
-Inputs are the breakdown a problem computes (:meth:`metrology.diagnosis.engine.Problem.breakdown`:
+Inputs are the breakdown a problem computes (``metrology.diagnosis.engine.Problem.breakdown``:
 ``edge_distance_mask{j}_m``, ``level``, ``radius_from_centre_m``, ``spatial_frequency_per_m``
 binned dicts) and the residual map itself (for the field tiles), row 0 at the top.
 """

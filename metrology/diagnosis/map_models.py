@@ -15,6 +15,7 @@ import numpy as np
 
 __all__ = ["NAME_SIGMA", "fit_depth_model", "fit_overlay_model", "wls"]
 
+#: Standard errors by which a model term must differ from zero to be named.
 NAME_SIGMA = 5.0
 
 

@@ -32,8 +32,8 @@ from doedesign.engine.threaded_fft import cpu_threads
 
 __all__ = ["WORKERS", "in_worker", "one_thread", "parallel_map"]
 
-# Threads that share the work: beyond two the Python-level part of each evaluation, which holds
-# the GIL, leaves little to gain (and the machines this is measured on have two cores).
+#: Threads that share the work: beyond two the Python-level part of each evaluation, which holds
+#: the GIL, leaves little to gain (and the machines this is measured on have two cores).
 WORKERS = min(2, cpu_threads())
 _local = threading.local()
 

@@ -1,5 +1,5 @@
 """What a domain (heights in the design frame, heights in the camera frame, PSF stacks)
-supplies to the diagnosis's fitting loop: the :class:`Problem` base class.
+supplies to the diagnosis's fitting loop: the :class:`~metrology.diagnosis.problem.Problem` base class.
 
 Its own module so that the fits (:mod:`metrology.diagnosis.fitting`) and the selection
 (:mod:`metrology.diagnosis.engine`) both name it without importing each other.

@@ -1,4 +1,4 @@
-"""What a diagnosis found: its named steps and the :class:`Diagnosis` a report is written from.
+"""What a diagnosis found: its named steps and the :class:`~metrology.diagnosis.result.Diagnosis` a report is written from.
 
 A diagnosis is *complete* when its selection ended by its own rules (the criterion); a limit the
 user asked for (:class:`~metrology.diagnosis.budget.Deadline`) that ended any part of it makes it
@@ -47,7 +47,7 @@ class Step:
 
 @dataclass
 class Diagnosis:
-    """Result of :func:`diagnose_heights` or :func:`diagnose_psf`.
+    """Result of :func:`~metrology.diagnosis.heights.diagnose_heights` or :func:`~metrology.diagnosis.psf.diagnose_psf`.
 
     Attributes
     ----------
@@ -68,7 +68,7 @@ class Diagnosis:
         Fabrication effects the loop chose that explain only part of a residual they overlap
         (the residual on their own footprint stays above the floor): not named, listed here.
     breakdown_initial, breakdown_final : dict
-        Residual broken down by what may explain it (see :func:`residual_breakdown`).
+        Residual broken down by what may explain it (see ``residual_breakdown``).
     residual_maps : list of ndarray
         Residual map before the first step and after each step (row 0 at the top).
     stopped_early : dict or None
@@ -84,7 +84,7 @@ class Diagnosis:
         instrument's fit left no room for a candidate tested none.
     below_resolution : dict or None
         The candidate that earned its parameters but would explain under
-        :data:`MIN_POWER_SHARE` of the floor's power (``effect``, ``criterion_change``,
+        ``MIN_POWER_SHARE`` (:mod:`metrology.diagnosis.engine`) of the floor's power (``effect``, ``criterion_change``,
         ``floor_power_share``): not named, and the selection ended there.
     """
 
@@ -123,10 +123,11 @@ class Diagnosis:
 
     @property
     def untried(self) -> list[str]:
-        """The candidates it carries no information about (not in :attr:`tested`)."""
+        """The candidates it carries no information about (not in ``tested``)."""
         return [c for c in self.candidates if c not in self.tested]
 
     def to_dict(self) -> dict[str, Any]:
+        """The diagnosis as a JSON-ready dict (the body of the ``report.json`` that :meth:`save` writes)."""
         return {"summary": summary_line(self), "incomplete": self.incomplete,
                 "candidates": list(self.candidates), "tested": list(self.tested), "untried": self.untried,
                 "domain": self.domain, "units": self.units,

@@ -30,7 +30,7 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
     be told apart once everything else is explained: each named effect is tried against the
     alternatives that scored close to it when it was chosen (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
-    dropped if the criterion no longer needs it (the weakest first). Past ``deadline`` (:class:`Deadline`) the
+    dropped if the criterion no longer needs it (the weakest first). Past ``deadline`` (:class:`~metrology.diagnosis.budget.Deadline`) the
     pass stops where it is (the model stays the forward pass's or its last revision; a fit the
     deadline cut short changes nothing).
     """

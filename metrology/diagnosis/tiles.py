@@ -27,7 +27,7 @@ from metrology.matching.level import Leveller
 
 __all__ = ["TILED_WINDOW_PX", "TILE_MARGIN_PX", "TILE_PX", "TILES_PER_SIDE", "TiledCameraProblem", "tile_origins"]
 
-# Camera windows larger than this (pixels per side) are fitted on tiles.
+#: Camera windows larger than this (pixels per side) are fitted on tiles.
 TILED_WINDOW_PX = 256
 
 # Tiles per side and camera pixels per tile side.

@@ -26,8 +26,8 @@ __all__ = ["MAP_EFFECTS", "MIN_VALID_SHARE", "diagnose_tile", "load_jsonl", "map
 
 log = logging.getLogger(__name__)
 
-# Effects whose parameters every tile reports (etch loading is degenerate with the depths on a tile
-# of near-uniform density: its value comes from the selection where it names it).
+#: Effects whose parameters every tile reports (etch loading is degenerate with the depths on a tile
+#: of near-uniform density: its value comes from the selection where it names it).
 MAP_EFFECTS = ("etch_depth", "mask_overlay", "linewidth_bias")
 # A tile with less of its pixels measured is reported as not diagnosed (stitch gap, off the field).
 MIN_VALID_SHARE = 0.25

@@ -29,13 +29,13 @@ from metrology.formats.measurement import Measurement, MeasurementFileError
 __all__ = ["MAX_PIXELS", "RANGES", "STORED_REL", "Range", "check_claimed_pixels", "check_measurement", "check_value",
            "pixel_size", "within"]
 
-# Largest height map a file may make the tool allocate (float64 pixels).
+#: Largest height map a file may make the tool allocate (float64 pixels).
 MAX_PIXELS = MAX_INPUT_ARRAY_BYTES // 8
 
 
-# Relative slack at a range's edge for the rounding of the stored number: float32 keeps 24 bits
-# (off by at most 6e-8 of itself) and text exports print 6 to 7 significant digits (at most
-# 5e-7); 1e-6 holds both and is a thousand times finer than the unit slips the ranges catch.
+#: Relative slack at a range's edge for the rounding of the stored number: float32 keeps 24 bits
+#: (off by at most 6e-8 of itself) and text exports print 6 to 7 significant digits (at most
+#: 5e-7); 1e-6 holds both and is a thousand times finer than the unit slips the ranges catch.
 STORED_REL = 1e-6
 
 

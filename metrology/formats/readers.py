@@ -42,6 +42,7 @@ __all__ = ["CSV_UNITS_M", "EXTENSIONS", "FORMATS", "detect_format", "read_array"
 
 log = logging.getLogger(__name__)
 
+#: Measurement formats :func:`read_measurement` reads (by extension, without the dot).
 FORMATS = ("dat", "datx", "xyz", "asc", "csv", "dektak", "npy", "npz", "tiff", "x3p") + tuple(
     sorted({e.lstrip(".") for e in LIB_EXTENSIONS}))
 EXTENSIONS = {".dat": "dat", ".datx": "datx", ".xyz": "xyz", ".asc": "asc", ".csv": "csv",

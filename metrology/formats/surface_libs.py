@@ -70,7 +70,7 @@ __all__ = ["BoundedReader", "CONTENT_FORMATS", "DECLARED_CHECKS", "LIB_EXTENSION
 
 log = logging.getLogger(__name__)
 
-# Extension -> SurfaceTopography's format name (passed, so one reader parses the file).
+#: Extension -> SurfaceTopography's format name (passed, so one reader parses the file).
 LIB_EXTENSIONS = {".nid": "ezd", ".spm": "di", ".di": "di", ".mdt": "mdt", ".plu": "plu", ".sur": "sur",
                   ".opd": "opd", ".opdx": "opdx", ".vk4": "vk", ".gwy": "gwy"}
 # Formats recognised by their content (a Dektak CSV shares ``.csv`` with the Mx profile export)

@@ -321,7 +321,7 @@ def write_tiff(path: str | Path, height_m: np.ndarray, pixel_size_m: float, z_un
 
 def write_measurement(path: str | Path, measurement_or_array: Measurement | np.ndarray,
                       pixel_size_m: float | None = None, **options: Any) -> Path:
-    """Write a :class:`Measurement` or a height array in the format named by the extension.
+    """Write a :class:`~metrology.formats.measurement.Measurement` or a height array in the format named by the extension.
 
     Parameters
     ----------

@@ -79,7 +79,7 @@ TERRACE_MARGIN_SIGMAS = 3.0
 
 @dataclass
 class Comparison:
-    """Everything :func:`compare_measurement` found; :meth:`report` is the JSON summary.
+    """Everything :func:`compare_measurement` found; :meth:`~metrology.matching.compare.Comparison.report` is the JSON summary.
 
     Maps are on the measurement grid (row 0 at the top, camera order).
     """
@@ -110,7 +110,7 @@ class Comparison:
     flat_residual_m: float = float("nan")
 
     def fitted_params(self) -> ProcessParams:
-        """:class:`ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
+        """:class:`~masks.process_params.ProcessParams` with the depths, overlay and bias fitted in the camera's frame."""
         return fitted_process(self.instrument_fit, n_masks=self.nominal_depths_m.size)
 
     def artefacts(self) -> dict:

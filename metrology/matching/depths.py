@@ -20,8 +20,8 @@ from doedesign.errors import DoeError
 __all__ = ["DepthFit", "LEVEL_REPEATABILITY_M", "LevelStats", "MAX_EDGE_BAND_PITCH", "binary_code_matrix",
            "depths_from_levels", "feature_distances", "fit_etch_depths", "interior_mask", "level_heights"]
 
-# Repeatability floor (m) added in quadrature to each level mean's standard error in the
-# chi-square: a white-light profiler does not repeat a terrace height better than this.
+#: Repeatability floor (m) added in quadrature to each level mean's standard error in the
+#: chi-square: a white-light profiler does not repeat a terrace height better than this.
 LEVEL_REPEATABILITY_M = 0.3e-9
 # Features wider than 3 design pixels keep all but a band this many design pixels wide at
 # their edges (instead of only the central third), far beyond edge blur and overlay.

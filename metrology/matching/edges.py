@@ -123,7 +123,7 @@ def fit_edges(height_m: np.ndarray, levels: np.ndarray, registration: Registrati
     registration : Registration
     pitch_m : float
     depths0_m : sequence of float
-        Starting etch depths (e.g. from :func:`fit_etch_depths`).
+        Starting etch depths (e.g. from :func:`~metrology.matching.depths.fit_etch_depths`).
 
     Returns
     -------

@@ -120,7 +120,7 @@ def _objective(fine, step_m, na, wavelength_m, pad):
 
 
 def fitted_process(edge_fit: Any, depths_m: Sequence[float] | None = None, n_masks: int = 4) -> ProcessParams:
-    """:class:`ProcessParams` holding the fitted depths, overlay and bias (no blur: the
+    """:class:`~masks.process_params.ProcessParams` holding the fitted depths, overlay and bias (no blur: the
     fitted edge blur is the instrument's and is applied on the measurement side)."""
     overlay = np.zeros((n_masks, 3))
     overlay[:, :2] = edge_fit.overlay_m

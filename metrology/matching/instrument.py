@@ -87,7 +87,7 @@ ETCH_CACHE_BYTES = 1024 * 2 ** 20
 # Crops' models an instrument model keeps (:meth:`InstrumentModel.part`): an instrument stage's
 # window and a selection's screening square.
 PARTS_KEPT = 2
-# Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
+#: Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
 PLACEMENT_PARAMS = ("shift_row_px", "shift_col_px", "rotation_rad", "scale_row", "scale_col")
 
 

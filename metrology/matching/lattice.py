@@ -40,12 +40,12 @@ __all__ = ["LATTICE_BAND", "Lattice", "MIN_CELL_PIXELS", "cell_depths", "edge_sp
 
 log = logging.getLogger(__name__)
 
-# The field's period may differ from the design's nominal one (file pixel size) by this factor
-# either way: a wrong lateral calibration of that size is still found.
+#: The field's period may differ from the design's nominal one (file pixel size) by this factor
+#: either way: a wrong lateral calibration of that size is still found.
 LATTICE_BAND = 1.5
 # Fewest whole periods along each axis for the Fourier peaks to mean something.
 MIN_PERIODS = 2.0
-# Interior pixels of each level a cell needs for its own step height.
+#: Interior pixels of each level a cell needs for its own step height.
 MIN_CELL_PIXELS = 20
 
 
@@ -123,7 +123,7 @@ def fundamental_peaks(height_m: np.ndarray, period_px: tuple[float, float]) -> L
     Raises
     ------
     DoeError
-        The field holds fewer than :data:`MIN_PERIODS` periods, or no peak in the band.
+        The field holds fewer than ``MIN_PERIODS`` periods, or no peak in the band.
     """
     h = _filled(height_m)
     rows, cols = h.shape

@@ -62,11 +62,11 @@ MIN_STEP_FOUND_STEPS = 0.25
 # Below this many design edges in the field a share is too coarse to judge on (a wrong design
 # finds about 60 +- 7 % of 50 edges; the threshold is three of those deviations away).
 MIN_DESIGN_EDGES = 50
-# Largest relative difference of the pixel size along the two axes of the lattice (camera
-# pixels are square; lateral calibration holds 0.1-1 % per axis; right fields gave < 0.4 %).
-# A raster scan's axes are two piezo drives calibrated apart (an open-loop scanner's creep
-# alone can exceed 10 % of a move; the real Nanosurf scans of the tests differ by 2.3 %): its
-# aspect is measured and reported, never refused.
+#: Largest relative difference of the pixel size along the two axes of the lattice (camera
+#: pixels are square; lateral calibration holds 0.1-1 % per axis; right fields gave < 0.4 %).
+#: A raster scan's axes are two piezo drives calibrated apart (an open-loop scanner's creep
+#: alone can exceed 10 % of a move; the real Nanosurf scans of the tests differ by 2.3 %): its
+#: aspect is measured and reported, never refused.
 MAX_PIXEL_ASPECT = 0.02
 # A field whose heights (0.5-99.5 percentile, after levelling) span less than this many level
 # steps shows no etched step: unetched surface or off the element.

@@ -54,9 +54,9 @@ log = logging.getLogger(__name__)
 
 # Apertures at least this many DOE pixels wide get the design PSF on the DOE grid (see compare_psf).
 MIN_APERTURE_PX_COARSE_DESIGN = 800
-# Wavelengths of the comparison when the design names no target (hydrogen F, sodium D, hydrogen C).
+#: Wavelengths of the comparison when the design names no target (hydrogen F, sodium D, hydrogen C).
 DEFAULT_WAVELENGTHS_M = (486e-9, 589e-9, 656e-9)
-# What the light is counted on: the design's own target, or (a different quantity) the design PSF's core.
+#: What the light is counted on: the design's own target, or (a different quantity) the design PSF's core.
 MERIT_NAMES = {"design_target": "light on the design's target",
                "psf_core": "light in the design PSF's core",
                "given": "light on the given target pixels"}
@@ -162,7 +162,7 @@ def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = N
     params : masks.process.ProcessParams
         Fitted process (e.g. ``Comparison.fitted_params()``).
     camera : Camera, optional
-        Default: the design's own (:meth:`Design.camera`).
+        Default: the design's own (:meth:`Design.camera <doedesign.design.Design.camera>`).
     wavelengths_m : sequence of float, optional
         Default: the wavelengths of the design's target, else :data:`DEFAULT_WAVELENGTHS_M`.
         Wavelengths the target does not have get the PSF core instead (a different merit).

@@ -55,11 +55,11 @@ _PROJ_BIN_PX = 0.05
 _MAX_EDGE_POINTS = 600_000
 # A correct read-out correlates with the design near 1; below this nothing matched.
 MIN_MATCH_NCC = 0.5
-# A match this good ends the search over candidate lattice periods.
+#: A match this good ends the search over candidate lattice periods.
 GOOD_MATCH_NCC = 0.9
 # Comb peaks tried as the DOE pitch (the strongest first).
 SCALE_CANDIDATES = 4
-# A nominal pixel size may be off by this factor either way: the scale scan's band.
+#: A nominal pixel size may be off by this factor either way: the scale scan's band.
 SCALE_SEARCH_FACTOR = 2.0
 # Comb peaks of that wider band tried (strongest first) once the narrow band found no good match.
 WIDE_SCALE_CANDIDATES = 8

@@ -56,9 +56,9 @@ __all__ = ["COVERAGE_FACTOR", "STEP_FRACTION", "STEP_NOISE", "TerraceFit", "chec
 
 log = logging.getLogger(__name__)
 
-# A pixel differing from a 4-neighbour by more than this fraction of one level step is on a step,
+#: A pixel differing from a 4-neighbour by more than this fraction of one level step is on a step,
 STEP_FRACTION = 0.1
-# ... or by more than this many standard deviations of a flat pair's difference (noise, roughness).
+#: ... or by more than this many standard deviations of a flat pair's difference (noise, roughness).
 STEP_NOISE = 5.0
 # Coverage factor of the agreement test between the terrace and the camera-frame fits.
 COVERAGE_FACTOR = 2.0

@@ -16,7 +16,7 @@ A family wide enough for the profilometers in use, every member fitted, none ass
   [0.05, 0.95]; ``na = 0`` leaves it out (an objective whose cut-off lies beyond what the
   pixels resolve). ``lambda`` is the instrument's mean wavelength (white light: 0.57 um unless a
   calibration says otherwise); only ``NA / lambda`` is measurable.
-* The batwing (a surface effect, :func:`metrology.diagnosis.effects.batwing_transfer`) is the
+* The batwing (a surface effect, :func:`metrology.diagnosis.height_effects.batwing_transfer`) is the
   interferometer's own edge response, of a fitted width that already is its reach in the
   measurement: its band-pass ``b`` is added to the objective's transfer, not imaged through
   it, so the whole transfer is ``pixel * blur * (MTF + b)``
