@@ -83,6 +83,7 @@ nitpick_ignore = [
     ("py:func", "skimage.color.rgb2luv"),
     ("py:func", "scipy.interpolate.make_smoothing_spline"),
     ("py:func", "x3pio.info"),
+    ("py:class", "io.BufferedReader"),
 ]
 
 

@@ -6,7 +6,7 @@ only part of it.
   header's frames (points x lines x bytes per point of every frame its groups list) are summed
   here and compared with the bytes after the ``#!`` marker. SurfaceTopography keeps the parsed
   header private and lists only the frames in a length unit, hence the few lines that parse the
-  INI-style header here (bounded to :data:`NID_MAX_HEADER_BYTES`, nothing allocated from it).
+  INI-style header here (bounded to ``NID_MAX_HEADER_BYTES``, nothing allocated from it).
 - Dektak CSV: a file cut at a line end parses as a shorter scan. The points times the sample
   spacing must cover the ``Length`` the header declares (to one sample and the printed rounding).
 """
@@ -53,7 +53,7 @@ def nid_frames(path: str | Path) -> tuple[int, list[tuple[str, int]]]:
     Raises
     ------
     MeasurementFileError
-        No data marker within :data:`NID_MAX_HEADER_BYTES`, or a count that is not one.
+        No data marker within ``NID_MAX_HEADER_BYTES``, or a count that is not one.
     """
     path = Path(path)
     with open(path, "rb") as fh:

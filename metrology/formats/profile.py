@@ -41,7 +41,7 @@ def line_pitch(path: str | Path, x: np.ndarray, what: str = "X", rounded: bool =
     """Sample spacing of a line scan whose positions are ``x``, in the file's unit
     (the numbers as printed, before any conversion to metres).
 
-    The positions are a uniform grid when each lies within :data:`UNIFORM_REL` of a step of
+    The positions are a uniform grid when each lies within ``UNIFORM_REL`` of a step of
     the least-squares line through them, plus half the unit of their last printed digit
     (:func:`printed_quantum`) when ``rounded``.
 

@@ -3,7 +3,7 @@
 Formats: Nanosurf ``.nid``, Bruker NanoScope ``.spm`` / ``.di``, NT-MDT ``.mdt``, Sensofar
 ``.plu``, Digital Surf ``.sur``, Wyko ``.opd`` and Vision64 ``.opdx``, Keyence ``.vk4``,
 Gwyddion ``.gwy``; Bruker Dektak stylus-profiler CSV line scans (recognised by their
-``Scan Parameters`` header, :data:`CONTENT_FORMATS`). ISO 25178-72 ``.x3p`` is read by
+``Scan Parameters`` header, ``CONTENT_FORMATS``). ISO 25178-72 ``.x3p`` is read by
 :mod:`metrology.formats.x3p` (x3pio).
 
 Libraries compared (licence; wheel without a compiler on CPython 3.11.7; CPU time and peak
@@ -43,7 +43,7 @@ transposed to the tool's row-major (rows = y) order with row 0 the first row sto
 non-square pixel is kept (``Measurement.pixel_size_y_m``); a line scan the library reads as
 non-uniform (x printed rounded) becomes a 1-row map when its positions are a uniform grid
 (:func:`~metrology.formats.profile.line_pitch`); the data a header declares are checked against
-the file where the library checks only part of them (:data:`DECLARED_CHECKS`).
+the file where the library checks only part of them (``DECLARED_CHECKS``).
 """
 
 from __future__ import annotations

@@ -251,7 +251,7 @@ class InstrumentModel:
         default margin and caches, kept for the next request of the same crop: problems on one
         window (an instrument stage's combinations) then share its etches, spectra and
         transfers, computed once. The same numbers as a new model's; the last
-        :data:`PARTS_KEPT` crops are kept."""
+        ``PARTS_KEPT`` crops are kept."""
         key = (tuple(int(v) for v in shape), placement.matrix.tobytes(), placement.offset.tobytes())
         with self._parts_lock:
             model = self._parts.get(key)

@@ -13,7 +13,7 @@ before its result is reported:
   pixels) and fill 0 (one that samples their centres), are fitted instead, each with its own
   blur, on the same window; point samples are kept only when they lower the information
   criterion ``n_eff ln(RSS / N)`` by more than ``threshold`` (both have the same parameters,
-  so this is a likelihood ratio with a stated margin, :data:`FILL_THRESHOLD`; whole pixels,
+  so this is a likelihood ratio with a stated margin, ``FILL_THRESHOLD``; whole pixels,
   the common camera, win a tie).
 * **An objective or a batwing.** The diagnosis's instrument stage
   (:func:`metrology.diagnosis.camera_nuisance.choose_transfer`, the one rule for it) is run on
@@ -24,7 +24,7 @@ before its result is reported:
   needs it: under a Gaussian blur with whole pixels its objective's long spread left 7 nm in
   the flat interiors against 0.67 nm of noise. The stage's fits are short ones on a square
   of the window: the members it chose are refitted to convergence on the whole window (the
-  depths free), from its values and from a narrow batwing (:data:`NARROW_BATWING`; from the
+  depths free), from its values and from a narrow batwing (``NARROW_BATWING``; from the
   stage's alone, a 0.13 batwing at 0.2 um was fitted as -0.012 at 1.1 um beside NA 0.83 for
   0.47), and the result is held in a last camera-frame fit of the depths, overlay, bias and
   placement.
