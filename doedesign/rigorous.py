@@ -53,6 +53,8 @@ disagreement; the absolute figures are reported too.
 
 from __future__ import annotations
 
+from typing import Any
+
 import logging
 import os
 from collections.abc import Callable
@@ -269,8 +271,8 @@ def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m: A
                           dict(incidence=incidence, formulation=form.name.lower(), layers=len(patterns)))
 
 
-def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: float, lattice, expansion,
-                     formulation, solve: Callable | None = None):
+def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: float, lattice: Any, expansion: Any,
+                     formulation: Any, solve: Callable | None = None) -> Any:
     """Transmitted efficiency of a layer stack at normal incidence, per order and polarization.
 
     The one place where this tool calls fmmax's eigensolves, scattering matrix and fluxes:

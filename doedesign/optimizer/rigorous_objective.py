@@ -33,6 +33,7 @@ The value handed to the driver is its negative.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -51,7 +52,7 @@ def spot_array_metric(efficiency: ArrayLike) -> float:
     return float(e.sum() * (1 - (e.max() - e.min()) / (e.max() + e.min())))
 
 
-def tanh_projection(x, beta, eta: float = 0.5):
+def tanh_projection(x: Any, beta: float, eta: float = 0.5) -> Any:
     """The tanh projection of a density in 0..1 toward 0 and 1 (``beta`` > 0; large is a step at ``eta``)."""
     import jax.numpy as jnp
 
