@@ -53,12 +53,11 @@ disagreement; the absolute figures are reported too.
 
 from __future__ import annotations
 
-from typing import Any
-
 import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
