@@ -49,8 +49,8 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Hashable, Iterable, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -58,12 +58,13 @@ import scipy.fft as sfft
 import scipy.ndimage as ndi
 
 from doedesign.errors import DoeError
+from metrology.matching.array_cache import ArrayCache
+from metrology.matching.placement import PLACEMENT_PARAMS, Placement
 from metrology.matching.transfer import (LateralTransfer, as_transfer, footprint_kernel, kernel_half_width,
                                          objective_spectrum)
 
 if TYPE_CHECKING:
     from masks.process_params import ProcessParams
-    from metrology.matching.register import Registration
 
 __all__ = ["ArrayCache", "FINE_STEP_M", "InstrumentModel", "LateralTransfer", "PLACEMENT_PARAMS", "Placement",
            "beside_transfer", "footprint_kernel", "kernel_half_width"]
@@ -87,105 +88,6 @@ ETCH_CACHE_BYTES = 1024 * 2 ** 20
 # Crops' models an instrument model keeps (:meth:`InstrumentModel.part`): an instrument stage's
 # window and a selection's screening square.
 PARTS_KEPT = 2
-#: Nuisance parameters of the placement, in the order of :meth:`Placement.refined`.
-PLACEMENT_PARAMS = ("shift_row_px", "shift_col_px", "rotation_rad", "scale_row", "scale_col")
-
-
-@dataclass(frozen=True)
-class Placement:
-    """Affine map from camera pixel (row, col) centres to design-pixel coordinates.
-
-    Attributes
-    ----------
-    matrix : ndarray (2, 2)
-    offset : ndarray (2,)
-    """
-
-    matrix: np.ndarray
-    offset: np.ndarray
-
-    @classmethod
-    def from_registration(cls, registration: Registration) -> Placement:
-        """The placement of a :class:`~metrology.matching.register.Registration`."""
-        return cls(np.array(registration.matrix, float), np.array(registration.offset, float))
-
-    def to_design(self, rows: np.ndarray | float, cols: np.ndarray | float,
-                  ) -> tuple[np.ndarray | float, np.ndarray | float]:
-        """Design coordinates (R, C) of camera coordinates (rows, cols)."""
-        m, t = self.matrix, self.offset
-        return m[0, 0] * rows + m[0, 1] * cols + t[0], m[1, 0] * rows + m[1, 1] * cols + t[1]
-
-    def refined(self, values: Sequence[float], shape: tuple[int, int],
-                centre_px: Sequence[float] | None = None) -> Placement:
-        """This placement moved by nuisance ``values`` (see :data:`PLACEMENT_PARAMS`).
-
-        ``shift_row_px``, ``shift_col_px``: design pixels, of the field centre;
-        ``rotation_rad``: counter-clockwise (y up) about the field centre; ``scale_row``,
-        ``scale_col``: relative change of the camera pixel size along its rows and columns.
-        The field centre is that of ``shape`` unless ``centre_px`` (camera row, col) is given
-        (a crop refined as the field it was cut from).
-        """
-        dr, dc, a, sr, sc = (float(v) for v in values)
-        centre = (np.asarray(shape, float) - 1) / 2 if centre_px is None else np.asarray(centre_px, float)
-        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        matrix = rot @ self.matrix @ np.diag([1.0 + sr, 1.0 + sc])
-        centre_design = self.matrix @ centre + self.offset + np.array([dr, dc])
-        return Placement(matrix, centre_design - matrix @ centre)
-
-    def in_frame_of(self, shift_rc: Sequence[float], rotation_rad: float, centre_rc: Sequence[float]) -> Placement:
-        """The same camera pixels placed on an image before a rigid motion moved it.
-
-        Where a mask printed with a shift and a rotation (:func:`masks.process.mask_motion`,
-        in design pixels) shows under this placement, its etch printed in place is sampled
-        under the returned one (:func:`masks.litho.inverse_motion`): a mask's overlay becomes
-        a placement, as cheap to change as the camera's own.
-        """
-        from masks.litho import inverse_motion
-
-        inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
-        return Placement(inverse @ self.matrix, inverse @ self.offset + offset)
-
-
-class ArrayCache:
-    """Least-recently-used store of arrays within a byte budget (always keeps the newest).
-
-    Safe to share between threads (a diagnosis's workers): each call holds the store's lock.
-    Two threads that miss the same key both compute it; the later one's array is kept.
-    """
-
-    def __init__(self, max_bytes: int, max_items: int | None = None) -> None:
-        self.max_bytes = int(max_bytes)
-        self.max_items = max_items
-        self._items: OrderedDict = OrderedDict()
-        self._bytes = 0  # of the arrays held: a put is then not a sum over them
-        self._lock = threading.Lock()
-
-    def get(self, key: Hashable) -> np.ndarray | None:
-        with self._lock:
-            value = self._items.get(key)
-            if value is not None:
-                self._items.move_to_end(key)
-            return value
-
-    def put(self, key: Hashable, value: np.ndarray) -> None:
-        with self._lock:
-            old = self._items.pop(key, None)
-            if old is not None:
-                self._bytes -= old.nbytes
-            self._items[key] = value
-            self._bytes += value.nbytes
-            while len(self._items) > 1 and (self._bytes > self.max_bytes
-                                            or (self.max_items and len(self._items) > self.max_items)):
-                self._bytes -= self._items.popitem(last=False)[1].nbytes
-
-    def __contains__(self, key: Hashable) -> bool:
-        with self._lock:
-            return key in self._items
-
-    def clear(self) -> None:
-        with self._lock:
-            self._items.clear()
-            self._bytes = 0
 
 
 class InstrumentModel:
