@@ -1,6 +1,6 @@
 """A least-recently-used store of arrays within a byte budget, shared by a diagnosis's threads.
 
-Written here because :func:`functools.lru_cache` bounds a count, not bytes, and keys on the call's
+Written here because ``functools.lru_cache`` bounds a count, not bytes, and keys on the call's
 arguments (arrays are not hashable); the models key their renders on what made them.
 """
 
