@@ -230,7 +230,7 @@ def inverse_motion(shift_rc: tuple[float, float], rotation_rad: float,
     rotation about ``c``) shows what stood at ``R^-1 (o - c - t) + c``, returned as the affine
     map ``(matrix, offset)``: ``matrix @ o + offset``. Any length unit, as long as ``shift_rc``
     and ``centre_rc`` share it (fine pixels here, design pixels for a camera sampling a moved
-    mask, :meth:`metrology.matching.instrument.Placement.in_frame_of`).
+    mask, :meth:`metrology.matching.placement.Placement.in_frame_of`).
     """
     cos, sin = np.cos(rotation_rad), np.sin(rotation_rad)
     # With row pointing down, a counter-clockwise rotation in (x, y-up) is

@@ -201,7 +201,7 @@ class CameraHeightProblem(dg.Problem):
         """Model heights in the camera frame (before levelling).
 
         Each mask's etch is rendered in place and sampled under the camera's placement taken into
-        that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of <metrology.matching.instrument.Placement.in_frame_of>`): a change of
+        that mask's frame (its overlay and rotation, :meth:`Placement.in_frame_of <metrology.matching.placement.Placement.in_frame_of>`): a change of
         placement or of a mask's motion costs a spline sampling, not a new surface. Blur, pixel box,
         sidewall ramp and linear surface effects commute with the sum of the masks and with their
         motions; a non-linear surface effect, roughness, or a motion that would sample beyond the

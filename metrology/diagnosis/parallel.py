@@ -4,7 +4,7 @@ A diagnosis spends its time in model evaluations that do not depend on each othe
 screening fits of the candidates, the columns of a finite-difference Jacobian, the blocks of a
 large field's render. Their heavy parts (FFTs, spline sampling, filters, array arithmetic) run
 in compiled code that releases the GIL, so threads share them out, with the problem and its
-render caches (:class:`~metrology.matching.instrument.ArrayCache`, locked) in common: nothing
+render caches (:class:`~metrology.matching.array_cache.ArrayCache`, locked) in common: nothing
 is copied or pickled, and a column another thread needs is rendered once.
 
 Threads, not forked processes (measured on 2 cores, one run each way, same fits and results):
