@@ -1,24 +1,45 @@
 """Progress bars on stderr for optimizations, exports and fits (tqdm underneath).
 
 A bar draws only when stderr is a terminal or ``DOE_PROGRESS=1``; set ``DOE_PROGRESS=0`` to
-silence it. Status messages go through :mod:`logging`, never print.
+silence it. Inside :func:`silenced` no bar draws: work whose caller shows a bar of its own (the
+tiles of ``doe map``, each a whole diagnosis) would otherwise print one bar per step of every
+tile under the caller's. Status messages go through :mod:`logging`, never print.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import TextIO
 
 from tqdm import tqdm
 
-__all__ = ["Progress", "progress_enabled"]
+__all__ = ["Progress", "progress_enabled", "silenced"]
+
+# Per thread and per task (a ContextVar): one tile silenced in a worker thread leaves the others'.
+_SILENCED: ContextVar[bool] = ContextVar("doe_progress_silenced", default=False)
+
+
+@contextmanager
+def silenced() -> Iterator[None]:
+    """Bars made inside this block draw nothing (unless a bar is asked for with ``enabled=True``)."""
+    token = _SILENCED.set(True)
+    try:
+        yield
+    finally:
+        _SILENCED.reset(token)
 
 
 def progress_enabled(stream: TextIO | None = None, enabled: bool | None = None) -> bool:
-    """Whether to draw: ``enabled`` if given, else ``DOE_PROGRESS`` (``1``/``0``), else a terminal."""
+    """Whether to draw: ``enabled`` if given, else nothing inside :func:`silenced`, else
+    ``DOE_PROGRESS`` (``1``/``0``), else a terminal."""
     if enabled is not None:
         return bool(enabled)
+    if _SILENCED.get():
+        return False
     env = os.environ.get("DOE_PROGRESS")
     if env is not None:
         return env == "1"

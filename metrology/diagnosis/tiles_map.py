@@ -81,10 +81,12 @@ def diagnose_tile(levels: np.ndarray, pitch_m: float, map_path: str, upsample: i
 
     Computed on one BLAS thread (:func:`~metrology.diagnosis.parallel.one_thread`) wherever it
     runs, so a tile's result is the same inline, in threads and in any Dask worker, bit for bit.
+    Its diagnosis draws no bars of its own: the map's bar counts the tiles.
     """
+    from doedesign.progress import silenced
     from metrology.diagnosis.parallel import one_thread
 
-    with one_thread():
+    with one_thread(), silenced():
         return _diagnose_tile(levels, pitch_m, map_path, upsample, tile, depths_m, candidates, threshold)
 
 

@@ -140,11 +140,16 @@ def _by_id(lines):
     return sorted(lines, key=lambda line: json.loads(line)["id"])
 
 
-def test_inline_and_two_workers_write_the_same_tiles(tmp_path):
+def test_inline_and_two_workers_write_the_same_tiles(tmp_path, monkeypatch, capsys):
     """Same input, same answer: tiles.jsonl inline and on two Dask workers, byte for byte (the
-    lines in tile order: workers finish in their own order)."""
+    lines in tile order: workers finish in their own order). With bars on, the map draws its own
+    bar and no tile draws the bars of its diagnosis's steps."""
     levels = _scale_map(tmp_path)
+    monkeypatch.setenv("DOE_PROGRESS", "1")
     inline = _run(levels, tmp_path, "inline")
+    bars = capsys.readouterr().err
+    assert "map tiles" in bars and "diagnosis step" not in bars
+    monkeypatch.delenv("DOE_PROGRESS")
     assert sum('"status": "ok"' in line for line in inline) == 2
     assert _by_id(_run(levels, tmp_path, "processes", 2)) == _by_id(inline)
 
