@@ -183,24 +183,27 @@ def bilinear_demosaic(raw: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rgb2luv(rgb: np.ndarray) -> np.ndarray:
+    """:func:`skimage.color.rgb2luv` (CIE LUV, D65), imported when first needed."""
+    from skimage.color import rgb2luv  # type: ignore[attr-defined]  # public, but missing from skimage's __init__.pyi __all__
+
+    return rgb2luv(rgb)
+
+
 def _luv_peaks():
     """Extent of L, U and V over the sRGB gamut (sampled finely on the cube's surface)."""
-    from skimage.color import rgb2luv
-
     t = np.linspace(0, 1, 33)
     a, b = np.meshgrid(t, t, indexing="ij")
     faces = []
     for fixed in (0.0, 1.0):
         f = np.full_like(a, fixed)
         faces += [np.stack([f, a, b], -1), np.stack([a, f, b], -1), np.stack([a, b, f], -1)]
-    luv = rgb2luv(np.concatenate(faces, axis=0))
+    luv = _rgb2luv(np.concatenate(faces, axis=0))
     return luv.reshape(-1, 3).max(axis=0) - luv.reshape(-1, 3).min(axis=0)
 
 
 def psnr_scores(reference: np.ndarray, estimate: np.ndarray, margin: int = 4) -> _Scores:
     """PSNR (dB) in RGB and per LUV channel on the interior (``margin`` px dropped at each edge)."""
-    from skimage.color import rgb2luv
-
     sl = (slice(margin, -margin or None), slice(margin, -margin or None))
     ref, est = reference[sl], np.clip(estimate[sl], 0.0, 1.0)
 
@@ -208,7 +211,7 @@ def psnr_scores(reference: np.ndarray, estimate: np.ndarray, margin: int = 4) ->
         mse = np.mean((a - b) ** 2)
         return float(10 * np.log10(peak ** 2 / mse)) if mse > 0 else float("inf")
 
-    luv_ref, luv_est = rgb2luv(ref), rgb2luv(est)
+    luv_ref, luv_est = _rgb2luv(ref), _rgb2luv(est)
     peaks = _luv_peaks()
     return {"rgb_db": psnr(ref, est, 1.0),
             **{f"{c}_db": psnr(luv_ref[..., i], luv_est[..., i], peaks[i]) for i, c in enumerate("luv")}}
@@ -298,7 +301,8 @@ def evaluate(images: dict[str, np.ndarray], methods: Sequence[Method], seed: int
     per_image : dict  method -> image -> scores
     reconstructions : dict  method -> image -> reconstructed array (for figures)
     """
-    per_image, recs = {}, {}
+    per_image: dict[str, dict[str, _Scores]] = {}
+    recs: dict[str, dict[str, np.ndarray]] = {}
     for m in methods:
         per_image[m.name], recs[m.name] = {}, {}
         for i, (name, img) in enumerate(images.items()):
@@ -315,7 +319,6 @@ def figure(images: dict[str, np.ndarray], recs: dict[str, dict[str, np.ndarray]]
            image_name: str | None = None) -> Path:
     """Fig. 2-like panel: reconstructions (top) and mean ``|dU| + |dV|`` error maps (bottom)."""
     import matplotlib.pyplot as plt
-    from skimage.color import rgb2luv
 
     from .fileio import save_figure
 
@@ -326,8 +329,8 @@ def figure(images: dict[str, np.ndarray], recs: dict[str, dict[str, np.ndarray]]
     axes[0, 0].imshow(ref)
     axes[0, 0].set_title("scene")
     axes[1, 0].axis("off")
-    luv_ref = rgb2luv(ref)
-    errs = {m: np.abs(rgb2luv(np.clip(recs[m][name], 0, 1))[..., 1:] - luv_ref[..., 1:]).mean(-1) for m in methods}
+    luv_ref = _rgb2luv(ref)
+    errs = {m: np.abs(_rgb2luv(np.clip(recs[m][name], 0, 1))[..., 1:] - luv_ref[..., 1:]).mean(-1) for m in methods}
     vmax = max(float(np.percentile(e, 99)) for e in errs.values())
     for j, m in enumerate(methods, start=1):
         axes[0, j].imshow(np.clip(recs[m][name], 0, 1))

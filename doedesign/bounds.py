@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike
 from scipy import signal
 
 from .camera import Camera
+from .engine.backend import Backend
 from .engine.psf import PSFEngine
 from .targets import Target
 
@@ -30,7 +31,7 @@ __all__ = ["bound_report", "diffraction_limited_psf", "spot_bound"]
 
 
 def diffraction_limited_psf(camera: Camera, pitch_m: float, shape: tuple[int, int], wavelengths_m: ArrayLike,
-                            material: str = "fused_silica", device: str = "cpu") -> np.ndarray:
+                            material: str = "fused_silica", device: str | Backend = "cpu") -> np.ndarray:
     """Coded-view PSF (wavelengths, rows, cols) of a flat DOE in focus: the diffraction-limited spot
     (computed on ``device``, :mod:`doedesign.engine.backend`)."""
     engine = PSFEngine(camera, pitch_m, shape, material, wavelengths_m, [camera.focus_distance_m], device=device)
@@ -38,7 +39,8 @@ def diffraction_limited_psf(camera: Camera, pitch_m: float, shape: tuple[int, in
 
 
 def spot_bound(camera: Camera, pitch_m: float, shape: tuple[int, int], target: Target,
-               material: str = "fused_silica", spot: np.ndarray | None = None, device: str = "cpu") -> np.ndarray:
+               material: str = "fused_silica", spot: np.ndarray | None = None,
+               device: str | Backend = "cpu") -> np.ndarray:
     """Single-colour bound per (depth, wavelength) plane of ``target`` (fractions of the coded view's light).
 
     Parameters

@@ -188,7 +188,7 @@ def psf_bytes(camera: Camera, pitch_m: float, shape: Sequence[int], n_wavelength
     ``n_views x n_depths x n_wavelengths`` windows of float64 (the uncoded ones cached once
     more); the per-axis kernels hold a window side times the lags per wavelength.
     """
-    rows, cols = (int(v) for v in camera.pupil_grid_shape(tuple(int(v) for v in shape), pitch_m))
+    rows, cols = (int(v) for v in camera.pupil_grid_shape((int(shape[0]), int(shape[1])), pitch_m))
     q = int(oversample)
     samples = rows * cols * q ** 2
     win_rows, win_cols = (int(v) for v in camera.window_shape)

@@ -115,7 +115,7 @@ class Camera:
     def pupil_grid_shape(self, design_shape: tuple[int, int], pitch_m: float) -> tuple[int, int]:
         """Shape of the pupil grid (DOE pixels) holding the aperture; the design is centred in it."""
         if self.aperture_diameter_m is None:
-            return tuple(design_shape)
+            return (int(design_shape[0]), int(design_shape[1]))
         n_ap = self.aperture_diameter_m / pitch_m
         n = int(round(n_ap)) if abs(n_ap - round(n_ap)) < 1e-6 else int(np.ceil(n_ap))
         if design_shape[0] > n or design_shape[1] > n:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 
@@ -62,11 +63,11 @@ class Design:
     levels: np.ndarray | None = None
     aperture: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
-    # The file :meth:`load` read (not a field): errors found later, in the camera entry say,
-    # name the file the user gave rather than the design's internal name.
-    source_path = None
 
     def __post_init__(self) -> None:
+        # The file :meth:`load` read (not a field): errors found later, in the camera entry say,
+        # name the file the user gave rather than the design's internal name.
+        self.source_path: str | None = None
         self.height_m = np.asarray(self.height_m, dtype=np.float64)
         self.pitch_m = float(self.pitch_m)
         self.design_wavelength_m = float(self.design_wavelength_m)
@@ -151,6 +152,12 @@ class Design:
     def height_2pi_m(self) -> float:
         """2 pi height at the design wavelength."""
         return float(get_material(self.material).height_2pi_m(self.design_wavelength_m))
+
+    @overload
+    def camera(self, missing: Literal["seed"] = "seed") -> Camera: ...
+
+    @overload
+    def camera(self, missing: str) -> Camera | None: ...
 
     def camera(self, missing: str = "seed") -> Camera | None:
         """The camera recorded in the metadata (``metadata["camera"]``, :meth:`Camera.to_dict <doedesign.camera.Camera.to_dict>`).

@@ -188,10 +188,10 @@ def depth_element(size_px: int = 160, iterations: int = 30, depths_m: ArrayLike 
                axicon_ring_start(cam, size_px))
     engine = PSFEngine(cam, PITCH_M, (size_px, size_px), wavelengths_m=target.wavelengths_m, depths_m=target.depths_m)
     psf = engine.psf(run.design.height_m, views=("coded",)).psf[0]
-    measured = [ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
-    mean = [mean_ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(len(depths_m))]
+    measured = [ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(target.depths_m.size)]
+    mean = [mean_ring_radius_px(psf[d, 0], cam.axis_pixel) for d in range(target.depths_m.size)]
     return {"element": "depth", "figure_of_merit": "ring radius (px) per depth (quantized)",
-            "depths_m": list(depths_m), "radius_px": measured, "mean_radius_px": mean,
+            "depths_m": target.depths_m.tolist(), "radius_px": measured, "mean_radius_px": mean,
             "target_radius_px": radii.tolist(), "seed_radius_px": targets.seed_ring_radius_px(depths_m).tolist(),
             "energy_on_ring": run.report["quantized"]["energy_on_target"], **_times(run)}
 

@@ -27,7 +27,7 @@ import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -140,7 +140,7 @@ def remove_stale_temporaries(folder: str | Path) -> list[str]:
     Only files named like :func:`atomic_path`'s temporaries whose writing process no longer
     exists are removed, so a concurrent writer's temporary survives.
     """
-    removed = []
+    removed: list[str] = []
     try:
         entries = list(os.scandir(folder))
     except OSError:
@@ -394,7 +394,7 @@ def read_json(path: str | Path, what: str = "JSON file", error: type[Exception] 
     return parse_json(read_text_file(path, what, error), str(path), error)
 
 
-def check_npy_header(fh: BinaryIO, available_bytes: int, where: str,
+def check_npy_header(fh: IO[bytes], available_bytes: int, where: str,
                      error: type[Exception] | None = None) -> tuple[tuple[int, ...], np.dtype]:
     """Read an ``.npy`` header from ``fh`` and check its claimed size before anything is allocated.
 
@@ -581,7 +581,7 @@ def write_json(path: str | Path, obj: Any) -> Path:
 def write_npz(path: str | Path, **arrays: ArrayLike) -> Path:
     """Write an uncompressed ``.npz`` atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+        np.savez(fh, allow_pickle=True, **arrays)
     return Path(path)
 
 

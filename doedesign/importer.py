@@ -280,7 +280,7 @@ def export_map(design: Design, what: str, out: str | Path, wavelength_m: float |
                 np.save(fh, data)
         elif ext == ".npz":
             with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **{what: data})
+                np.savez_compressed(fh, allow_pickle=True, **{what: data})
         elif ext == ".mat":
             import scipy.io
 

@@ -65,10 +65,14 @@ class LevelSource(Protocol):
     stored levels, if any, else its heights and level step. A protocol, so that the design file,
     which quantizes through this module, is not imported by it."""
 
-    name: str
     levels: np.ndarray | None
     height_m: np.ndarray
-    n_levels: int
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def n_levels(self) -> int: ...
 
     def level_step_m(self, n_levels: int | None = None) -> float: ...
 

@@ -110,8 +110,8 @@ def cauchy(name: str, coefficients: Sequence[float], min_wavelength_m: float, ma
 
 def table(name: str, wavelengths_m: ArrayLike, n: ArrayLike, reference: str = "") -> Material:
     """Build and register a tabulated material, linear interpolation between entries."""
-    wls = tuple(float(w) for w in wavelengths_m)
-    return register_material(Material(name, "table", (wls, tuple(float(v) for v in n)),
+    wls = tuple(float(w) for w in np.asarray(wavelengths_m, dtype=float).tolist())
+    return register_material(Material(name, "table", (wls, tuple(float(v) for v in np.asarray(n, dtype=float).tolist())),
                                       min(wls), max(wls), reference))
 
 

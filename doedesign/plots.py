@@ -21,8 +21,8 @@ __all__ = ["height_map_figure", "psf_figure", "save"]
 def height_map_figure(height_m: np.ndarray, pitch_m: float, title: str = "height map",
                       ax: Axes | None = None) -> Figure | None:
     """Height map in nm with a micrometre scale (row 0 at the top)."""
-    own = ax is None
-    if own:
+    fig = None
+    if ax is None:
         fig, ax = plt.subplots(figsize=(5, 4.2))
     rows, cols = height_m.shape
     extent = (0, cols * pitch_m * 1e6, rows * pitch_m * 1e6, 0)
@@ -31,7 +31,7 @@ def height_map_figure(height_m: np.ndarray, pitch_m: float, title: str = "height
     ax.set_ylabel("y (um, row 0 at top)")
     ax.set_title(title)
     plt.colorbar(im, ax=ax, label="height (nm)")
-    return ax.figure if own else None
+    return fig
 
 
 def psf_figure(result: PSFResult, crop: int = 64, log: bool = True, title: str = "") -> Figure:

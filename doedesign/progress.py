@@ -67,11 +67,10 @@ class Progress:
                              mininterval=0.1, dynamic_ncols=True)
         return self
 
-    def __exit__(self, *exc) -> bool:
+    def __exit__(self, *exc) -> None:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-        return False
 
     def update(self, n: int = 1, status: str = "") -> None:
         """Advance by ``n`` steps and show ``status`` beside the bar."""

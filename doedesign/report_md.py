@@ -70,7 +70,7 @@ def json_link(name: str = "report.json") -> str:
 def join(parts: Iterable[str | None]) -> str:
     """One page from ``parts``: consecutive lines stay together (lists), headings, tables and
     figures get a blank line around them."""
-    lines = []
+    lines: list[str] = []
     for part in parts:
         if part is None:
             continue

@@ -72,7 +72,7 @@ __all__ = ["DEFAULT_TERMS", "DEFAULT_TOLERANCE", "score_design", "FEATURE_MIN_WA
 log = logging.getLogger(__name__)
 
 # A refractive index, or a function of the wavelength (m) giving one.
-IndexLike = complex | float | Callable[[float], complex]
+IndexLike = complex | float | Callable[[float], complex | np.ndarray]
 
 DEFAULT_TERMS = 200
 INCIDENCES = ("substrate", "air")
@@ -338,7 +338,7 @@ def thin_element_efficiencies(height_m: np.ndarray, wavelengths_m: ArrayLike, in
     wls = np.atleast_1d(np.asarray(wavelengths_m, dtype=np.float64))
     out = np.zeros((wls.size, orders.shape[0]))
     for wi, wl in enumerate(wls):
-        n_glass = float(np.real(index(float(wl)) if callable(index) else index))
+        n_glass = complex(index(float(wl)) if callable(index) else index).real
         field_ = np.exp(2j * np.pi * (n_glass - 1.0) * h / wl)
         # Row 0 is the top: order q (toward the top) is DFT index -q along the rows.
         coeff = np.fft.fft2(field_) / h.size

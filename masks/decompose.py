@@ -64,7 +64,7 @@ def process_depths_m(design: Design, depths_m: Sequence[float] | None = None, so
     return list(design.etch_depths_m())
 
 
-def check_etch_order(etch_order: Sequence[int] | None, n_masks: int = 4) -> tuple[int, ...]:
+def check_etch_order(etch_order: Sequence[int], n_masks: int = 4) -> tuple[int, ...]:
     """Validate an etch order (a permutation of mask indices) and return it as a tuple.
 
     ``etch_order[i]`` is the mask etched in process step ``i``.
@@ -132,7 +132,7 @@ def masks_to_levels(masks: np.ndarray) -> np.ndarray:
     """
     masks = _as_masks(masks)
     weights = (1 << np.arange(masks.shape[0], dtype=np.int16)).reshape((-1,) + (1,) * (masks.ndim - 1))
-    return np.sum(masks * weights, axis=0, dtype=np.int16)
+    return np.asarray(np.sum(masks * weights, axis=0, dtype=np.int16))
 
 
 def masks_to_height(masks: np.ndarray, depths_m: ArrayLike) -> np.ndarray:

@@ -80,7 +80,8 @@ def element_cell(masks: np.ndarray, grid: PixelGrid, layers: Sequence[int] = DEF
         pset = mask_polygons(drawn[j], max_vertices)
         pts = grid.to_um(pset.vertices)
         off = pset.offsets.tolist()
-        cell.add(*[gdstk.Polygon(pts[a:b], layer, datatype) for a, b in zip(off[:-1], off[1:])])
+        cell.add(*[gdstk.Polygon(pts[a:b], layer, datatype)  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
+                   for a, b in zip(off[:-1], off[1:])])
         stats.append({"layer": layer, "datatype": int(datatype), "polygons": pset.n_polygons,
                       "vertices": pset.n_vertices, "max_vertices": pset.max_vertices})
         if progress is not None:

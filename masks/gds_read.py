@@ -188,6 +188,8 @@ def read_boundaries(path: str | Path) -> GdsBoundaries:
         return read
     cells = {}
     for c in read_library(path).cells:
+        if not isinstance(c, gdstk.Cell):  # a file read whole holds no raw cells
+            continue
         polys = c.polygons
         pts = [p.points for p in polys]
         counts = np.array([len(q) for q in pts], np.int64)

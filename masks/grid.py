@@ -197,7 +197,7 @@ def rasterize_points(idx: np.ndarray, counts: np.ndarray, grid: PixelGrid,
     ``counts`` vertices per polygon; polygons over ``max_vertices`` (None: no limit) are a
     problem."""
     rows, cols = grid.shape
-    problems = []
+    problems: list[str] = []
     counts = np.asarray(counts, np.int64)
     if counts.size == 0:
         return np.zeros(grid.shape, np.int32), problems

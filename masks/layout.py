@@ -67,7 +67,7 @@ def aperture_polygons(diameter_m: float, die_size_m: float, layer: int = APERTUR
         th = np.linspace(k * np.pi / 4, (k + 1) * np.pi / 4, per + 1)
         arc = np.stack([r * np.cos(th), r * np.sin(th)], 1)
         sq = [h / max(abs(np.cos(t)), abs(np.sin(t))) * np.array([np.cos(t), np.sin(t)]) for t in (th[-1], th[0])]
-        pieces.append(gdstk.Polygon(np.vstack([arc, sq]), layer))
+        pieces.append(gdstk.Polygon(np.vstack([arc, sq]), layer))  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
     return pieces
 
 

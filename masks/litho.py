@@ -211,11 +211,11 @@ def move(coverage: Array, shift_rc: tuple[float, float], rotation_rad: float,
     ndarray of float32
     """
     be = backend_of(backend)
-    shift_rc = np.asarray(shift_rc, dtype=float)
+    shift = np.asarray(shift_rc, dtype=float)
     if rotation_rad == 0:
         out = coverage
         for axis in (0, 1):
-            out = _translate_axis(out, float(shift_rc[axis]), axis, be.xp, order)
+            out = _translate_axis(out, float(shift[axis]), axis, be.xp, order)
         return out
     inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
     return be.ndimage.affine_transform(coverage, be.asarray(inverse), offset=tuple(float(v) for v in offset),

@@ -59,7 +59,7 @@ def offset_polygons(mask: np.ndarray, grid: PixelGrid, offset_m: float, layer: i
     pset = mask_polygons(np.asarray(mask, bool), MAX_VERTICES)
     pts = grid.to_um(pset.vertices)
     off = pset.offsets.tolist()
-    polys = [gdstk.Polygon(pts[a:b]) for a, b in zip(off[:-1], off[1:])]
+    polys = [gdstk.Polygon(pts[a:b]) for a, b in zip(off[:-1], off[1:])]  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
     if not polys:
         return []
     d_um = round(offset_m / PRECISION_M) * PRECISION_M / UNIT_M
@@ -67,7 +67,7 @@ def offset_polygons(mask: np.ndarray, grid: PixelGrid, offset_m: float, layer: i
     # open slits between them.
     if d_um == 0:
         return gdstk.boolean(polys, [], "or", precision=PRECISION_M / UNIT_M, layer=layer, datatype=datatype)
-    return gdstk.offset(polys, d_um, join="miter", tolerance=2.0, precision=PRECISION_M / UNIT_M, use_union=True,
+    return gdstk.offset(polys, d_um, join="miter", tolerance=2, precision=PRECISION_M / UNIT_M, use_union=True,
                         layer=layer, datatype=datatype)
 
 
@@ -114,7 +114,7 @@ def winding_at_samples(points: np.ndarray, counts: np.ndarray, xs: np.ndarray, y
     ``counts`` the vertices of each polygon. Each polygon counts +1 inside whichever way it
     winds. Samples lie on half units, so none sits on an edge.
     """
-    problems = []
+    problems: list[str] = []
     counts = np.asarray(counts, np.int64)
     if counts.size == 0:
         return np.zeros((ys.size, xs.size), np.int16), problems

@@ -99,10 +99,10 @@ class OpcSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, np.integer)) and lo <= v <= hi):
                 raise DoeError(f"OPC: {name} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, lo, hi in (("step_cells", 0.0, 8.0), ("steepness", 1.0, 1000.0)):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and lo < v <= hi):
-                raise DoeError(f"OPC: {name} must lie in ({lo:g}, {hi:g}], got {v}")
+        for name, low, high in (("step_cells", 0.0, 8.0), ("steepness", 1.0, 1000.0)):
+            x = float(getattr(self, name))
+            if not (math.isfinite(x) and low < x <= high):
+                raise DoeError(f"OPC: {name} must lie in ({low:g}, {high:g}], got {x}")
 
 
 @dataclass
@@ -226,6 +226,7 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
             break
         psi = psi - settings.step_cells * speed / scale
         mask = _manufacturable(psi > 0, settings.min_feature_cells)
+    assert result is not None  # the first iteration sets it
     return result
 
 

@@ -10,6 +10,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import gdstk
 import numpy as np
@@ -179,7 +180,7 @@ def die_sites(bbox_um: Sequence[Sequence[float]], usable_radius_um: float,
     """
     (x0, y0), (x1, y1) = np.asarray(bbox_um, float)
     px, py = np.ceil(x1 - x0 + street_um), np.ceil(y1 - y0 + street_um)
-    best = None
+    best: list[tuple[float, float, int]] | None = None
     # four lattice phases (footprint centred on or between the lattice lines): keep the fullest
     for fx in (0.0, 0.5):
         for fy in (0.0, 0.5):
@@ -197,6 +198,7 @@ def die_sites(bbox_um: Sequence[Sequence[float]], usable_radius_um: float,
                     rows.append((cy - (y0 + y1) / 2, inside[0] - (x0 + x1) / 2, len(inside)))
             if best is None or sum(r[2] for r in rows) > sum(r[2] for r in best):
                 best = rows
+    assert best is not None  # the first lattice phase always sets it
     return (float(px), float(py)), best
 
 
@@ -258,7 +260,7 @@ def write_plate(path: str | Path, lib: gdstk.Library, dies: list[dict], layers: 
 
 
 def export_plate(path: str | Path, design: PlateDesign, *, formats: Sequence[str] = ("gds",),
-                 max_vertices: int | None | str = "default", **options: object) -> dict:
+                 max_vertices: int | None | str = "default", **options: Any) -> dict:
     """Write a verified full-wafer plate of one design (:func:`wafer_plate`) to ``path``.
 
     ``formats`` and ``max_vertices`` as in :func:`masks.gds.export_masks` (``path``'s suffix
@@ -273,7 +275,7 @@ def export_plate(path: str | Path, design: PlateDesign, *, formats: Sequence[str
     die = dies[0]
     layers = options.get("layers", DEFAULT_LAYERS)
     datatype = options.get("datatype", 0)
-    element = next(c for c in lib.cells if c.name == die["cell"])
+    element = next(c for c in lib.cells if isinstance(c, gdstk.Cell) and c.name == die["cell"])
     files = write_layouts(lib, element, path, die["masks"], die["grid"], limits, layers, datatype,
                           options.get("tone", "dark"))
     depths = options.get("depths_m", (75e-9, 150e-9, 300e-9, 600e-9))

@@ -111,7 +111,7 @@ _LAST_LEAF = (3 - np.argmax(_LEAVES[:, ::-1], axis=1)).astype(np.int8)
 _RIGHT_PIXEL = np.array([[0, 0], [0, -1], [-1, -1], [-1, 0]])  # (dy, dx) of the set pixel
 
 
-def traced_outlines(mask: np.ndarray, max_vertices: int = 199) -> PolygonSet:
+def traced_outlines(mask: np.ndarray, max_vertices: int = 199) -> tuple[PolygonSet, np.ndarray]:
     """Traced outlines, holes keyholed in, of the 4-connected components with few corners.
 
     Parameters

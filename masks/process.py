@@ -271,6 +271,9 @@ def etch_key(params: ProcessParams, mask: int) -> tuple:
     """Everything of ``params`` that :func:`mask_etch` of ``mask`` depends on, hashable: equal
     keys give equal etches (for callers that cache one mask's etch)."""
     j = int(mask)
+    # ProcessParams.__post_init__ fills every per-mask array left None.
+    assert params.mask_overlay is not None and params.linewidth_bias is not None
+    assert params.mask_rotation is not None and params.microtrenching is not None and params.etch_gradient is not None
     return (params.n_masks, j, float(params.etch_depth[j]), tuple(params.mask_overlay[j]),
             float(params.linewidth_bias[j]), float(params.mask_rotation[j]), tuple(params.microtrenching[j]),
             params.proximity_blur, params.resist_threshold, params.etch_loading,
@@ -303,6 +306,8 @@ def mask_motion(params: ProcessParams, mask: int, pitch_m: float) -> tuple[tuple
     row and column, row down) and the counter-clockwise rotation (rad) about the design's centre
     that its overlay and its rotation amount to (see :func:`masks.litho.move`,
     :func:`design_centre`)."""
+    # ProcessParams.__post_init__ fills every per-mask array left None.
+    assert params.mask_overlay is not None and params.mask_rotation is not None
     dx, dy, rotation = (float(v) for v in params.mask_overlay[mask])
     return (-dy / pitch_m, dx / pitch_m), rotation + math.radians(float(params.mask_rotation[mask]))
 

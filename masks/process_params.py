@@ -208,6 +208,9 @@ class ProcessParams:
 
     def to_dict(self) -> dict:
         """JSON-friendly dict keyed by field name; lengths in m, angles in rad."""
+        # __post_init__ fills every per-mask array left None.
+        assert self.mask_overlay is not None and self.linewidth_bias is not None
+        assert self.mask_rotation is not None and self.microtrenching is not None and self.etch_gradient is not None
         return {
             "etch_depth": self.etch_depth.tolist(),
             "mask_overlay": self.mask_overlay.tolist(),

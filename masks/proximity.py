@@ -89,6 +89,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import fft as sfft
@@ -251,8 +252,8 @@ def source_angles(half_angle_rad: float, rings: int = 3) -> np.ndarray:
     k = np.arange(-rings, rings + 1)
     sy, sx = np.meshgrid(k, k, indexing="ij")
     inside = sx ** 2 + sy ** 2 <= rings ** 2 + 1e-9
-    sx, sy = sx[inside] * s_max / rings, sy[inside] * s_max / rings
-    return np.stack([sx, sy, np.full(sx.size, 1.0 / sx.size)], axis=1)
+    ux, uy = sx[inside] * s_max / rings, sy[inside] * s_max / rings
+    return np.stack([ux, uy, np.full(ux.size, 1.0 / ux.size)], axis=1)
 
 
 def _shift_key(optics, angles):
@@ -423,7 +424,7 @@ def aerial_image_naive(coverage: np.ndarray, step_m: float, optics: ProximityOpt
 
 
 def print_coverage(coverage: Array, step_m: float, optics: ProximityOptics, threshold: float,
-                   cr_undercut_m: float = 0.0, backend: str | Backend | None = None, **image_options: object) -> Array:
+                   cr_undercut_m: float = 0.0, backend: str | Backend | None = None, **image_options: Any) -> Array:
     """Printed opening coverage (0..1): the aerial image through the gap, thresholded by the
     resist, the contour moved outward by the chromium undercut.
 

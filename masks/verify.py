@@ -141,9 +141,11 @@ def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid
                 _fracture_cells(lib, max_vertices)
             lib.write_oas(str(tmp))
         elif element_inline:
+            assert max_vertices is not None  # a GDSII file without a limit was refused above
             stats = write_element_gds(lib, tmp, masks, grid, layers, datatype, tone, cell_name,
                                       progress, max_vertices)
         else:
+            assert max_vertices is not None  # a GDSII file without a limit was refused above
             lib.write_gds(str(tmp), max_points=max_vertices)
         result = verify_file(tmp, masks, grid, layers, datatype, tone, cell_name, max_vertices)
         if not result["passed"]:
@@ -159,7 +161,11 @@ def write_verified(lib: gdstk.Library, path: str | Path, masks: np.ndarray, grid
 def _fracture_cells(lib: gdstk.Library, max_vertices: int) -> None:
     """Replace every polygon of ``lib`` with more than ``max_vertices`` vertices by gdstk's
     fractured pieces (what ``write_gds(max_points=...)`` does for GDSII on the way out)."""
+    import gdstk
+
     for cell in lib.cells:
+        if not isinstance(cell, gdstk.Cell):  # a raw cell's polygons are not ours to fracture
+            continue
         big = [p for p in cell.polygons if p.size > max_vertices]
         if big:
             cell.remove(*big)

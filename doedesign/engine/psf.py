@@ -125,7 +125,7 @@ class PSFEngine:
         self.xp = self.backend.xp
         self.camera = camera
         self.pitch_m = float(pitch_m)
-        self.shape = tuple(int(v) for v in shape)
+        self.shape: tuple[int, int] = (int(shape[0]), int(shape[1]))
         self.material = get_material(material)
         self.wavelengths_m = np.atleast_1d(np.asarray(wavelengths_m, dtype=float))
         if depths_m is None:
@@ -171,12 +171,13 @@ class PSFEngine:
         self._amp_dev = {name: self.backend.asarray(amp) for name, (_, amp) in self._views.items()}
         self._opd_dev = {d: None if opd is None else self.backend.asarray(opd) for d, opd in self._opd.items()}
         self.sampling = self._check_sampling()
-        self._uncoded_cache = {}
-        self._kernel_cache = {}
+        self._uncoded_cache: dict[tuple, Array] = {}
+        self._kernel_cache: dict[tuple, tuple] = {}
         self._cache_lock = threading.Lock()  # psf(threads > 1) fills the kernel cache from threads
         self._lag_cache = {} if lag_cache is None else lag_cache
-        self._work = {}
-        self._free = None  # (host mask, its backend copy) of value_and_grad_free
+        self._work: dict = {}
+        # (host mask, its backend copy) of value_and_grad_free
+        self._free: tuple[np.ndarray, Array] | None = None
 
     # -- geometry -----------------------------------------------------------------------------
     def _aperture_mask(self, aperture):

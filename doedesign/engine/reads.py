@@ -40,9 +40,9 @@ class ReadAxis:
     All three are arrays of the engine's backend.
     """
 
-    fringe: object
-    weight: object
-    symbol_fft: object | None
+    fringe: Array
+    weight: Array
+    symbol_fft: Array | None
 
 
 def read_axis(centres: np.ndarray, u: np.ndarray, w: np.ndarray, freq: float, n: int,
@@ -84,6 +84,8 @@ def apply_energy_operator(t: Array, ay: ReadAxis, ax: ReadAxis, backend: Backend
     xp = backend.xp
     a, b = t.shape
     work = {} if work is None else work
+    if ay.symbol_fft is None or ax.symbol_fft is None:
+        raise ValueError("apply_energy_operator: the read axes were made without lag_sum (no energy operator)")
     ly, lx = ay.symbol_fft.shape[0], ax.symbol_fft.shape[0]
     col = work.get("col")
     if col is None or col.shape != (ly, b):

@@ -14,6 +14,8 @@ from array_api_compat import array_namespace, is_array_api_obj
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ..engine.backend import Array
+
 __all__ = ["ANNEAL_SCHEDULE", "anneal", "level_penalty"]
 
 #: Weights of the level penalty relative to the continuous loss, one re-optimization each.
@@ -26,7 +28,7 @@ def level_penalty(height_m: ArrayLike, step_m: float,
     """``mean sin^2(pi h / step)`` over ``support`` (zero when every height is on a level) and its gradient.
 
     Computed where ``height_m`` lives (NumPy, or a GPU array beside the design's PSF engine)."""
-    h = height_m if is_array_api_obj(height_m) else np.asarray(height_m, dtype=float)
+    h: Array = height_m if is_array_api_obj(height_m) else np.asarray(height_m, dtype=float)
     xp = array_namespace(h)
     # On the support only, one sine and one cosine: sin 2x = 2 sin x cos x.
     x = (np.pi / step_m) * xp.astype(h if support is None else h[support], xp.float64)

@@ -102,7 +102,7 @@ def minimize(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.ndarr
         opt.set_ftol_rel(float(ftol_rel))
     if max_time_s:
         opt.set_maxtime(float(max_time_s))
-    history = []
+    history: list[float] = []
     best = {"value": np.inf, "x": np.clip(x0.ravel(), lo, hi).copy()}
     x_start = best["x"].copy()
     first, scale = None, 1.0

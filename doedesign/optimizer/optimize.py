@@ -55,7 +55,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -141,20 +141,21 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
         raise DoeError(f"target window {tuple(target.window_shape)} / axis {target.axis_pixel} does not match the "
                        f"camera's {camera.window_shape} / {camera.axis_pixel}")
     t0 = time.perf_counter()
+    shape = (int(shape[0]), int(shape[1]))
     engine = PSFEngine(camera, pitch_m, shape, material, target.wavelengths_m, target.depths_m, doe_oversample,
                        device=settings.device)
     step = level_step_m(material, design_wavelength_m, settings.n_levels)
     lower, upper = height_bounds(step, settings.n_levels, settings.height_range)
-    support = coded_support(camera, pitch_m, tuple(shape))
+    support = coded_support(camera, pitch_m, shape)
     rng = np.random.default_rng(settings.seed)
-    report = {}
+    report: dict[str, Any] = {}
 
     def start_height(kind):
         if kind == "router":
-            return router_start(target, camera, pitch_m, tuple(shape), material, lower, settings)
+            return router_start(target, camera, pitch_m, shape, material, lower, settings)
         period_m = target.meta.get("period_m")
         finite = target.depths_m[np.isfinite(target.depths_m)]
-        return initial_height(kind, tuple(shape), step, lower, rng, settings.n_levels,
+        return initial_height(kind, shape, step, lower, rng, settings.n_levels,
                               period_px=int(round(period_m / pitch_m)) if period_m else 16,
                               arms=target.meta.get("arms", "+"), pitch_m=pitch_m, camera=camera,
                               design_wavelength_m=design_wavelength_m, material=material,
@@ -162,8 +163,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
 
     if init_height_m is not None:
         h0 = np.asarray(init_height_m, dtype=float)
-        if h0.shape != tuple(shape):
-            raise DoeError(f"initial height map has shape {h0.shape}, the design is {tuple(shape)}")
+        if h0.shape != shape:
+            raise DoeError(f"initial height map has shape {h0.shape}, the design is {shape}")
         h0 = np.clip(h0, lower, upper)
     else:
         h0 = start_height(settings.init)
@@ -171,9 +172,9 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     # The reweighting rounds replace the target (its pixel weights) between stages.
     weights = plane_weights(target, settings.colour_weights)
     balanced = settings.objective != "loss"
-    state = {"target": target, "loss": softmin_loss(target, weights, settings.softmin_tau) if balanced
+    state: dict[str, Any] = {"target": target, "loss": softmin_loss(target, weights, settings.softmin_tau) if balanced
              else make_loss(target, loss)}
-    bound = spot_bound(camera, pitch_m, tuple(shape), target, material, device=engine.backend)
+    bound = spot_bound(camera, pitch_m, shape, target, material, device=engine.backend)
 
     def objective(h):
         if perturbations:
@@ -258,7 +259,8 @@ def design_doe(target: Target, camera: Camera, pitch_m: float, shape: tuple[int,
     history = {"continuous": hist_cont}
     report["continuous"] = metrics(h_cont)
     q = quantize(h_cont, step, settings.n_levels)
-    levels, h_final = q.levels, q.height_m
+    levels: np.ndarray | None = q.levels
+    h_final = q.height_m
     if settings.quantize:
         scale = max(report["continuous"]["loss"], 1e-6)
         h, history["anneal"] = anneal(run_stage, h_cont,

@@ -27,13 +27,14 @@ def robust_value_and_grad(value_and_grad: Callable[[np.ndarray], tuple[float, np
     Each perturbation maps ``h -> (h', vjp)``; the loss gradient at ``h'`` is pulled back by ``vjp``.
     CVaR averages the worst ``ceil(cvar_alpha K)`` of the K losses (a subgradient at ties).
     """
-    values, grads = [], []
+    samples: list[float] = []
+    grads = []
     for perturb in perturbations:
         hp, vjp = perturb(h)
         v, g = value_and_grad(hp)
-        values.append(v)
+        samples.append(v)
         grads.append(vjp(g))
-    values = np.asarray(values, float)
+    values = np.asarray(samples, float)
     weights = np.full(values.size, 1.0 / values.size)
     if measure == "cvar":
         k = int(np.ceil(cvar_alpha * values.size))

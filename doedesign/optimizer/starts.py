@@ -8,7 +8,7 @@ the coherent pupil model of :mod:`doedesign.optimizer.router`; the others are ma
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -107,7 +107,7 @@ def multistart(kinds: Sequence[str], start: Callable[[str], np.ndarray],
     tried : list of dict, ``init``, ``loss`` and ``energy_on_target`` of every start
     best : str, the kind that goes on
     """
-    tried = []
+    tried: list[dict[str, Any]] = []
     for kind in kinds:
         hs, hist = run_stage(start(kind), iterations, max_time_s, f"start {kind}")
         tried.append({"init": kind, "loss": min(hist), "height": hs, "energy_on_target": score(hs)})

@@ -105,13 +105,14 @@ class Target:
     def with_weights(self, wavelengths: ArrayLike | None = None, depths: ArrayLike | None = None,
                      pixel: ArrayLike | None = None, peak_penalty: float | None = None) -> Target:
         """A copy with new loss weights per wavelength, per depth, per pixel or for the peak."""
+        assert self.channel_weight is not None  # __post_init__ sets it
         cw = self.channel_weight.copy()
         if wavelengths is not None:
             cw = cw * _vector(wavelengths, self.wavelengths_m.size, "wavelength weights", self.name)[None, :]
         if depths is not None:
             cw = cw * _vector(depths, self.depths_m.size, "depth weights", self.name)[:, None]
         return replace(self, channel_weight=cw,
-                       pixel_weight=self.pixel_weight if pixel is None else pixel,
+                       pixel_weight=self.pixel_weight if pixel is None else np.asarray(pixel, dtype=float),
                        peak_penalty=self.peak_penalty if peak_penalty is None else peak_penalty,
                        meta=dict(self.meta))
 

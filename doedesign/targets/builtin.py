@@ -3,6 +3,7 @@ and each kind's optimizer defaults. Positions are (row, col) offsets from the ax
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,7 @@ def bayer(camera: Camera | None = None, wavelengths_m: ArrayLike = RGB_WAVELENGT
         for dr, dc in cells:
             _check_pixels(r0 + dr, c0 + dc, cam.window_shape, "bayer")
             intensity[0, w, r0 + dr, c0 + dc] = energy / len(cells)
-    return Target(intensity, wls, [np.inf], axis_pixel=cam.axis_pixel, name="bayer-rggb" if rggb else "bayer",
+    return Target(intensity, wls, np.array([np.inf]), axis_pixel=cam.axis_pixel, name="bayer-rggb" if rggb else "bayer",
                   meta={"kind": "bayer", "rggb": bool(rggb)})
 
 
@@ -102,9 +103,10 @@ def grating_order_offset_px(wavelength_m: ArrayLike, period_m: float, order: int
                             camera: Camera | None = None) -> np.ndarray:
     """Column offset (px) of diffraction order ``order`` on the sensor: ``z tan(asin(m lambda / period))``."""
     cam = _camera(camera)
-    s = order * np.asarray(wavelength_m) / period_m
+    wl = np.asarray(wavelength_m)
+    s = order * wl / period_m
     if np.any(np.abs(s) >= 1):
-        raise DoeError(f"order {order} of a {period_m * 1e6:.2f} um period is evanescent at {wavelength_m}")
+        raise DoeError(f"order {order} of a {period_m * 1e6:.2f} um period is evanescent at {wl}")
     return cam.sensor_distance_m * np.tan(np.arcsin(s)) / cam.pixel_pitch_m
 
 
@@ -121,9 +123,9 @@ def hyperspectral(camera: Camera | None = None, wavelengths_m: ArrayLike = HYPER
     """
     cam = _camera(camera)
     energy = _check_energy(energy, "hyperspectral")
-    orders = [int(m) for m in np.atleast_1d(orders)]
-    ow = np.ones(len(orders)) if order_weights is None else _vector(order_weights, len(orders), "order_weights",
-                                                                   "hyperspectral")
+    order_list = [int(m) for m in np.atleast_1d(orders)]
+    ow = np.ones(len(order_list)) if order_weights is None else _vector(order_weights, len(order_list),
+                                                                       "order_weights", "hyperspectral")
     if ow.sum() <= 0:
         raise DoeError("target 'hyperspectral': order_weights are all zero")
     ow = ow / ow.sum()
@@ -132,15 +134,15 @@ def hyperspectral(camera: Camera | None = None, wavelengths_m: ArrayLike = HYPER
     half = np.arange(spot_px) - (spot_px - 1) // 2
     intensity = np.zeros((1, wls.size) + cam.window_shape)
     for wi, wl in enumerate(wls):
-        for m, weight in zip(orders, ow):
+        for m, weight in zip(order_list, ow):
             centre = c0 + int(np.rint(grating_order_offset_px(wl, period_m, m, cam)))
             cols = centre + half
             _check_pixels(np.full(cols.size, r0), cols, cam.window_shape, "hyperspectral")
             intensity[0, wi, r0, cols] += energy * weight / spot_px
-    depths = [cam.focus_distance_m] if depths_m is None else depths_m
-    intensity = np.broadcast_to(intensity, (len(np.atleast_1d(depths)),) + intensity.shape[1:]).copy()
+    depths = np.atleast_1d(np.asarray([cam.focus_distance_m] if depths_m is None else depths_m, dtype=float))
+    intensity = np.broadcast_to(intensity, (len(depths),) + intensity.shape[1:]).copy()
     return Target(intensity, wls, depths, axis_pixel=cam.axis_pixel, name="hyperspectral",
-                  meta={"kind": "hyperspectral", "period_m": period_m, "orders": orders})
+                  meta={"kind": "hyperspectral", "period_m": period_m, "orders": order_list})
 
 
 def seed_ring_radius_px(depth_m: ArrayLike) -> np.ndarray:
@@ -149,7 +151,7 @@ def seed_ring_radius_px(depth_m: ArrayLike) -> np.ndarray:
 
 
 def depth_ring(camera: Camera | None = None, depths_m: ArrayLike = (1.0, 2.0, 3.0, 4.0, 5.0),
-               radii_px: ArrayLike | None = None, wavelengths_m: ArrayLike = (550e-9,),
+               radii_px: ArrayLike | Callable[[np.ndarray], ArrayLike] | None = None, wavelengths_m: ArrayLike = (550e-9,),
                ring_width_px: float = 1.0, energy: float = 1.0) -> Target:
     """A ring about the axis whose radius changes with depth.
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ __all__ = ["build", "from_dict", "load_toml"]
 
 def build(kind: str, camera: Camera | None = None, **options: Any) -> Target:
     """Build a built-in target by its name (see :data:`~doedesign.targets.builtin.KINDS`) with keyword options."""
-    builders = {"bayer": bayer, "hdr-streak": hdr_streak, "hyperspectral": hyperspectral,
+    builders: dict[str, Callable[..., Target]] = {"bayer": bayer, "hdr-streak": hdr_streak, "hyperspectral": hyperspectral,
                 "depth": depth_ring, "spots": spots, "image": image}
     if kind not in builders:
         raise DoeError(f"unknown target kind {kind!r}; choose from {', '.join(KINDS)}")

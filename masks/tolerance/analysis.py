@@ -119,6 +119,7 @@ def tolerance_analysis(design: Design, spec: ToleranceSpec, n_samples: int, out_
     t_start = time.perf_counter()
     ev, nominal, t_nominal = build_evaluator(design, spec, design_name, oversample, process_upsample,
                                              wavelengths_m, metric_script, device)
+    assert ev.metrics is not None  # build_evaluator sets it up
     directions = {**DIRECTIONS, **ev.metrics.directions()}
     primary = ev.metrics.primary
     thresholds = dict(spec.thresholds, **(thresholds or {}))

@@ -37,7 +37,11 @@ __all__ = ["Evaluator", "evaluate_batch"]
 
 @dataclass
 class Evaluator:
-    """Everything needed to evaluate samples of one design under one spec."""
+    """Everything needed to evaluate samples of one design under one spec.
+
+    ``metrics`` is None until it is set up on the nominal PSF, which the evaluator itself
+    computes (:func:`masks.tolerance.analysis.build_evaluator`).
+    """
 
     levels: np.ndarray
     pitch_m: float
@@ -47,7 +51,7 @@ class Evaluator:
     depths_m: np.ndarray
     spec: ToleranceSpec
     base: ProcessParams
-    metrics: MetricSet
+    metrics: MetricSet | None
     oversample: int = 2
     process_upsample: int | None = None
     device: str = "cpu"  # where samples are computed (doedesign.engine.backend)

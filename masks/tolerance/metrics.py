@@ -190,7 +190,13 @@ class MetricSet:
         return out
 
 
-_SCRIPTS = {}
+_SCRIPTS: dict[tuple[str, str], dict] = {}
+
+
+def _target_meta(design: Design) -> dict:
+    """The design's target entry (``metadata["target"]``), {} when it has none."""
+    meta = design.metadata.get("target")
+    return meta if isinstance(meta, dict) else {}
 
 
 def user_metric_functions(source: str, name: str = "metrics script") -> dict:
@@ -225,7 +231,7 @@ def ring_radii_px(psf: Array, axis_pixel: tuple, backend: str | Backend | None =
 def metric_set(design: Design, camera: Camera, nominal_psf: np.ndarray, wavelengths_m: np.ndarray,
                depths_m: np.ndarray, script: str | None = None) -> MetricSet:
     """The metrics for this design's target kind (from its metadata), set up on its nominal PSF."""
-    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    meta = _target_meta(design)
     kind = str(meta.get("kind", "image"))
     source = None
     if script is not None:
@@ -265,7 +271,7 @@ def design_wavelengths_depths(design: Design, camera: Camera) -> tuple[np.ndarra
 
     The depths are metres, ``inf`` for optical infinity (stored as the string ``"inf"``).
     """
-    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    meta = _target_meta(design)
     wls = np.asarray(meta.get("wavelengths_nm") or [550.0], float) * 1e-9
     depths = [math.inf if str(d).lower() == "inf" else float(d) for d in meta.get("depths_m") or []]
     return wls, np.asarray(depths or [camera.focus_distance_m], float)
@@ -284,7 +290,7 @@ def design_target(design: Design, camera: Camera, wavelengths_m: np.ndarray,
     doedesign.targets.Target or None
         None when the design names no built-in target or it cannot be rebuilt on this window.
     """
-    meta = design.metadata.get("target") if isinstance(design.metadata.get("target"), dict) else {}
+    meta = _target_meta(design)
     kind = str(meta.get("kind", "image"))
     if kind not in PRIMARY:
         return None

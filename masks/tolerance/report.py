@@ -165,7 +165,7 @@ def _param_label(row: dict) -> str:
 
 def _varied(parameters: list[dict]) -> str:
     """``etch_depth on masks 0, 1, 2, 3; mask_overlay on mask 3``: what the spec varies."""
-    masks = {}
+    masks: dict[str, set[int]] = {}
     for p in parameters:
         if p["dist"] != "fixed":
             masks.setdefault(p["effect"], set())

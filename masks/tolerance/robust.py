@@ -40,7 +40,7 @@ def process_perturbations(spec: str | None, n_samples: int, seed: int, pitch_m: 
     Sample k is the tolerance run's sample k for the same seed (``SeedSequence([seed, k])``).
     """
     step = level_step_m(material, design_wavelength_m, n_levels)
-    depths = binary_depths_m(step, int(round(math.log2(n_levels))))
+    depths = np.asarray(binary_depths_m(step, int(round(math.log2(n_levels)))))
     tol = load_spec(spec, depths) if spec else default_spec(depths)
     return spec_perturbations(tol, n_samples, seed, depths, step, pitch_m, n_levels)
 
@@ -63,6 +63,7 @@ def spec_perturbations(tol: ToleranceSpec, n_samples: int, seed: int, depths_m: 
 def study_camera(size_px: int, window_px: int, pitch_m: float = PITCH_M) -> Camera:
     """The paper's camera scaled to a ``size_px`` aperture at the same f-number (spot size in pixels)."""
     full = Camera()
+    assert full.aperture_diameter_m is not None  # the paper's camera has its aperture
     scale = size_px * pitch_m / full.aperture_diameter_m
     return Camera(aperture_diameter_m=size_px * pitch_m, focus_distance_m=math.inf,
                   sensor_distance_m=full.sensor_distance_m * scale, window_shape=(window_px, window_px),
@@ -102,7 +103,7 @@ def nominal_vs_robust(size_px: int, window_px: int, spec_table: dict, out_dir: s
     settings = OptimizerSettings(max_iter=iterations, anneal_iter=anneal_iterations, init=init, seed=seed,
                                  objective="softmin", robust_measure=measure)
     step = level_step_m("fused_silica", 550e-9, 16)
-    depths = binary_depths_m(step, 4)
+    depths = np.asarray(binary_depths_m(step, 4))
     spec = build_spec(spec_table, depths, "robust study spec")
     perturbations = spec_perturbations(spec, robust_samples, seed, depths, step, PITCH_M)
     out = {}

@@ -23,7 +23,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sized
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -256,7 +256,11 @@ def run_jobs(evaluator: Evaluator, jobs: Iterable[dict], samples_dir: str | Path
     total : int, optional
         Number of jobs (default ``len(jobs)``).
     """
-    total = len(jobs) if total is None else int(total)
+    if total is None:
+        if not isinstance(jobs, Sized):  # a generator: its length is known once it is listed
+            jobs = list(jobs)
+        total = len(jobs)
+    total = int(total)
     results = {}
     with Progress(total, desc=desc) as bar:
 

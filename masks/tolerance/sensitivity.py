@@ -70,8 +70,9 @@ def sobol_jobs(spec: ToleranceSpec, base_n: int, seed: int) -> list[dict]:
     return jobs
 
 
-def sobol_indices(spec: ToleranceSpec, results: dict, metric: str, seed: int) -> dict:
-    """First-order and total Sobol indices of ``metric`` per group (effect on one mask)."""
+def sobol_indices(spec: ToleranceSpec, results: dict, metric: str, seed: int) -> dict | None:
+    """First-order and total Sobol indices of ``metric`` per group (effect on one mask); None
+    without Sobol results."""
     ids = sorted(k for k in results if k.startswith("sobol-"))
     if not ids:
         return None

@@ -47,6 +47,7 @@ import math
 import re
 from pathlib import Path
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -169,7 +170,7 @@ class Param:
             v = np.full(u.shape, self.a)
         return np.maximum(v, 0.0) if EFFECTS[self.effect][4] else v
 
-    def to_report(self, value: float) -> float:
+    def to_report(self, value: float | np.ndarray) -> float:
         return float(value) * REPORT_SCALE[self.unit]
 
 
@@ -216,7 +217,8 @@ class ToleranceSpec:
         depth = np.array(base.etch_depth, float)
         overlay = np.array(base.mask_overlay, float)
         bias = np.array(base.linewidth_bias, float)
-        scalars, arrays = {}, {}
+        scalars: dict[str, float] = {}
+        arrays: dict[str, np.ndarray] = {}
         for p in self.params:
             v = values[p.name]
             if p.effect == "etch_depth":
@@ -446,7 +448,7 @@ def spec_from_compare(report: dict, nominal_depths_m: np.ndarray,
             and overlay.shape == overlay_err.shape == (n, 2)):
         raise DoeError(f"{source}: the compare report describes {depths.size} masks, the design has {n}")
     nominal_nm = np.asarray(nominal_depths_m) * 1e9
-    table = {"etch_depth": {"mask": {str(j): {"mean_nm": float(depths[j] - nominal_nm[j]),
+    table: dict[str, dict[str, Any]] = {"etch_depth": {"mask": {str(j): {"mean_nm": float(depths[j] - nominal_nm[j]),
                                               "sigma_nm": float(depths_err[j])} for j in range(n)}},
              "mask_overlay": {"mask": {}},
              "linewidth_bias": {"mask": {str(j): {"mean_um": float(bias[j]), "sigma_um": float(bias_err[j])}

@@ -149,6 +149,7 @@ def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[
     from masks.tolerance.spec import ToleranceSpec
 
     ev = merit_evaluator(design, nominal_depths_m, source, oversample)
+    assert ev.metrics is not None  # build_evaluator sets it up
     primary = ev.metrics.primary
     lower_better = DIRECTIONS.get(primary) == "lower"
     nominal = ev.metrics(ev.coded_psf(ev.height({})))

@@ -106,6 +106,7 @@ def redesign_target(design: Design, ev: Evaluator) -> tuple[Target, LossSpec]:
     camera = ev.camera
     target = design_target(design, camera, ev.wavelengths_m, ev.depths_m)
     if target is None:
+        assert ev.metrics is not None  # build_evaluator sets it up
         psf = ev.coded_psf(ev.height({})) * ev.metrics.target_mask
         sums = psf.sum(axis=(-2, -1), keepdims=True)
         if not np.all(sums > 0):
@@ -235,6 +236,7 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     ev = dataclasses.replace(ev, levels=np.asarray(new.levels, np.int16))
     with Progress(samples + 1, desc="doe correct: re-design merit") as bar:
         wafer = wafer_merit(ev, spec, samples, seed, "redesigned_wafer", bar)
+    assert ev.metrics is not None  # build_evaluator sets it up
     primary = ev.metrics.primary
     notes = []
     if merit is not None:
