@@ -267,6 +267,30 @@ def test_a_field_that_did_not_test_an_effect_has_no_vote_on_it():
     assert dx.mean == pytest.approx(0.82e-6 / 3) and dx.tested_in == 3  # tested and absent: a vote for zero
 
 
+def test_a_partial_match_is_no_vote_for_zero(tmp_path):
+    """A field whose report names mask 3's etch depth on two fields, and on the third lists it as
+    a partial match (the CSI field of the large fab loop): that field did not find the depth error
+    absent, so the mean is the two fields' and the correction keeps it."""
+    design, path = _design(tmp_path)
+    fields = [_field(tmp_path, f"f{k}", design, path, 0.40e-6, 0.30e-6, 0.05 + 0.001 * k, 0.03) for k in range(3)]
+    rep = json.loads((fields[2] / "report.json").read_text())
+    rep["steps"] = [s for s in rep["steps"] if s["effect"] != "etch_depth"]
+    rep["tested"] = ["mask_overlay", "linewidth_bias", "etch_depth", "mask_rotation", "etch_loading"]
+    rep["unexplained"] = True
+    rep["partial_matches"] = [{"effect": "etch_depth", "residual_on_footprint_over_floor": 3.0,
+                               "footprint_px": 20000, "footprint_excess_explained": 0.97}]
+    (fields[2] / "report.json").write_text(json.dumps(rep))
+    job = _correct(path, fields, tmp_path / "out")
+    est = {e["param"]: e for e in job["estimates"]}
+    depth3 = est["depth_error_mask3"]
+    assert depth3["tested_in"] == 2 and depth3["fields"] == 3
+    assert depth3["mean"] == pytest.approx(0.0505)
+    assert "etch_depth.depth_error_mask3" in job["corrected"]
+    assert est["dx_mask1_m"]["tested_in"] == 3  # what the third field named still counts
+    assert any("combined only over the fields whose diagnosis tested them" in w and "etch_depth (2 of 3)" in w
+               for w in job["warnings"])
+
+
 def test_a_field_cut_by_a_wall_limit_leaves_the_job_sheet_of_the_complete_ones_and_warns(tmp_path):
     from doedesign.camera import Camera
 
