@@ -423,14 +423,20 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
         path.write_text(summary_markdown(table, rows, info, design_px, field))
     if tmp is not None:
         tmp.cleanup()
-    return [dict(benchmark="instruments", figure=f"{t['instrument']}: cases all right", value=t["all_right"],
+    where = (f", design {design_px} px, fields {field[0]}-{field[1]} px" if isinstance(field, tuple)
+             else f", design {design_px} px, field {field} px" if field else "")
+    return [dict(benchmark="instruments", figure=f"{t['instrument']}{where}: cases all right", value=t["all_right"],
                  unit="count", peer=None, peer_value=None, ratio=None, limit=t["cases"],
                  notes=f"{t['hidden_named']}/{t['hidden']} hidden named, {t['false_names']} false names, "
                        f"{t['crashed']} crashed, {t['refused']} refused, {t['timed_out']} timed out; largest "
-                       f"overlay/depth error {t['largest_overlay_or_depth_error']}; {t['within_final_limit']}/"
-                       f"{t['ran']} within 1.3x the floor; median {t['median_cpu_s']:.0f}, max {t['max_cpu_s']:.0f} CPU s "
-                       "per case")
+                       f"overlay/depth error {_fmt(t['largest_overlay_or_depth_error'])}; {t['within_final_limit']}/"
+                       f"{t['ran']} within 1.3x the floor; diagnosis median {_fmt(t['median_cpu_s'])}, max "
+                       f"{_fmt(t['max_cpu_s'])} CPU s per case (median wall {_fmt(t['median_wall_s'])} s)")
             for t in table]
+
+
+def _fmt(v):
+    return "none" if v is None else f"{v:.3g}"
 
 
 def main(argv=None):
