@@ -422,7 +422,7 @@ def test_a_gradient_screened_behind_a_loading_replaces_it_on_a_512_px_point_fiel
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 50: the final instrument-inadequate rule withholds a CSI depth error "
-                                       "whose field's shared edge profile is 0.6 nm of a 16.8 nm residual")
+                                       "beside a shared edge profile of 0.6 nm rms on a 1.3 nm floor")
 def test_a_csi_depth_error_on_a_693_px_field_is_named_not_withheld(tmp_path):
     # The large-field table's CSI case 305440497 (mask 3 etched 7.8 % deep, 693 camera px of
     # 0.715 um, NA 0.35): the depth error was named, then withheld as "instrument model
