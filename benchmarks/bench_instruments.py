@@ -28,11 +28,15 @@ Resumable: each finished case is one JSON line of ``OUT/cases.jsonl``; a rerun s
     python -m benchmarks.bench_instruments --n 30 --workers 2 --out benchmarks/results/instruments
 
 ``--design-px 130 --field-px 512`` gives the largest fields the speed limit names (512 x 512 camera
-pixels, any drawn pixel size and rotation inside the design).
+pixels, any drawn pixel size and rotation inside the design). ``--design-px 108 --field-px 400-800``
+gives each case a field drawn from its seed (:func:`draw_field`): a side of 400-800 camera pixels
+and a pixel of 0.7-1.3 um that keeps the field inside the design (at most 0.71 um at 800 px, up
+to 1.3 um below 437 px), the size a 20x objective gives over a 0.5 mm design.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -58,18 +62,69 @@ log = logging.getLogger(__name__)
 INSTRUMENTS = {"point": point, "boxcar": boxcar, "csi": csi}
 DESIGN_PX = 48
 N_CASES = 30
-TIME_LIMIT_S = 120.0
+# A safety limit on each diagnosis's wall time, far above any case's (the diagnosis has no clock
+# of its own); a case it cuts is a time-out, a failure in the table.
+TIME_LIMIT_S = 1800.0
 # Largest camera pixel and rotation the simulators draw, and the centre's largest offset (design px).
 MAX_PIXEL_M, MAX_ROTATION_DEG, MAX_CENTRE_PX = 1.3e-6, 1.0, 0.5
 FINAL_LIMIT = 1.3
 
 
+MIN_PIXEL_M = 0.7e-6
+
+
+def _room_m(design_px):
+    """Side (m) a square camera field may span, turned by the largest rotation, inside the design."""
+    t = math.radians(MAX_ROTATION_DEG)
+    return (design_px - 2 * MAX_CENTRE_PX) * filegen.PITCH_M / (math.cos(t) + math.sin(t))
+
+
 def field_px(design_px=DESIGN_PX):
     """Camera pixels per side of the largest square field that lies inside the design for any
     drawn pixel size, rotation and centre offset."""
-    t = math.radians(MAX_ROTATION_DEG)
-    room = (design_px - 2 * MAX_CENTRE_PX) * filegen.PITCH_M
-    return int(room / (MAX_PIXEL_M * (math.cos(t) + math.sin(t))))
+    return int(_room_m(design_px) / MAX_PIXEL_M)
+
+
+def parse_field(text):
+    """``--field-px``: ``"512"`` -> 512, ``"400-800"`` -> (400, 800) (a range drawn per case)."""
+    lo, _, hi = str(text).partition("-")
+    if not lo.strip().isdigit() or (hi and not hi.strip().isdigit()):
+        raise ValueError(f"field {text!r}: give camera pixels per side, N or LOW-HIGH")
+    if not hi:
+        return int(lo)
+    lo, hi = int(lo), int(hi)
+    if not 0 < lo <= hi:
+        raise ValueError(f"field {text!r}: LOW-HIGH with 0 < LOW <= HIGH")
+    return lo, hi
+
+
+def design_for(side_m):
+    """Smallest design (px) that holds a square field of side ``side_m`` under any drawn placement."""
+    return math.ceil(side_m / (_room_m(2) - _room_m(1)) + 2 * MAX_CENTRE_PX)
+
+
+def check_field(field, design_px):
+    """Raise ``ValueError`` when ``field`` (a range) cannot lie inside the design at the smallest pixel."""
+    if isinstance(field, tuple) and field[1] * MIN_PIXEL_M > _room_m(design_px):
+        raise ValueError(f"a field of {field[1]} camera pixels of {MIN_PIXEL_M * 1e6:.1f} um does not fit a "
+                         f"{design_px} px design; give --design-px {design_for(field[1] * MIN_PIXEL_M)}"
+                         " or more")
+
+
+def draw_field(field, seed, design_px=DESIGN_PX):
+    """A case's camera field from its seed: ``(side px, pixel m, header pixel m)``.
+
+    ``field``: a side (the pixel left to the instrument: ``None`` for both pixels) or a range
+    ``(lo, hi)``: the side uniform in it, the pixel uniform in 0.7-1.3 um or up to the largest
+    that keeps the field inside the design, the header within 0.5 % of it (as the simulators
+    draw it). The same for every instrument, from a stream of its own."""
+    if not isinstance(field, tuple):
+        return (field or field_px(design_px)), None, None
+    check_field(field, design_px)
+    rng = np.random.default_rng([seed, 400])
+    side = int(rng.integers(field[0], field[1] + 1))
+    pixel = rng.uniform(MIN_PIXEL_M, min(MAX_PIXEL_M, _room_m(design_px) / side))
+    return side, pixel, pixel * (1 + rng.uniform(-0.005, 0.005))
 
 
 def planned_cases(n, seed=2024):
@@ -104,19 +159,33 @@ def calibrate(instrument, case, directory, time_limit_s=TIME_LIMIT_S):
 def make_files(instrument, names, seed, directory, design_px=DESIGN_PX, field=None, **overrides):
     """Draw the wafer and the instrument for one case and write its two files; return the case.
 
-    ``overrides``: instrument parameters held instead of drawn (``pixel_m=0.7e-6``)."""
+    ``overrides``: instrument parameters held instead of drawn (``pixel_m=0.7e-6``); ``field``: a
+    side, or a range whose side and pixel are drawn from ``seed`` (:func:`draw_field`)."""
+    levels, truth, surface, surface_cpu = _wafer(seed, tuple(names), design_px)
+    # The camera draws from its own stream, so every instrument sees the same wafer.
+    cam_rng = np.random.default_rng([seed, list(INSTRUMENTS).index(instrument)])
+    field, pixel, header = draw_field(field, seed, design_px)
+    if pixel is not None:
+        overrides = {"pixel_m": pixel, "header_pixel_m": header, **overrides}
+    height, inst = INSTRUMENTS[instrument].measure(surface, filegen.FINE_PER_PX, levels.shape, (field, field), cam_rng,
+                                                 **overrides)
+    case = filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed,
+                            extra={"surface_cpu_s": surface_cpu})
+    case.write(directory)
+    return case
+
+
+@functools.lru_cache(maxsize=1)
+def _wafer(seed, names, design_px):
+    """A case's design, hidden effects and fine-grid surface (the same for every instrument, so the
+    last one is kept: the instruments of one case in turn share it); and its CPU s when made."""
+    t = time.process_time()
     rng = np.random.default_rng(seed)
     levels = filegen.random_levels((design_px, design_px), rng)
     truth = {name: filegen.draw_effect(name, rng) for name in names}
     surface = filegen.wafer_surface(levels, truth)
-    # The camera draws from its own stream, so every instrument sees the same wafer.
-    cam_rng = np.random.default_rng([seed, list(INSTRUMENTS).index(instrument)])
-    field = field or field_px(design_px)
-    height, inst = INSTRUMENTS[instrument].measure(surface, filegen.FINE_PER_PX, levels.shape, (field, field), cam_rng,
-                                                 **overrides)
-    case = filegen.FileCase(levels=levels, truth=truth, instrument=inst, height_m=height, seed=seed)
-    case.write(directory)
-    return case
+    surface.flags.writeable = False
+    return levels, truth, surface, time.process_time() - t
 
 
 def _doe():
@@ -206,7 +275,8 @@ def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=T
     case = make_files(instrument, names, seed, directory, design_px, field)
     inst = {k: v for k, v in case.instrument.items() if k != "spikes"}
     row = {"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth, "camera": inst,
-           "make_cpu_s": time.process_time() - t}
+           "field_px": int(case.height_m.shape[0]), "make_cpu_s": time.process_time() - t,
+           "surface_cpu_s": case.extra["surface_cpu_s"]}
     cal = None
     if calibrated:
         cal, row["calibration_cpu_s"], err = calibrate(instrument, case, directory / "artefact", time_limit_s)
@@ -221,7 +291,7 @@ def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=T
         row.update(score(names, case.truth, report))
     log.info("%s %s seed %d: %s %s", instrument, "+".join(names) or "null", seed, outcome,
              {k: row.get(k) for k in ("named", "false_names", "parameter_error", "final_over_floor")})
-    if outcome == "ok" and not keep:
+    if row.get("all_right") and not keep:  # a wrong answer keeps its files for analysis
         shutil.rmtree(directory)
     return json_ready(row)
 
@@ -256,6 +326,7 @@ def summary(rows, instruments):
             "largest_final_over_floor": max(ratios, default=None),
             "median_wall_s": float(np.median([r["wall_s"] for r in mine])) if mine else None,
             "median_cpu_s": float(np.median([r["cpu_s"] for r in mine])) if mine else None,
+            "max_cpu_s": max((r["cpu_s"] for r in mine), default=None),
             "total_cpu_s": float(sum(r["cpu_s"] for r in mine)),
         })
         cal = [r["calibration_cpu_s"] for r in mine if r.get("calibration_cpu_s") is not None]
@@ -267,7 +338,7 @@ def summary(rows, instruments):
 def summary_markdown(table, rows, info=None, design_px=DESIGN_PX, field=None):
     cols = ["instrument", "cases", "all_right", "ran", "crashed", "refused", "timed_out", "hidden_named", "hidden",
             "false_names", "largest_overlay_or_depth_error", "largest_parameter_error", "within_final_limit",
-            "median_final_over_floor", "largest_final_over_floor", "median_wall_s", "median_cpu_s"]
+            "median_final_over_floor", "largest_final_over_floor", "median_wall_s", "median_cpu_s", "max_cpu_s"]
     cols += ["median_calibration_cpu_s"] if all("median_calibration_cpu_s" in t for t in table) else []
 
     def fmt(v):
@@ -276,18 +347,22 @@ def summary_markdown(table, rows, info=None, design_px=DESIGN_PX, field=None):
     if info:
         lines += [f"Machine: {info['cpus']} CPUs, {info.get('memory_gib', '?')} GiB, Python {info['python']} "
                   "(shared: wall times are swamped by other work; CPU seconds are the diagnosis subprocess's).", ""]
-    lines += [f"Design {design_px} x {design_px} px; camera field {field or field_px(design_px)} px square.", ""]
+    side = (f"{field[0]}-{field[1]} px square (side and pixel drawn per case)" if isinstance(field, tuple)
+            else f"{field or field_px(design_px)} px square")
+    lines += [f"Design {design_px} x {design_px} px; camera field {side}.", ""]
     lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(fmt(t[c]) for c in cols) + " |" for t in table]
     lines += ["", "all_right: every hidden effect named, no false fabrication name, parameter errors within "
               "0.1 (overlay, etch depth) / 0.2 (others), final residual <= 1.3 x the noise floor.", "",
-              "| instrument | hidden | seed | outcome | named | false | parameter error | final/floor | wall s "
-              "| CPU s |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "| instrument | hidden | seed | field px | pixel um | outcome | named | false | parameter error "
+              "| final/floor | wall s | CPU s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         errs = ", ".join(f"{k} {fmt(v)}" for k, v in (r.get("parameter_error") or {}).items())
         note = r.get("named") if r["outcome"] == "ok" else (r.get("stderr_tail") or "").splitlines()[-1:] or ""
-        lines.append(f"| {r['instrument']} | {'+'.join(r['hidden']) or 'null'} | {r['seed']} | {r['outcome']} | "
+        pixel = r["camera"].get("pixel_m")
+        lines.append(f"| {r['instrument']} | {'+'.join(r['hidden']) or 'null'} | {r['seed']} | "
+                     f"{r.get('field_px', field or '')} | {'' if pixel is None else f'{pixel * 1e6:.3f}'} | {r['outcome']} | "
                      f"{note} | {r.get('false_names', '')} | {errs} | {fmt(r.get('final_over_floor'))} | "
                      f"{r['wall_s']:.0f} | {r['cpu_s']:.0f} |")
     return "\n".join(lines) + "\n"
@@ -339,7 +414,8 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     from benchmarks.run import machine
 
     info = machine()
-    write_json(out / "summary.json", {"machine": info, "design_px": design_px, "field_px": field or field_px(design_px),
+    write_json(out / "summary.json", {"machine": info, "design_px": design_px,
+                                      "field_px": list(field) if isinstance(field, tuple) else field or field_px(design_px),
                                       "time_limit_s": time_limit_s, "cpu_limit_s": cpu_limit_s,
                                       "extra_options": list(extra), "calibrated": calibrated,
                                       "instruments": table, "cases": rows})
@@ -347,13 +423,20 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
         path.write_text(summary_markdown(table, rows, info, design_px, field))
     if tmp is not None:
         tmp.cleanup()
-    return [dict(benchmark="instruments", figure=f"{t['instrument']}: cases all right", value=t["all_right"],
+    where = (f", design {design_px} px, fields {field[0]}-{field[1]} px" if isinstance(field, tuple)
+             else f", design {design_px} px, field {field} px" if field else "")
+    return [dict(benchmark="instruments", figure=f"{t['instrument']}{where}: cases all right", value=t["all_right"],
                  unit="count", peer=None, peer_value=None, ratio=None, limit=t["cases"],
                  notes=f"{t['hidden_named']}/{t['hidden']} hidden named, {t['false_names']} false names, "
                        f"{t['crashed']} crashed, {t['refused']} refused, {t['timed_out']} timed out; largest "
-                       f"overlay/depth error {t['largest_overlay_or_depth_error']}; {t['within_final_limit']}/"
-                       f"{t['ran']} within 1.3x the floor; median {t['median_cpu_s']:.0f} CPU s")
+                       f"overlay/depth error {_fmt(t['largest_overlay_or_depth_error'])}; {t['within_final_limit']}/"
+                       f"{t['ran']} within 1.3x the floor; diagnosis median {_fmt(t['median_cpu_s'])}, max "
+                       f"{_fmt(t['max_cpu_s'])} CPU s per case (median wall {_fmt(t['median_wall_s'])} s)")
             for t in table]
+
+
+def _fmt(v):
+    return "none" if v is None else f"{v:.3g}"
 
 
 def main(argv=None):
@@ -367,12 +450,13 @@ def main(argv=None):
     parser.add_argument("--time-limit", type=float, default=TIME_LIMIT_S, help="wall seconds per diagnosis")
     parser.add_argument("--cpu-limit", type=float, default=None,
                         help="CPU seconds per diagnosis process (RLIMIT_CPU; fairer than wall on a shared machine)")
-    parser.add_argument("--keep", action="store_true", help="keep every case's files (failures are kept)")
+    parser.add_argument("--keep", action="store_true", help="keep every case's files (those not all right are kept)")
     parser.add_argument("--diagnose-option", action="append", default=[],
                         help="extra option passed to doe diagnose (repeatable, e.g. --diagnose-option=--window-px=96)")
     parser.add_argument("--design-px", type=int, default=DESIGN_PX, help=f"design pixels per side (default {DESIGN_PX})")
-    parser.add_argument("--field-px", type=int, default=None,
-                        help="camera pixels per side (default: the largest field inside the design)")
+    parser.add_argument("--field-px", type=parse_field, default=None,
+                        help="camera pixels per side, N or a range LOW-HIGH drawn per case with its pixel "
+                             "(default: the largest field inside the design)")
     parser.add_argument("--calibrated", action="store_true",
                         help="diagnose through a calibration of each case's instrument on an artefact it measured")
     args = parser.parse_args(argv)
@@ -381,6 +465,10 @@ def main(argv=None):
     unknown = set(names) - set(INSTRUMENTS)
     if unknown:
         parser.error(f"unknown instruments {sorted(unknown)}; choose from {list(INSTRUMENTS)}")
+    try:
+        check_field(args.field_px, args.design_px)
+    except ValueError as exc:
+        parser.error(str(exc))
     run(n=args.n, workers=args.workers, out=args.out, instruments=names, extra=args.diagnose_option,
         keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit, calibrated=args.calibrated,
         design_px=args.design_px, field=args.field_px)

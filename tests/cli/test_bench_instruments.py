@@ -54,3 +54,27 @@ def test_a_calibration_artefact_is_measured_with_the_cases_pixel_and_transfer(na
     _, artefact = bench.INSTRUMENTS[name].measure(surface, fine, shape, (40, 40), np.random.default_rng(2), **held)
     assert {k: artefact[k] for k in held} == held
     assert artefact["rotation_deg"] != case["rotation_deg"]   # mounted afresh
+
+
+# The CSI simulator integrates 256 nodes per pixel: 160 M points at 800 px, seconds and gigabytes.
+@pytest.mark.parametrize("name", ["point", "boxcar", pytest.param("csi", marks=pytest.mark.slow)])
+def test_a_drawn_field_of_400_800_px_fits_its_design_and_follows_its_seed(name):
+    # --field-px 400-800 over the 108 px design of the large tables: each case's side and pixel
+    # come from its seed alone, in range, and fit at the largest rotation and centre offset.
+    design_px, fine = 108, 1
+    surface = np.zeros((design_px * fine,) * 2)
+    centre = (design_px - 1) / 2 + np.array([-0.5, 0.5])
+    sides = []
+    for seed in (3, 518677876, 9942083):
+        side, pixel, header = bench.draw_field((400, 800), seed, design_px)
+        assert (side, pixel, header) == bench.draw_field((400, 800), seed, design_px)
+        assert 400 <= side <= 800 and 0.7e-6 <= pixel <= 1.3e-6 and abs(header / pixel - 1) <= 0.005
+        for rotation in (-1.0, 1.0):
+            bench.INSTRUMENTS[name].measure(surface, fine, (design_px,) * 2, (side, side), np.random.default_rng(0),
+                                            pixel_m=pixel, rotation_deg=rotation, centre_px=centre)
+        sides.append(side)
+    assert len(set(sides)) == 3
+    assert bench.draw_field(512, 3, design_px) == (512, None, None)   # a single side: the instrument's pixel
+    assert bench.parse_field("400-800") == (400, 800) and bench.parse_field("512") == 512
+    with pytest.raises(ValueError, match="--design-px 107"):
+        bench.check_field((400, 800), 100)
