@@ -26,6 +26,7 @@ import numpy as np
 from doedesign.camera import Camera
 from doedesign.design import Design
 from doedesign.engine.psf import compute_psf
+from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, json_ready, write_json
 
 if TYPE_CHECKING:
@@ -48,7 +49,7 @@ RGB_NM = (656.0, 589.0, 486.0)
 # 0.4 um Gaussian blur read at each pixel's centre (no pixel integration); "optical", a
 # coherence-scanning interferometer's objective (NA 0.4 incoherent circular pupil at 0.57 um,
 # a 0.1 um residual blur) and pixels integrating 60 % of their area.
-DEMO_INSTRUMENTS = {
+DEMO_INSTRUMENTS: dict[str, dict[str, float]] = {
     "boxcar": {"pixel_subsamples": 8},
     "point": {"blur_m": 0.4e-6, "pixel_subsamples": 1},
     "optical": {"blur_m": 0.1e-6, "na": 0.4, "wavelength_m": 0.57e-6, "fill_factor": 0.6, "pixel_subsamples": 8},
@@ -178,7 +179,10 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: Pr
     # Place the field where the pattern has structure, inside the element's inscribed circle: a
     # flat zone of a lens-like design cannot be registered or tell anything about the masks.
     # It must also hold unetched surface (1 % of the field), which compare levels on.
-    r0, _, c0, _ = busiest_window(design.levels, cfg.field_px, need_flat=False, inside_circle=True,
+    levels = design.levels
+    if levels is None:
+        raise DoeError(f"{design.name}: the demo fabricates a quantized design; this one has no levels")
+    r0, _, c0, _ = busiest_window(levels, cfg.field_px, need_flat=False, inside_circle=True,
                                   min_level0_px=max(16, cfg.field_px ** 2 // 100))
     centre = (float(r0 + cfg.field_px // 2), float(c0 + cfg.field_px // 2))
     centre = (centre[0] + rng.uniform(-2, 2), centre[1] + rng.uniform(-2, 2))
@@ -187,8 +191,8 @@ def fabricate_and_measure(design: Design, cfg: DemoConfig, out: Path, params: Pr
     truth = register.Registration.from_parameters(scale, cfg.rotation_deg, (False, False, False), centre,
                                                   design.pitch_m, design.shape, (shape_px, shape_px))
     # The camera reports the surface through the instrument's lateral transfer.
-    transfer = {"blur_m": cfg.instrument_blur_m, **DEMO_INSTRUMENTS[cfg.instrument]}
-    height = compare.process_on_measurement(design.levels, design.pitch_m, params, truth, step_m=0.25e-6, **transfer)
+    transfer: dict[str, Any] = {"blur_m": cfg.instrument_blur_m, **DEMO_INSTRUMENTS[cfg.instrument]}
+    height = compare.process_on_measurement(levels, design.pitch_m, params, truth, step_m=0.25e-6, **transfer)
     rows, cols = np.mgrid[:shape_px, :shape_px]
     tilt = 2e-6 * (rows - shape_px / 2) / shape_px - 1e-6 * (cols - shape_px / 2) / shape_px
     height = height + tilt + rng.normal(0, cfg.noise_m, height.shape)

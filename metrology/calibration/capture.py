@@ -44,10 +44,11 @@ def estimate_background(image: np.ndarray, method: str = "border", border_px: in
 def find_peak(image: np.ndarray, smooth_px: float = 1.0) -> tuple[int, int]:
     """(row, col) of the brightest pixel after a small Gaussian smoothing (suppresses hot pixels)."""
     smooth = ndimage.gaussian_filter(np.asarray(image, dtype=float), smooth_px) if smooth_px else image
-    return tuple(int(v) for v in np.unravel_index(np.argmax(smooth), smooth.shape))
+    row, col = np.unravel_index(np.argmax(smooth), smooth.shape)
+    return int(row), int(col)
 
 
-def centroid(image: np.ndarray, centre: tuple[float, float], radius_px: float,
+def centroid(image: np.ndarray, centre: ArrayLike, radius_px: float,
              iterations: int = 5) -> tuple[float, float]:
     """Intensity-weighted centroid (row, col) in a disk of ``radius_px`` around ``centre``.
 
@@ -167,7 +168,7 @@ def build_stack(captures: Sequence[tuple[np.ndarray, np.ndarray]], wavelengths_m
         raise DoeError(f"{len(captures)} captures for {wl.size} wavelengths; give one capture per wavelength")
     names = names or [f"capture at {w * 1e9:g} nm" for w in wl]
     psf = np.empty((2, wl.size) + tuple(window_shape))
-    info = {}
+    info: dict[str, list] = {}
     with Progress(wl.size, desc="PSF stack") as bar:
         for i, (coded, uncoded) in enumerate(captures):
             psf[:, i], one = calibrate_capture(coded, uncoded, window_shape, axis_pixel, centre, darks, background,
@@ -179,12 +180,16 @@ def build_stack(captures: Sequence[tuple[np.ndarray, np.ndarray]], wavelengths_m
     if wl.size > 1 and np.ptp(centres, axis=0).max() > 2:
         log.warning("uncoded peaks spread over %s px across wavelengths (lateral colour or a moving source?)",
                     np.ptp(centres, axis=0).tolist())
+    band_spectra = None
+    spectrum_wl = None if spectrum_wavelengths_m is None else np.asarray(spectrum_wavelengths_m, dtype=float)
     if spectra is not None:
-        spectra = np.asarray(spectra, dtype=float)
-        spectrum_wavelengths_m = check_wavelengths(spectrum_wavelengths_m, "spectrum wavelengths")
-        if spectra.shape != (wl.size, spectrum_wavelengths_m.size):
-            raise DoeError(f"spectra must be ({wl.size} bands, {spectrum_wavelengths_m.size} samples), "
-                           f"got {spectra.shape}")
+        if spectrum_wavelengths_m is None:
+            raise DoeError("spectra given without their spectrum_wavelengths_m")
+        band_spectra = np.asarray(spectra, dtype=float)
+        spectrum_wl = check_wavelengths(spectrum_wavelengths_m, "spectrum wavelengths")
+        if band_spectra.shape != (wl.size, spectrum_wl.size):
+            raise DoeError(f"spectra must be ({wl.size} bands, {spectrum_wl.size} samples), "
+                           f"got {band_spectra.shape}")
     return PSFStack(psf=psf, wavelengths_m=wl, pixel_pitch_m=pixel_pitch_m, axis_pixel=axis_pixel,
-                    normalization=normalization, depth_m=depth_m, spectrum_wavelengths_m=spectrum_wavelengths_m,
-                    spectra=spectra, info=info)
+                    normalization=normalization, depth_m=depth_m, spectrum_wavelengths_m=spectrum_wl,
+                    spectra=band_spectra, info=info)

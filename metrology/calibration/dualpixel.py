@@ -156,7 +156,7 @@ def split_views(sum_frame: np.ndarray, view_frame: np.ndarray, saturation: float
     s = s - black_level
     v = v - black_level
     brighter = (v > s) & ~saturated
-    clear = max(np.count_nonzero(~saturated), 1)
+    clear = max(int(np.count_nonzero(~saturated)), 1)
     if np.count_nonzero(brighter) > MAX_NEGATIVE_FRACTION * clear:
         raise DoeError(f"{name}: the stored view is brighter than the sum in {np.count_nonzero(brighter) / clear:.0%} "
                        "of the pixels; the frames are swapped or the black level is wrong")
@@ -184,10 +184,10 @@ def cfa_channels(shape: tuple[int, int], pattern: str = "RGGB", origin: tuple[in
             cell.append(CHANNELS.index(f"G{greens}"))
         else:
             cell.append(CHANNELS.index(letter))
-    cell = np.array(cell).reshape(2, 2)
+    grid = np.array(cell).reshape(2, 2)
     rows = (np.arange(shape[0]) + origin[0]) % 2
     cols = (np.arange(shape[1]) + origin[1]) % 2
-    return cell[rows[:, None], cols[None, :]]
+    return grid[rows[:, None], cols[None, :]]
 
 
 # -- crosstalk -------------------------------------------------------------------------------------

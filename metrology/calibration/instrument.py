@@ -154,6 +154,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
         start = Placement(placement.matrix, placement.offset + placement.matrix @ np.array([r0, c0], float))
         base = ProcessParams.ideal(depths_m=depths)
         depth = get_effect("etch_depth").for_masks(len(depths))
+        assert depth is not None  # every mask has a depth
         first = CameraHeightProblem(levels, design.pitch_m, crop, start, comp.fitted_params(), [],
                                     transfer=LateralTransfer(comp.instrument_fit.blur_sigma_m,
                                                              comp.instrument_fit.transfer.fill_factor,
@@ -179,7 +180,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
 
         # The members of the family the diagnosis's instrument stage tries, each fitted to
         # convergence from the blur-and-fill fit (the objective from both of its starts).
-        fits = {(): (crit(plain), plain)}
+        fits: dict[tuple[str, ...], tuple[float, Any]] = {(): (crit(plain), plain)}
         for members in MEMBERS:
             for s in member_starts(members, m0, plain[0].transfer_of(m0)):
                 trial = fit(s, objective="objective" in members, batwing="batwing" in members)
@@ -211,9 +212,9 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
                               "model": "edge overshoot, a signed Gaussian-derivative band-pass beside the objective"}
     lateral["camera_pixel_m"] = float(measurement.pixel_size_m)
     residual = float(np.sqrt(rss / n))
-    steps = np.asarray(depths) * (1 + np.asarray(model[depth.name], float))
-    steps_err = np.asarray(depths) * np.asarray(errors.get(depth.name), float)
-    scale = {"value": 1.0, "uncertainty": math.nan, "certified_step_heights_m": None,
+    steps = np.asarray(depths) * (1 + np.asarray(model[depth.name], dtype=float))
+    steps_err = np.asarray(depths) * np.asarray(errors.get(depth.name), dtype=float)
+    scale: dict[str, Any] = {"value": 1.0, "uncertainty": math.nan, "certified_step_heights_m": None,
              "note": "not calibrated (no certified step heights): measured heights are taken as they are"}
     if step_heights_m is not None:
         value, err = height_scale(steps, steps_err, depths, source, force)

@@ -19,7 +19,7 @@ from .stack import WAVELENGTH_TOLERANCE_M, PSFStack, _match_wavelength, as_stack
 __all__ = ["compare_stacks", "extrapolate_orders", "locate_orders", "order_energies"]
 
 
-def locate_orders(psf2d: np.ndarray, axis_pixel: tuple[int, int], orders: Sequence[int] = (0, 1, 2),
+def locate_orders(psf2d: np.ndarray, axis_pixel: Sequence[float] | np.ndarray, orders: Sequence[int] = (0, 1, 2),
                   exclude_radius_px: float = 8.0, refine_radius_px: float = 3.0,
                   guess: tuple[float, float] | None = None) -> np.ndarray:
     """Positions (row, col) of diffraction orders in a grating-like PSF.
@@ -179,6 +179,7 @@ def compare_stacks(measured: PSFStack, predicted: PSFStack | PSFResult, orders: 
     difference = measured.psf - pred
     if target is not None:
         target = np.broadcast_to(np.asarray(target, dtype=float), measured.psf.shape[1:])
+    assert measured.measured is not None  # set by PSFStack.__post_init__
     rows = []
     for i, wl in enumerate(measured.wavelengths_m):
         row = {"wavelength_nm": float(wl * 1e9), "measured": bool(measured.measured[i]),

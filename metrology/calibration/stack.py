@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -55,11 +56,11 @@ class PSFStack:
     wavelengths_m: np.ndarray
     pixel_pitch_m: float
     axis_pixel: tuple = (256, 256)
-    measured: np.ndarray = None
+    measured: np.ndarray | None = None  # an array after __post_init__
     normalization: str = "uncoded"
     depth_m: float = np.inf
-    spectrum_wavelengths_m: np.ndarray = None
-    spectra: np.ndarray = None
+    spectrum_wavelengths_m: np.ndarray | None = None
+    spectra: np.ndarray | None = None
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -88,7 +89,7 @@ class PSFStack:
 
     def band_stats(self) -> np.ndarray | None:
         """Centroid and FWHM (m) of each band's spectrum, or None without spectra."""
-        if self.spectra is None:
+        if self.spectra is None or self.spectrum_wavelengths_m is None:
             return None
         return np.array([band_centroid_fwhm(self.spectrum_wavelengths_m, s) for s in self.spectra])
 
@@ -150,9 +151,10 @@ def network_array(stacks: PSFStack | Sequence[PSFStack]) -> np.ndarray:
     ``stacks`` is one :class:`PSFStack` (C = wavelengths) or a list of stacks at increasing
     depths, giving (2, D, H, W, C).
     """
+    listed = [stacks] if isinstance(stacks, PSFStack) else list(stacks)
     single = isinstance(stacks, PSFStack)
     arrs = []
-    for s in [stacks] if single else stacks:
+    for s in listed:
         arrs.append(np.moveaxis(s.psf[[VIEWS.index("uncoded"), VIEWS.index("coded")]], 1, -1))
     if not single and len({a.shape for a in arrs}) != 1:
         raise DoeError("stacks at different depths must share window and wavelengths")
@@ -176,7 +178,8 @@ def save_stack(stack: PSFStack, path: str | Path) -> Path:
     stats = stack.band_stats()
     if stats is None:
         stats = np.full((stack.wavelengths_m.size, 2), np.nan)
-    extra = {}
+    assert stack.measured is not None  # set by __post_init__
+    extra: dict[str, Any] = {}
     if stack.spectra is not None:
         extra = {"spectrum_wavelengths_m": stack.spectrum_wavelengths_m, "spectra": stack.spectra}
     return write_npz(
@@ -225,6 +228,7 @@ def read_stack(path: str | Path) -> dict:
     if len(views) != psf.shape[0] or len(set(views)) != len(views) or any(v not in VIEWS for v in views):
         raise DoeError(f"{path}: {psf.shape[0]} view(s) in psf but views lists {list(views)} "
                        f"(each one of {list(VIEWS)})")
+    depth: float | None
     if "depths_m" in data:
         depth = float(np.atleast_1d(data["depths_m"])[0])
     else:

@@ -184,8 +184,9 @@ def run_crosstalk(args: argparse.Namespace) -> int:
     ensure_output_file(args.out)
     if args.png:
         ensure_output_file(args.png, "--png")
-    left = tuple(dp.load_frame(f) for f in args.left_blocked)
-    right = tuple(dp.load_frame(f) for f in args.right_blocked)
+    (left_sum, left_view), (right_sum, right_view) = args.left_blocked, args.right_blocked  # nargs=2
+    left = (dp.load_frame(left_sum), dp.load_frame(left_view))
+    right = (dp.load_frame(right_sum), dp.load_frame(right_view))
     cal = dp.calibrate_crosstalk(left, right, args.cfa, args.smoothing, args.saturation, args.black_level,
                                  names=(f"left-blocked capture {args.left_blocked[0]}",
                                         f"right-blocked capture {args.right_blocked[0]}"))
@@ -219,14 +220,16 @@ def _crosstalk_figure(cal):
 
 
 # -- PSF stacks ---------------------------------------------------------------------------------------------
-def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None) -> tuple[np.ndarray, list, tuple | None]:
+def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None,
+                  ) -> tuple[np.ndarray, list[tuple[Path, Path, Path | None]], tuple[Path, Path] | None]:
     """Capture files from a directory or list file (convention in ``CAPTURE_HELP``).
 
     Returns (wavelengths_m, [(sum_path, view_path, spectrum_path or None)], dark pair or None).
     """
     spec = Path(spec)
     if spec.is_dir():
-        found, dark = {}, {}
+        found: dict[float, dict[str, Path]] = {}
+        dark: dict[str, Path] = {}
         for f in sorted(spec.iterdir()):
             m = re.fullmatch(r"(\d+(?:\.\d+)?)nm_(sum|view|spectrum)(\.\w+)", f.name, flags=re.IGNORECASE)
             d = re.fullmatch(r"dark_(sum|view)(\.\w+)", f.name, flags=re.IGNORECASE)
@@ -250,14 +253,16 @@ def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None) -> 
         listing = spec.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise DoeError(f"{spec}: not a capture list (text file of 'wavelength_nm sum view' lines)") from None
-    wl_nm, files, dark = [], [], None
+    listed_nm: list[float] = []
+    listed: list[tuple[Path, Path, Path | None]] = []
+    pair: tuple[Path, Path] | None = None
     for n, line in enumerate(listing.splitlines(), 1):
         parts = line.split("#")[0].replace(",", " ").split()
         if not parts:
             continue
         paths = [spec.parent / p for p in parts[1:]]
         if parts[0].lower() == "dark" and len(paths) == 2:
-            dark = tuple(paths)
+            pair = (paths[0], paths[1])
             continue
         try:
             wl = float(parts[0])
@@ -266,16 +271,16 @@ def find_captures(spec: str | Path, wavelengths_m: np.ndarray | None = None) -> 
         except ValueError:
             raise DoeError(f"{spec}, line {n}: expected 'WAVELENGTH_NM SUM VIEW [SPECTRUM]', "
                            f"got {line.strip()!r}") from None
-        wl_nm.append(wl)
-        files.append((paths[0], paths[1], paths[2] if len(paths) == 3 else None))
-    wl = ps.check_wavelengths(np.array(wl_nm) * 1e-9, str(spec))
+        listed_nm.append(wl)
+        listed.append((paths[0], paths[1], paths[2] if len(paths) == 3 else None))
+    wls = ps.check_wavelengths(np.array(listed_nm) * 1e-9, str(spec))
     if wavelengths_m is not None:
-        missing = [w for w in wavelengths_m if np.abs(wl - w).min() > ps.WAVELENGTH_TOLERANCE_M]
+        missing = [w for w in wavelengths_m if np.abs(wls - w).min() > ps.WAVELENGTH_TOLERANCE_M]
         if missing:
             raise DoeError(f"{spec}: no capture listed for {', '.join(f'{w * 1e9:g}' for w in missing)} nm")
-        keep = [int(np.argmin(np.abs(wl - w))) for w in wavelengths_m]
-        wl, files = wl[keep], [files[i] for i in keep]
-    return wl, files, dark
+        keep = [int(np.argmin(np.abs(wls - w))) for w in wavelengths_m]
+        wls, listed = wls[keep], [listed[i] for i in keep]
+    return wls, listed, pair
 
 
 def _load_spectra(paths, band_wl):
@@ -368,8 +373,8 @@ def run_psf(args: argparse.Namespace) -> int:
               if args.normalization == "uncoded" else "each view divided by its own whole-frame total",
               "window": list(window), "axis_pixel": list(axis_pixel), "layout": "row 0 at the top",
               "per_wavelength": stack.info}
-    if stack.spectra is not None:
-        stats = stack.band_stats()
+    stats = stack.band_stats()  # None without spectra
+    if stats is not None:
         report["band_centroid_nm"] = (stats[:, 0] * 1e9).tolist()
         report["band_fwhm_nm"] = (stats[:, 1] * 1e9).tolist()
     comparison = None
@@ -385,6 +390,7 @@ def run_psf(args: argparse.Namespace) -> int:
             raise DoeError(f"{args.predicted}: {exc}") from None
     with output_run(out, f"doe calibrate psf {args.captures}"):
         _write_psf_outputs(stack, comparison, orders, report, out)
+    assert stack.measured is not None  # set by PSFStack.__post_init__
     print_json({"out": str(out), "wavelengths_nm": (stack.wavelengths_m * 1e9).round(3).tolist(),
                 "measured": stack.measured.tolist(),
                 "energy_in_window": {v: stack.energy_in_window[i].round(5).tolist() for i, v in enumerate(ps.VIEWS)}})

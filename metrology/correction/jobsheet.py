@@ -50,7 +50,9 @@ def loading_losses(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float],
     from masks.process import ProcessParams, mask_etch
 
     params = ProcessParams(etch_depth=np.asarray(depths_m, float), etch_loading=float(loading))
-    levels = sum(np.asarray(m, np.int64) << j for j, m in enumerate(masks))
+    levels = np.zeros(np.shape(masks)[1:], np.int64)
+    for j, m in enumerate(masks):
+        levels = levels + (np.asarray(m, np.int64) << j)
     mean, rms = [], []
     for j, m in enumerate(masks):
         if not m.any():
@@ -146,7 +148,9 @@ def warnings_for(estimates: Sequence[Estimate], fields: Sequence, jobs: Sequence
     compensated etch loading no knob removes (given the ``jobs``), diagnoses that left a
     residual unexplained. First (the sheet's first lines): the diagnoses a limit ended, and the
     effects fewer fields tested than were given."""
-    out, scatter, spread = incomplete_warnings(estimates, fields), [], []
+    out = incomplete_warnings(estimates, fields)
+    scatter: list[str] = []
+    spread: list[str] = []
     for e in estimates:
         signs = {np.sign(v - e.null) for v, s in zip(e.values, e.uncertainties) if abs(v - e.null) > SIGNIFICANCE * s}
         if len(signs) > 1 and e.systematic:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +44,7 @@ def _spec_param(e: Estimate, mean: float, sigma: float, nominal_depths_m: Sequen
 
     scale = 1.0
     if e.effect == "etch_depth":
+        assert e.mask is not None  # a depth is per mask
         scale = nominal_depths_m[e.mask]
     elif e.effect == "mask_rotation":
         scale = math.pi / 180.0
@@ -63,6 +64,7 @@ def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nomina
             continue
         mean, sigma = e.mean, e.spread
         if corrected and e.effect == "etch_depth":
+            assert e.mask is not None  # a depth is per mask
             job = jobs[e.mask]
             # The etch aimed at the target removes (1 + error) target: relative to nominal, the error left.
             mean = (1.0 + e.mean) * job["etch_depth_target_nm"] / job["etch_depth_nm"] - 1.0
@@ -153,7 +155,7 @@ def predict_merit(design: Design, estimates: Sequence[Estimate], jobs: Sequence[
     primary = ev.metrics.primary
     lower_better = DIRECTIONS.get(primary) == "lower"
     nominal = ev.metrics(ev.coded_psf(ev.height({})))
-    out = {"primary_metric": primary, "direction": "lower" if lower_better else "higher",
+    out: dict[str, Any] = {"primary_metric": primary, "direction": "lower" if lower_better else "higher",
            "metric_unit": metric_unit(primary), "oversample": int(oversample),
            "design": {"central": nominal, "samples": 0}}
     with Progress(2 * (samples + 1), desc="doe correct: merit") as bar:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
+from typing import Any
 
 from .systematic import Estimate
 
@@ -27,13 +28,15 @@ def _mask_entry(table, effect, mask, key, value):
 
 def spec_table(estimates: Sequence[Estimate], jobs: Sequence[dict]) -> tuple[dict, list[str]]:
     """The spec as a dict of the TOML schema, and notes on what it cannot say."""
-    table, notes = {}, []
-    by = {}
+    table: dict[str, Any] = {}
+    notes: list[str] = []
+    by: dict[tuple[str, int | None], list[Estimate]] = {}
     for e in estimates:
         by.setdefault((e.effect, e.mask), []).append(e)
     for (effect, mask), group in by.items():
         if effect == "etch_depth":
             e = group[0]
+            assert mask is not None  # a depth is per mask
             job = jobs[mask]
             left = (1.0 + e.mean) * job["etch_depth_target_nm"] / job["etch_depth_nm"] - 1.0 if (
                 e.corrected or job["etch_loading_mean_loss_fraction"]) else (e.mean if e.systematic else 0.0)

@@ -124,7 +124,8 @@ def _settings(design: Design, iterations: int, seed: int):
     """The design's own optimizer settings (its metadata), short, from a given start, on the CPU."""
     from doedesign.optimizer.optimize import OptimizerSettings
 
-    saved = design.metadata.get("optimizer") if isinstance(design.metadata.get("optimizer"), dict) else {}
+    stored = design.metadata.get("optimizer")
+    saved = stored if isinstance(stored, dict) else {}
     names = {f.name for f in dataclasses.fields(OptimizerSettings)}
     keep = {k: v for k, v in saved.items() if k in names and k not in ("starts", "device", "max_time_s")}
     keep.update(max_iter=int(iterations), anneal_iter=max(2, int(iterations) // 4), seed=int(seed), init="zeros",
@@ -214,6 +215,7 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     run = design_doe(target, ev.camera, design.pitch_m, design.shape, design.material, design.design_wavelength_m,
                      loss=loss, settings=settings, init_height_m=-start_levels * step, perturbations=perturbations)
     new = run.design
+    assert new.levels is not None  # the loop quantizes (settings: quantize=True)
     history = run.report["loss_history"]
     start_loss = float(history["continuous"][0])
     final_loss = float(run.report["quantized"]["loss"])
@@ -223,7 +225,7 @@ def redesign(design: Design, estimates: Sequence[Estimate], nominal_depths_m: Se
     seen = coded_support(ev.camera, design.pitch_m, design.shape)
     new.levels = np.where(seen, new.levels if final_loss <= start_loss else start_levels, levels).astype(np.int16)
     new.height_m = -new.levels * step
-    if for_corrected:
+    if jobs is not None:  # for_corrected
         _check_offsets(new, jobs, min_feature_m, source)
     name = f"{design.name}_redesign"
     new.metadata = {**design.metadata, "name": name, "optimizer": dataclasses.asdict(settings),
@@ -275,6 +277,7 @@ def _check_offsets(new: Design, jobs: Sequence[dict], min_feature_m: float | Non
     """Refuse a re-design whose masks cannot be drawn with the job sheet's edge offsets."""
     from masks.decompose import levels_to_masks
 
+    assert new.levels is not None  # a re-design is quantized
     masks = levels_to_masks(new.levels, len(jobs))
     check_offsets(masks, new.pitch_m, jobs, min_feature_m, f"{source}: the re-design")
 

@@ -12,6 +12,8 @@ import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from doedesign.design import Design
 from doedesign.errors import DoeError
 from doedesign.fileio import atomic_path, ensure_output_dir, output_run, write_json
@@ -128,7 +130,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
               f"{len(fields)} field(s); means are what the corrected next run still carries",
               *spec_notes]
     text = toml_text(table, header)
-    build_spec(tomllib.loads(text), depths, "process_spec.toml")  # refuse to write what doe tolerance would refuse
+    build_spec(tomllib.loads(text), np.asarray(depths, float), "process_spec.toml")  # refuse to write what doe tolerance would refuse
     sheet = {
         "incomplete_diagnoses": [f.source for f in fields if f.incomplete],
         "design": name, "design_fingerprint": fingerprint, "diagnoses": [f.source for f in fields],

@@ -50,7 +50,7 @@ def radial_psd(residual_map: np.ndarray, step_m: float) -> dict[str, list]:
     return out
 
 
-def structure_groups(levels: np.ndarray, any_edge_m: np.ndarray, edge_m: Sequence[np.ndarray],
+def structure_groups(levels: np.ndarray, any_edge_m: np.ndarray, edge_m: Sequence[np.ndarray] | np.ndarray,
                      keep: np.ndarray) -> list[np.ndarray]:
     """Group labels (0 = left out) in which an explained residual must average to zero.
 
@@ -65,7 +65,7 @@ def structure_groups(levels: np.ndarray, any_edge_m: np.ndarray, edge_m: Sequenc
     return [np.where(keep, m + 1, 0) for m in maps]
 
 
-def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], levels: np.ndarray,
+def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray] | np.ndarray, levels: np.ndarray,
                    spacing_m: float) -> dict[str, dict]:
     """Residual by signed distance to each mask's edges, by level, by distance from the field
     centre and by spatial frequency (``spacing_m``: the map's pixel spacing)."""
@@ -86,7 +86,8 @@ def edge_breakdown(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], level
 _PROFILE_EDGES_M = np.linspace(-3e-6, 3e-6, 25)
 
 
-def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray], depths_m: Sequence[float],
+def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray] | np.ndarray,
+                         depths_m: Sequence[float] | np.ndarray,
                          keep: np.ndarray, sigma: float, corr_area_px: float,
                          share: float = INSTRUMENT_SHARE,
                          amplitudes: tuple[float, float] = MASK_AMPLITUDES, every_mask: bool = True) -> dict | None:
@@ -141,17 +142,17 @@ def instrument_signature(residual_map: np.ndarray, edge_m: Sequence[np.ndarray],
     if gain_mask <= 0 or gain_mask / scale ** 2 < 25.0 + n_col or gain_shared < share * gain_mask:
         return None
     low, high = amplitudes
-    amplitudes = []
+    found: list[float] = []
     for j in range(nm):
         blk = slice(j * nb, (j + 1) * nb)
         norm2 = float(profile @ gram[blk, blk] @ profile)
-        amplitudes.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
-    measured = [a for a in amplitudes if np.isfinite(a)]
+        found.append(float(profile @ rhs[blk]) / norm2 if norm2 > (5.0 * scale) ** 2 else np.nan)
+    measured = [a for a in found if np.isfinite(a)]
     inside = sum(low <= a <= high for a in measured)
     if inside < 2 or (every_mask and inside < len(measured)):
         return None
     odd = 0.5 * (profile - profile[::-1])  # the bins are symmetric about the edge
-    return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": amplitudes,
+    return {"explained_share": gain_shared / gain_mask, "mask_amplitudes": found,
             "odd_share": float(np.sum(odd ** 2) / max(np.sum(profile ** 2), 1e-300)),
             "explained_rms_m": float(np.sqrt(gain_shared / r.size)),
             "distance_m": (0.5 * (edges[1:] + edges[:-1])).tolist(), "profile_per_m_step": profile.tolist()}

@@ -40,7 +40,8 @@ class Deadline:
     """
 
     def __init__(self, cpu: float | None = None, wall: float | None = None):
-        self.cpu, self.wall, self.hit = cpu, wall, None
+        self.cpu, self.wall = cpu, wall
+        self.hit: str | None = None
 
     @classmethod
     def after(cls, cpu_budget_s: float | None = None, wall_limit_s: float | None = None) -> Deadline:

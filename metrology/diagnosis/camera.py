@@ -135,7 +135,7 @@ class CameraHeightProblem(dg.Problem):
         self.placement = placement
         self.centre_px = (np.asarray(self.measured.shape, float) - 1) / 2 if centre_px is None else centre_px
         self.screening = None
-        kw = {} if step_m is None else {"step_m": step_m}
+        kw: dict[str, Any] = {} if step_m is None else {"step_m": step_m}
         self.instrument = instrument or InstrumentModel(self.levels, pitch_m, self.measured.shape, placement, **kw)
         self.base = base_params
         self.batwing = batwing if isinstance(batwing, bool) else tuple(float(v) for v in batwing)
@@ -160,7 +160,7 @@ class CameraHeightProblem(dg.Problem):
         self._coeffs = ArrayCache(cache_bytes, max_items=32)
         self._spectra = ArrayCache(cache_bytes, max_items=24)
         self._factors = ArrayCache(cache_bytes, max_items=12)
-        self._factor_reach = {}
+        self._factor_reach: dict[Any, Any] = {}
         self._lock = threading.Lock()  # the factors and their reach change together
         # Design quantities at each camera pixel (nearest design pixel): noise, structure, breakdown.
         r, c = placement.to_design(*np.mgrid[:self.measured.shape[0], :self.measured.shape[1]].astype(float))
@@ -187,6 +187,10 @@ class CameraHeightProblem(dg.Problem):
         if self._noise is None:
             self._noise = self.noise_at({CAMERA.name: self.effects[CAMERA.name].start_values()})
         return self._noise
+
+    @noise.setter
+    def noise(self, value: NoiseEstimate) -> None:
+        self._noise = value
 
     def noise_at(self, model: dict[str, np.ndarray]) -> NoiseEstimate:
         """The noise floor on the flat interiors (each about its plane) of the residual to ``model``."""
@@ -484,7 +488,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         screen_params, screen_blur = screen if screen is not None else (base, CAMERA.start_values()[5])
         screen_blur = screen_blur if transfer is None else transfer
         # One render serves the noise floor and the robust rule (the screening model's).
-        held = {} if batwing is None else {"batwing": tuple(batwing)}
+        held: dict[str, Any] = {} if batwing is None else {"batwing": tuple(batwing)}
         first = CameraHeightProblem(design_levels, pitch_m, crop, start, screen_params, [], step_m=step_m,
                                     transfer=as_transfer(screen_blur), **held)
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
@@ -581,6 +585,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 break
             keep = new_keep
         bar.update(1, "uncertainties")
+        assert diag is not None and problem is not None and fit is not None  # the loop ends on a finished selection
         diag.map_step_m = problem.pixel_m
         if fit is not problem:
             # What the user reads is the whole window's (the counts stay the fitted tiles').

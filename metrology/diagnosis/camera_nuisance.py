@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.effects import Effect, Parameter, get_effect
+from metrology.diagnosis.tiles import TiledCameraProblem
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
+
+if TYPE_CHECKING:
+    from metrology.diagnosis.camera import CameraHeightProblem
 
 __all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "RESTAGE_WINDOW_PX",
            "STAGE_FREE", "STAGE_WINDOW_PX",
@@ -125,7 +129,7 @@ def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) ->
     return [wide, narrow]
 
 
-def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
+def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem], threshold: float,
                     held: dict[str, np.ndarray] | None = None,
                     ) -> tuple[dict[str, bool], dict[str, np.ndarray], dict[str, float]]:
     """The instrument's family members beyond blur and fill factor that the data ask for, chosen
@@ -190,7 +194,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     if not named and (left is None or left["odd_share"] < STAGE_ODD_SHARE):
         log.info("instrument stage: blur and fill factor leave no instrument residual")
         return dict(state), model, {}
-    transfer = plain.transfer_of(model) if hasattr(plain, "transfer_of") else plain.whole.transfer_of(model)
+    transfer = (plain.whole if isinstance(plain, TiledCameraProblem) else plain).transfer_of(model)
     # Every combination is fitted from the blur-and-fill fit: the objective's NA and the batwing
     # trade against each other (a CSI's batwing sits beside its objective's transfer), so the
     # objective alone runs to the widest aperture where both together find the real one. The
@@ -199,7 +203,7 @@ def choose_transfer(make: Callable[..., dg.Problem], threshold: float,
     # (up to the short fits' convergence) its RSS is at most the other's. A nested combination
     # whose criterion, bounded so from a fitted one, cannot beat the blur and fill factor alone
     # by the threshold is not fitted: a third of the stage where the family adds nothing.
-    fits = {}
+    fits: dict[tuple[str, ...], tuple[float, dict[str, np.ndarray]]] = {}
     for members in sorted(MEMBERS, key=len, reverse=True):
         bounds = [fits[m][0] - (member_params(m) - member_params(members)) * np.log(n_eff) for m in fits
                   if set(members) < set(m) and set(m) - set(members) <= set(NESTING)]

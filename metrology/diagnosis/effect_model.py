@@ -10,7 +10,7 @@ sentence a report shows. The registry that holds them, and the stages' signature
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -112,17 +112,17 @@ class Effect:
     name: str
     domain: str
     stage: str
-    params: tuple
-    apply: object
+    params: Sequence[Parameter]  # stored as a tuple (__post_init__)
+    apply: Callable[..., Any]
     description: str
     kind: str = "fabrication"
     order: int = 0
     start: tuple | None = field(default=None)
     per_channel: bool = False
     linear: bool = False
-    fourier: object = None
+    fourier: Callable[..., Any] | None = None
     beside_objective: bool = False
-    mask_params: object = None
+    mask_params: Callable[[int], Sequence[Parameter]] | None = None
 
     def __post_init__(self):
         if self.domain not in DOMAINS:

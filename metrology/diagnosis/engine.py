@@ -242,7 +242,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     names = [n for n in (list(candidates) if candidates is not None else list(problem.effects)) if n not in nuisance]
     tested = []  # the candidates the round that ended the selection by the criterion scored
     entered = set()  # every candidate the selection named at some point (revised or withheld later)
-    model = {}
+    model: dict[str, np.ndarray] = {}
     if nuisance:
         model, _, _ = fit_effects(problem, {n: (prior or {}).get(n, problem.effects[n].start_values())
                                             for n in nuisance}, nuisance)
@@ -339,7 +339,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         scores = {c: scores[c] for c in pending}  # in the candidates' order, however they finished
         if not scores:
             break
-        best = min(scores, key=scores.get)
+        best = min(scores, key=scores.__getitem__)
         log.info("candidates: %s", {k: round(v, 1) for k, v in sorted(scores.items(), key=lambda kv: kv[1])})
         if budget.fired:
             stopped = _cut_short("its screening", [best])
@@ -359,7 +359,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         if budget.fired:
             stopped = _cut_short("its fit to convergence", close)
             break
-        best = min(close, key=scores.get)
+        best = min(close, key=scores.__getitem__)
         if scores[best] > -threshold:  # a screening crop's scaled estimate was too hopeful
             tested = list(scores)
             break
@@ -373,7 +373,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         tied = [c for c in close if scores[c] <= scores[best] + threshold]
         artefacts = [c for c in tied if problem.effects[c].kind == "artefact"]
         if artefacts:
-            best = min(artefacts, key=scores.get)
+            best = min(artefacts, key=scores.__getitem__)
         ambiguous = sorted(c for c in tied if c != best)
         alternatives[best] = [c for c in _close(scores, best, threshold, ALTERNATIVE_SHARE) if c != best]
         model, rss_new, errors = refits[best]

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
@@ -112,10 +112,10 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     effs, scale, lo, hi, x0, unpack, residual = _fit_setup(problem, model, free)
     central = _central(effs, problem.kinks if central is None else central)
     sizes = []  # residual size of each solver evaluation
-    last = {}  # the last evaluation, the base of a forward-difference Jacobian there
-    best = {}  # the lowest-cost evaluation: where a fit that ``stop`` ends returns
+    last: dict[str, Any] = {}  # the last evaluation, the base of a forward-difference Jacobian there
+    best: dict[str, Any] = {}  # the lowest-cost evaluation: where a fit that ``stop`` ends returns
     crawl = []  # the cost at each Jacobian's point
-    held = {}  # the last Jacobian: its point, residual, matrix, Broyden updates since a full one, evaluations
+    held: dict[str, Any] = {}  # the last Jacobian: its point, residual, matrix, Broyden updates since a full one, evaluations
     workers = WORKERS if problem.parallel_fits else 1
 
     def fun(x):

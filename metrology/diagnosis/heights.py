@@ -114,7 +114,8 @@ class HeightProblem(Problem):
         # The masks' etches read the design checked once here (mask_etch's check reads it whole).
         self._checked_levels = check_levels(self.levels, base_params.n_masks)
         self.pitch_m = float(pitch_m)
-        self.region = tuple(int(v) for v in region)
+        r0, r1, c0, c1 = (int(v) for v in region)
+        self.region = (r0, r1, c0, c1)
         u = fine_upsample(pitch_m, step_m)
         if abs(pitch_m / u - step_m) > 1e-6 * step_m:
             raise DoeError(f"model grid step {step_m * 1e6:.4g} um must divide the design pitch "

@@ -15,8 +15,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Collection
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from metrology.diagnosis.problem import Problem
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +162,7 @@ def locate_residual(breakdown: dict, residual_map: np.ndarray, sigma: float, cor
             "summary": summary}
 
 
-def partial_matches(problem: object, model: dict, final_map: np.ndarray, nuisance: Collection[str],
+def partial_matches(problem: Problem, model: dict, final_map: np.ndarray, nuisance: Collection[str],
                     ratio_limit: float) -> list:
     """Chosen fabrication effects that fit only part of what lies on their own footprint.
 

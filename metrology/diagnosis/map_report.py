@@ -9,6 +9,7 @@ depth model's residual). Positions: metres from the design centre, x right, y up
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,14 +28,14 @@ def assemble(tiles: list[dict], design_shape: tuple[int, int], pitch_m: float) -
     ok = [t for t in tiles if t.get("status") == "ok"]
     missing = [{"id": t["id"], "region": t["region"], "status": t.get("status")} for t in tiles
                if t.get("status") != "ok"]
-    out = {"n_tiles": len(tiles), "n_diagnosed": len(ok), "not_diagnosed": missing, "models": {}}
+    out: dict[str, Any] = {"n_tiles": len(tiles), "n_diagnosed": len(ok), "not_diagnosed": missing, "models": {}}
     if len(ok) < 3:
         out["models_note"] = "fewer than 3 tiles diagnosed: no model fitted"
         return out
     xy = np.array([_xy(t, design_shape, pitch_m) for t in ok])
     par = lambda name: np.array([t["params"][name] for t in ok])  # noqa: E731  (value, error) per tile
     half = 0.5 * min(design_shape) * pitch_m
-    maps = {"x_m": xy[:, 0].tolist(), "y_m": xy[:, 1].tolist(), "tile_ids": [t["id"] for t in ok],
+    maps: dict[str, Any] = {"x_m": xy[:, 0].tolist(), "y_m": xy[:, 1].tolist(), "tile_ids": [t["id"] for t in ok],
             "loading": [t.get("loading") for t in ok]}
     for j in (1, 2, 3):
         dx, dy = par(f"dx_mask{j}_m"), par(f"dy_mask{j}_m")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -25,6 +25,7 @@ from metrology.matching.window import window_sums
 
 if TYPE_CHECKING:
     from doedesign.camera import Camera
+    from doedesign.engine.psf import PSFEngine
     from metrology.diagnosis.budget import Deadline
     from doedesign.design import Design
     from doedesign.materials import Material
@@ -46,7 +47,7 @@ SINGLE_PRECISION_NOISE_FRACTION = 0.01
 __all__ = ["PsfProblem", "PsfRenderer", "diagnose_psf", "psf_forward"]
 
 # render(height_m, wavelengths_m, depth_m) -> (views, wavelengths, rows, cols) stack.
-RenderFn = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
+RenderFn = Callable[[np.ndarray, Sequence[float] | np.ndarray, float], np.ndarray]
 
 
 class PsfRenderer:
@@ -72,9 +73,9 @@ class PsfRenderer:
                  precision: str = "double", device: str = "cpu") -> None:
         self.camera, self.pitch_m, self.shape = camera, float(pitch_m), tuple(shape)
         self.material, self.q, self.precision, self.device = material, int(doe_oversample), precision, device
-        self._engines = {}
-        self._channels = {}
-        self._lags = {}
+        self._engines: dict[tuple[Any, ...], PSFEngine] = {}
+        self._channels: dict[tuple[Any, ...], np.ndarray] = {}
+        self._lags: dict[Any, Any] = {}
         self.cache_size = cache_size
         self.calls = 0
         self._last_height = None
@@ -142,7 +143,7 @@ def psf_forward(model: dict[str, np.ndarray], effects: dict[str, Effect], render
 
     chosen = sorted((effects[n] for n in model), key=lambda e: (("height", "optics", "sensor").index(e.stage), e.order))
     h = np.asarray(height_m, dtype=float)
-    info = {"depth_m": float(depth_m)}
+    info: dict[str, Any] = {"depth_m": float(depth_m)}
     for e in chosen:
         if e.stage == "height":
             h = e.apply(h, e.check(model[e.name]))
@@ -314,7 +315,7 @@ class PsfProblem(Problem):
         r.reshape(-1, cols)[:residual_map.shape[0]] = residual_map
         r = r[:, :rows]
         radius = np.broadcast_to(self._radius(), r.shape)
-        out = {"radius_from_axis_px": binned(r, radius, np.linspace(0, radius.max() + 1e-9, 13)),
+        out: dict[str, dict] = {"radius_from_axis_px": binned(r, radius, np.linspace(0, radius.max() + 1e-9, 13)),
                "channel_rms": {c: float(np.sqrt(np.nanmean(r[i] ** 2))) for i, c in enumerate(self.channels)},
                "channel_mean": {c: float(np.nanmean(r[i])) for i, c in enumerate(self.channels)}}
         out["spatial_frequency_per_px"] = radial_psd(np.nanmean(r, axis=0), 1.0)

@@ -86,6 +86,10 @@ class Diagnosis:
         The candidate that earned its parameters but would explain under
         ``MIN_POWER_SHARE`` (:mod:`metrology.diagnosis.engine`) of the floor's power (``effect``, ``criterion_change``,
         ``floor_power_share``): not named, and the selection ended there.
+    placement, excluded_pixels, window_camera_px : dict, int, list of int, or None
+        Set by the camera-frame diagnosis (:func:`metrology.diagnosis.camera.diagnose_camera`):
+        the refined placement with uncertainties, the pixels left out, the window diagnosed
+        (``[row0, row1, col0, col1]``); None for any other.
     """
 
     domain: str
@@ -110,6 +114,9 @@ class Diagnosis:
     below_resolution: dict | None = None
     candidates: list = field(default_factory=list)
     tested: list = field(default_factory=list)
+    placement: dict | None = None
+    excluded_pixels: int | None = None
+    window_camera_px: list[int] | None = None
 
     @property
     def named(self) -> list[str]:
@@ -185,7 +192,8 @@ def summary_line(diag: Diagnosis) -> str:
     named = ", ".join(diag.named) or "nothing"
     if diag.incomplete:
         stop = diag.stopped_early
-        which = {"wall": "--wall-limit-s", "cpu": "--cpu-budget-s"}.get(stop.get("limit"), "a time limit")
+        assert stop is not None  # incomplete means stopped early
+        which = {"wall": "--wall-limit-s", "cpu": "--cpu-budget-s"}.get(stop.get("limit", ""), "a time limit")
         return (f"INCOMPLETE: the limit asked for ({which}) ended the diagnosis ({stop.get('reason')}); "
                 f"not tried: {', '.join(diag.untried) or 'none'}; named before it: {named}")
     return f"complete: named {named}; tested {len(diag.tested)} of {len(diag.candidates)} candidates"

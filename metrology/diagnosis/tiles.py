@@ -17,13 +17,16 @@ Arrays are row-major with row 0 at the top of the camera image.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from metrology.diagnosis import engine as dg
 from metrology.matching.instrument import InstrumentModel
 from metrology.matching.level import Leveller
+
+if TYPE_CHECKING:
+    from metrology.diagnosis.camera import CameraHeightProblem
 
 __all__ = ["TILED_WINDOW_PX", "TILE_MARGIN_PX", "TILE_PX", "TILES_PER_SIDE", "TiledCameraProblem", "tile_origins"]
 
@@ -62,7 +65,7 @@ class TiledCameraProblem(dg.Problem):
     parallel_fits = True
     fits_part_of_map = True
 
-    def __init__(self, whole: dg.Problem, tile_px: int = TILE_PX, per_side: int = TILES_PER_SIDE,
+    def __init__(self, whole: CameraHeightProblem, tile_px: int = TILE_PX, per_side: int = TILES_PER_SIDE,
                  margin_px: int = TILE_MARGIN_PX) -> None:
         self.whole = whole
         self.effects = whole.effects

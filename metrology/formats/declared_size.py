@@ -147,7 +147,9 @@ def check_dektak_length(path: str | Path, header: dict, points: int, step_m: flo
         the printed rounding of the length (a file cut at a line end, or a corrupt header).
     """
     text = header.get("Length")
-    match = _LENGTH.match(str(text)) if text is not None else None
+    if text is None:
+        return None
+    match = _LENGTH.match(str(text))
     if match is None or match.group(2) not in _LENGTH_UNITS_M:
         return None
     try:

@@ -132,6 +132,9 @@ class Measurement:
             ``metadata``.
         """
         valid = self.height_m[self.valid]
+        hmin: float | None
+        hmax: float | None
+        rms: float | None
         if valid.size:
             hmin, hmax = float(valid.min()), float(valid.max())
             rms = float(np.sqrt(np.mean((valid - valid.mean()) ** 2)))

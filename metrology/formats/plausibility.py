@@ -20,6 +20,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,7 +96,7 @@ RANGES = {
 }
 
 
-def check_value(path: str | Path, field: str, value: object, key: str | None = None) -> float:
+def check_value(path: str | Path, field: str, value: Any, key: str | None = None) -> float:
     """``value`` as a float after checking it lies in ``RANGES[key or field]``.
 
     Raises

@@ -207,10 +207,11 @@ def read_tiff(path: str | Path, pixel_size_m: float | None = None, z_unit_m: flo
         tags = page.tags
         stored = None
         unit = tags["ResolutionUnit"].value if "ResolutionUnit" in tags else None
-        if "XResolution" in tags and int(unit or 0) in _TIFF_RESOLUTION_UNIT_M:
+        code = int(unit or 0) if "XResolution" in tags else 0  # 0: no unit the table knows
+        if code in _TIFF_RESOLUTION_UNIT_M:
             num, den = tags["XResolution"].value
             if num > 0 and den > 0:
-                stored = _TIFF_RESOLUTION_UNIT_M[int(unit)] * den / num
+                stored = _TIFF_RESOLUTION_UNIT_M[code] * den / num
     if data.ndim != 2:
         raise MeasurementFileError(f"{path}: expected a single-channel 2-D image, got shape {data.shape}")
     pixel = _need_pixel(path, pixel_size_m, stored, "this TIFF", "XResolution pixel size")

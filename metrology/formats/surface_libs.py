@@ -246,7 +246,7 @@ def read_surface_lib(path: str | Path, pixel_size_m: float | None = None, format
     lateral = to_metres(path, getattr(ch, "lateral_unit", None) or unit, "lateral")
     height = heights.T * scale if heights.ndim == 2 else heights[np.newaxis, :] * scale
     info = topo.info if isinstance(getattr(topo, "info", None), dict) else {}
-    metadata = {"source_file": str(path), "format": path.suffix.lower().lstrip("."), "reader": "SurfaceTopography",
+    metadata: dict[str, Any] = {"source_file": str(path), "format": path.suffix.lower().lstrip("."), "reader": "SurfaceTopography",
                 "channel": str(ch.name), "channels": [str(c.name) for c in reader.channels],
                 "file_height_unit": str(unit)}
     if positions is None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import struct
 import uuid
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -333,6 +334,7 @@ def write_measurement(path: str | Path, measurement_or_array: Measurement | np.n
     **options
         Passed to the format writer.
     """
+    pixel: float | None
     if isinstance(measurement_or_array, Measurement):
         height = measurement_or_array.height_m
         pixel = measurement_or_array.pixel_size_m if pixel_size_m is None else pixel_size_m
@@ -343,7 +345,7 @@ def write_measurement(path: str | Path, measurement_or_array: Measurement | np.n
         return write_npy(path, height)
     if pixel is None:
         raise DoeError(f"{path}: pixel_size_m is required to write a height array")
-    writers = {".dat": write_dat, ".datx": write_datx, ".xyz": write_xyz, ".asc": write_asc,
+    writers: dict[str, Callable[..., Path]] = {".dat": write_dat, ".datx": write_datx, ".xyz": write_xyz, ".asc": write_asc,
                ".csv": write_profile_csv, ".npz": write_npz, ".tif": write_tiff, ".tiff": write_tiff}
     if ext not in writers:
         raise DoeError(f"{path}: cannot write extension '{ext}' (known: .npy, {', '.join(writers)})")

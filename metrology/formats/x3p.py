@@ -95,14 +95,15 @@ def read_x3p(path: str | Path, pixel_size_m: float | None = None) -> Measurement
     if z.ndim != 2:
         raise MeasurementFileError(f"{path}: expected a 2-D surface, got shape {z.shape}")
     x = pixel_size(path, pixel_size_m, dx, "x increment", "the x axis is not incremental")
-    y = None if dy is None else dy * (x / dx)
+    y = None if dy is None or dx is None else dy * (x / dx)
     meta = surf.metadata
     metadata = {"source_file": str(path), "format": "x3p", "reader": "x3pio", "layers": len(surf.layers)}
     inst = getattr(meta, "instrument", None) if meta is not None else None
     if inst is not None:
         metadata["instrument"] = " ".join(str(v) for v in (inst.manufacturer, inst.model, inst.version) if v)
-    if meta is not None and getattr(meta, "date", None) is not None:
-        metadata["timestamp"] = meta.date.isoformat()
+    date = getattr(meta, "date", None) if meta is not None else None
+    if date is not None:
+        metadata["timestamp"] = date.isoformat()
     if meta is not None and getattr(meta, "comment", None):
         metadata["comment"] = str(meta.comment)
     return Measurement(z, x, metadata, pixel_size_y_m=y)

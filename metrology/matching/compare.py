@@ -288,7 +288,7 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     check = assess_match(first.height_m, printed, step_m, reg, scanned=raster, edge_span=span)
     if not check.ok:
         if not force:
-            raise DoeError(check.problem + "; --force compares anyway")
+            raise DoeError(f"{check.problem}; --force compares anyway")
         log.warning("%s (forced)", check.problem)
     match = check.report(force)
     labels = design_on_measurement(levels, reg)

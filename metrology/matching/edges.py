@@ -103,7 +103,7 @@ class EdgeFit:
 
 
 def fit_edges(height_m: np.ndarray, levels: np.ndarray, registration: Registration, pitch_m: float,
-              depths0_m: Sequence[float], n_masks: int = 4, max_points: int = MAX_FIT_POINTS,
+              depths0_m: Sequence[float] | np.ndarray, n_masks: int = 4, max_points: int = MAX_FIT_POINTS,
               sigma0_m: float = 0.6e-6) -> EdgeFit:
     """Fit per-mask shift, linewidth bias and depth, and one edge blur, to the measured surface.
 

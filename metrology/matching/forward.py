@@ -159,4 +159,4 @@ def crop_registration(registration: Registration, row0: int, col0: int, shape: t
     from dataclasses import replace
 
     offset = registration.offset + registration.matrix @ np.array([row0, col0], float)
-    return replace(registration, offset=offset, measurement_shape=tuple(shape))
+    return replace(registration, offset=offset, measurement_shape=(int(shape[0]), int(shape[1])))

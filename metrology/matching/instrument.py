@@ -51,7 +51,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.fft as sfft
@@ -132,7 +132,7 @@ class InstrumentModel:
         self.upsample = fine_upsample(pitch_m, step_m)
         self.step_m = self.pitch_m / self.upsample
         corners = np.array([[r, c] for r in (-0.5, self.shape[0] - 0.5) for c in (-0.5, self.shape[1] - 0.5)])
-        rr, cc = placement.to_design(corners[:, 0], corners[:, 1])
+        rr, cc = (np.asarray(v) for v in placement.to_design(corners[:, 0], corners[:, 1]))
         m = int(margin_px)
         self.window = (int(math.floor(rr.min())) - m, int(math.ceil(rr.max())) + m + 1,
                        int(math.floor(cc.min())) - m, int(math.ceil(cc.max())) + m + 1)
@@ -144,7 +144,8 @@ class InstrumentModel:
         self._etches = ArrayCache(cache_bytes, max_items=24)
         self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
-        self._beside = None  # the last transfer with edge responses beside it: (transfer, beside, sum)
+        # The last transfer with edge responses beside it: (transfer, beside, sum).
+        self._beside: tuple[Any, tuple[np.ndarray, ...], np.ndarray] | None = None
         self._parts: OrderedDict = OrderedDict()  # :meth:`part`'s models, the newest last
         self._parts_lock = threading.Lock()
 

@@ -81,6 +81,7 @@ def _window_problem(fit: InstrumentFit, height_m: np.ndarray, levels: np.ndarray
     first = CameraHeightProblem(levels, pitch_m, crop, start, base, [], transfer=fit.transfer)
     keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), np.isfinite(crop))
     depth = get_effect("etch_depth").for_masks(n_masks)
+    assert depth is not None  # every mask has a depth
     size = crop.shape[0]
 
     def make(objective: bool = False, batwing: bool = False, whole: bool = False):
@@ -181,6 +182,7 @@ def fit_instrument_family(fit: Callable[..., InstrumentFit], height_m: np.ndarra
                                                                             if k != "camera"}, rss)
         if best is None or rss < best[1]:
             best = (fitted, rss)
+    assert best is not None  # starts holds the start
     model = best[0]
     transfer = problem.transfer_of(model)
     batwing = tuple(float(v) for v in model[BATWING]) if BATWING in model else None

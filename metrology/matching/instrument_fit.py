@@ -233,6 +233,8 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
                         [blur0_m / _UM], np.zeros(len(PLACEMENT_PARAMS))])
     i_shift, i_bias, i_blur, i_place = n, 3 * n - 2, 4 * n - 2, 4 * n - 1
     keep = finite
+    if passes < 1:
+        raise DoeError(f"instrument-frame fit: passes must be at least 1, got {passes}")
     res = maps = leveller = None
     for k in range(passes):
         maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, fill, transfer,
@@ -268,6 +270,7 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             resid = np.full(crop.shape, np.nan)
             resid[keep] = res.fun * _H
             keep = robust_valid(resid, finite)
+    assert res is not None and maps is not None  # passes >= 1
     resid_map = np.full(crop.shape, np.nan)
     resid_map[keep] = res.fun * _H
     dof = max(res.fun.size - x.size, 1)

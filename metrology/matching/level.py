@@ -68,7 +68,7 @@ class LevelResult:
     def artefacts(self) -> dict:
         """The plane's tilt (nm per pixel along x and y) and, for a raster scan, the rms and
         peak-to-valley of the scan lines' offsets (nm) removed in levelling, for the report."""
-        out = {"tilt_x_nm_per_px": float(self.plane[1] * 1e9), "tilt_y_nm_per_px": float(self.plane[2] * 1e9)}
+        out: dict[str, float | int | None] = {"tilt_x_nm_per_px": float(self.plane[1] * 1e9), "tilt_y_nm_per_px": float(self.plane[2] * 1e9)}
         if self.line_offsets_m is not None:
             lines = self.line_offsets_m[np.isfinite(self.line_offsets_m)]
             out["scan_line_offsets_rms_nm"] = float(np.sqrt(np.mean(lines ** 2)) * 1e9) if lines.size else None

@@ -179,6 +179,7 @@ def compare_psf(design: Design, params: ProcessParams, camera: Camera | None = N
     if q < 1:
         raise DoeError(f"oversample must be a positive integer, got {oversample}")
     camera = camera or design.camera()
+    assert camera is not None  # missing="seed": a design without one gets the seed camera
     own_wls, own_depths = design_wavelengths_depths(design, camera)
     own_mask = design_target_mask(design, camera, own_wls, own_depths[:1])
     wls = np.atleast_1d(np.asarray(own_wls if wavelengths_m is None and own_mask is not None else

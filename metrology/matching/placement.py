@@ -48,8 +48,8 @@ class Placement:
         m, t = self.matrix, self.offset
         return m[0, 0] * rows + m[0, 1] * cols + t[0], m[1, 0] * rows + m[1, 1] * cols + t[1]
 
-    def refined(self, values: Sequence[float], shape: tuple[int, int],
-                centre_px: Sequence[float] | None = None) -> Placement:
+    def refined(self, values: Sequence[float] | np.ndarray, shape: tuple[int, int],
+                centre_px: Sequence[float] | np.ndarray | None = None) -> Placement:
         """This placement moved by nuisance ``values`` (see :data:`PLACEMENT_PARAMS`).
 
         ``shift_row_px``, ``shift_col_px``: design pixels, of the field centre;
@@ -75,5 +75,6 @@ class Placement:
         """
         from masks.litho import inverse_motion
 
-        inverse, offset = inverse_motion(shift_rc, rotation_rad, centre_rc)
+        inverse, offset = inverse_motion((float(shift_rc[0]), float(shift_rc[1])), rotation_rad,
+                                         (float(centre_rc[0]), float(centre_rc[1])))
         return Placement(inverse @ self.matrix, inverse @ self.offset + offset)

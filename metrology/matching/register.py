@@ -168,7 +168,8 @@ class Registration:
         matrix = float(scale) * rot @ _orientation_matrix(tuple(orientation))
         centre = np.array([(measurement_shape[0] - 1) / 2, (measurement_shape[1] - 1) / 2])
         offset = np.asarray(centre_design_rc, float) - matrix @ centre
-        return cls(matrix, offset, float(pitch_m), tuple(design_shape), tuple(measurement_shape))
+        return cls(matrix, offset, float(pitch_m), (int(design_shape[0]), int(design_shape[1])),
+                   (int(measurement_shape[0]), int(measurement_shape[1])))
 
     @property
     def pixel_size_m(self) -> float:
@@ -179,8 +180,8 @@ class Registration:
         """Position (x right, y up; m) of the measurement's centre from the design centre."""
         rc = (self.measurement_shape[0] - 1) / 2, (self.measurement_shape[1] - 1) / 2
         r, c = self.to_design(*rc)
-        return ((c - (self.design_shape[1] - 1) / 2) * self.pitch_m,
-                -(r - (self.design_shape[0] - 1) / 2) * self.pitch_m)
+        return (float((c - (self.design_shape[1] - 1) / 2) * self.pitch_m),
+                float(-(r - (self.design_shape[0] - 1) / 2) * self.pitch_m))
 
     def to_dict(self) -> dict:
         """Plain JSON summary (units in the key names)."""
@@ -392,7 +393,7 @@ def register(height_m: np.ndarray, design_height_m: np.ndarray, pitch_m: float, 
     theta0 = float(np.angle(np.sum(w * np.exp(4j * np.arctan2(gy, gx)))) / 4)
     c0, s0 = np.cos(theta0), np.sin(theta0)
     comb = _Comb(cols * c0 + rows * s0, (gx * c0 + gy * s0) ** 2)
-    tried = []
+    tried: list[float] = []
 
     def search(f_range, count):
         # A design built of zones also has comb sidebands near the pitch: try the strongest

@@ -64,14 +64,15 @@ def render_surface(height_m: np.ndarray, pixel_size_m: float, path: str | Path, 
     try:
         grid = pv.StructuredGrid(xx, yy, z_um * z_exaggeration)
         grid["height_nm"] = (z_um * 1e3).ravel(order="F")
-        plotter = pv.Plotter(off_screen=True, window_size=(720, 540))
+        plotter = pv.Plotter(off_screen=True, window_size=[720, 540])
         plotter.add_mesh(grid, scalars="height_nm", cmap="viridis", show_scalar_bar=True,
                          scalar_bar_args={"title": "height (nm)"})
         plotter.add_text(title or f"measured surface (z x{z_exaggeration:.0f})", font_size=10)
-        plotter.view_isometric()
+        plotter.view_isometric()  # type: ignore[call-arg]  # pyvista's decorator stub drops the bound self
         import matplotlib.pyplot as plt
 
         image = plotter.screenshot(return_img=True)
+        assert image is not None  # return_img=True returns the image
         with atomic_path(path) as tmp:
             plt.imsave(tmp, image, format="png")
         plotter.close()

@@ -271,7 +271,7 @@ def fit_terraces(height_m: np.ndarray, labels: np.ndarray, n_levels: int, margin
     t_sq = np.bincount(t_inv, weights=resid ** 2)
     t_level = np.zeros(t_ids.size, np.int64)
     t_level[t_inv] = lev
-    for k in np.flatnonzero(present):
+    for k in np.flatnonzero(present).tolist():
         sel = t_level == k
         w = t_n[sel]
         n_pix = w.sum()

@@ -219,7 +219,7 @@ def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transf
     nu_r, nu_c = np.ravel(nu_r), np.ravel(nu_c)
     rows, cols = np.flatnonzero(np.abs(nu_r) < cutoff), np.flatnonzero(np.abs(nu_c) < cutoff)
     r, c = nu_r[rows][:, None], nu_c[cols][None, :]
-    out = np.zeros((nu_r.size, nu_c.size), dtype)
+    out: np.ndarray = np.zeros((nu_r.size, nu_c.size), dtype)
     out[np.ix_(rows, cols)] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor, r, c)
                                * na_mtf(np.hypot(r, c), transfer.na, transfer.wavelength_m))
     return out
