@@ -120,9 +120,10 @@ def test_masks_opc_prints_closer_and_its_gds_verifies(tmp_path, capsys):
     assert gds != runs["drawn"][2]
     # The same print model on both: the uncorrected figure is the plain run's on the OPC's whole-nanometre
     # print grid (its aerial image on the sampling rule's grid, interpolated: 0.554 against 0.548), the
-    # corrected one better (measured 0.55 -> 0.625 on this 16 px element of one edge per pixel).
+    # corrected one better (measured 0.554 -> 0.824 on this 16 px element of one edge per pixel on every
+    # mask, with the density stage; 0.650 by the level set alone).
     assert check["uncorrected"]["field_overlap"] == pytest.approx(runs["drawn"][1]["field_overlap"], rel=0.03)
-    assert check["field_overlap"] > check["uncorrected"]["field_overlap"] + 0.03
+    assert check["field_overlap"] > check["uncorrected"]["field_overlap"] + 0.2
     for m in check["opc"]["masks"]:
         assert m["printed_area_error_um2_corrected"] <= m["printed_area_error_um2_drawn"]
         assert m["narrowest_opening_um"] >= check["opc"]["min_feature_um"] - 1e-9
