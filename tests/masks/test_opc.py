@@ -1,6 +1,6 @@
-"""The optical proximity correction (masks.opc): the contact limit, what it gains through a 30 um
-gap, the print it reports against the print model's own tiled path, the minimum feature, and
-determinism.
+"""The optical proximity correction (masks.opc, masks.opc_density): the contact limit, what it gains
+through a 30 um gap, the print it reports against the print model's own tiled path, the minimum
+feature, the density stage against the level set alone, and determinism.
 
 The correction images its masks through :func:`masks.proximity.aerial_image_vjp` (one transform
 of the whole padded mask, with its adjoint); the check of its reported print goes through
@@ -43,7 +43,7 @@ def test_correction_through_30um_prints_closer_to_the_design_and_reports_its_rea
     settings = OpcSettings(iterations=12)
     result = correct_mask(drawn, STEP, optics, 0.5, settings=settings)
     errors = np.array(result.area_error_m2)
-    # Measured 207 -> 128 um^2 (38 % less) on this pattern; the kept iterate is the best one.
+    # Measured 207 -> 102 um^2 (51 % less) on this pattern; the kept iterate is the best one.
     assert errors[result.best_iteration] == errors.min()
     assert errors.min() < 0.75 * errors[0]
     # The reported print, through the tiled image path of the process model (chrome around it).
@@ -66,8 +66,26 @@ def test_corrected_openings_keep_the_minimum_feature_and_the_run_repeats():
     assert first.area_error_m2 == again.area_error_m2
 
 
+def test_the_density_stage_prints_closer_than_the_level_set_alone_and_repeats():
+    drawn = _fine_pattern()
+    optics = ProximityOptics(GAP)
+    alone = correct_mask(drawn, STEP, optics, 0.5, settings=OpcSettings(iterations=4))
+    settings = OpcSettings(iterations=4, method="density", density_iterations=10, step_cells=0.5)
+    first = correct_mask(drawn, STEP, optics, 0.5, settings=settings)
+    # Iterate 1 is the density stage's own mask (made manufacturable), iterate 0 the drawn mask.
+    # Measured 207 -> 92 um^2 at iterate 1 (88 after the polish); the level set alone 138 in 4 steps.
+    assert len(first.area_error_m2) == settings.iterations + 2
+    assert first.area_error_m2[1] < 0.7 * first.area_error_m2[0]
+    assert min(first.area_error_m2) < min(alone.area_error_m2)
+    assert narrowest_runs_px(first.mask)[0] >= settings.min_feature_cells
+    again = correct_mask(drawn, STEP, optics, 0.5, settings=settings)
+    np.testing.assert_array_equal(first.mask, again.mask)
+    assert first.area_error_m2 == again.area_error_m2
+
+
 @pytest.mark.parametrize("kwargs", [{"iterations": 0}, {"subgrid": 9}, {"min_feature_cells": 0},
-                                    {"step_cells": 0.0}, {"steepness": float("nan")}])
+                                    {"step_cells": 0.0}, {"steepness": float("nan")},
+                                    {"level_set_steepness": 0.5}, {"method": "ilt"}, {"density_iterations": 0}])
 def test_settings_out_of_range_are_refused(kwargs):
     with pytest.raises(DoeError, match="OPC"):
         OpcSettings(**kwargs)
