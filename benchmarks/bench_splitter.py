@@ -47,7 +47,7 @@ Batching the layers' eigensolves (``batch_layers``) gives the same numbers but d
 compilation), so the design traces one eigensolve per layer (7 layers: compiled and 40
 evaluations in 133 s CPU).
 
-    python -m benchmarks.bench_splitter [--quick]
+    python -m benchmarks.bench_splitter [--quick] [--levels 4 8 16] [--save DIR] [--start DIR/splitter_8_levels.npz]
 """
 
 from __future__ import annotations
@@ -214,21 +214,33 @@ def own_score(h_um: np.ndarray, n_terms: int) -> tuple[float, float, int]:
 
 
 def run(quick: bool = False, levels: tuple[int, ...] | None = None,
-        on_rows: Callable[[list[dict]], None] | None = None) -> list[dict]:
-    """Design and score each level count; 8 and 16 levels start from the previous design in ``levels``.
+        on_rows: Callable[[list[dict]], None] | None = None, save_dir: str | None = None,
+        start_file: str | None = None) -> list[dict]:
+    """Design and score each level count; 8 and 16 levels start from the design with half their levels.
 
-    ``on_rows(rows)``, if given, is called with the rows so far after each level count.
+    ``on_rows(rows)``, if given, is called with the rows so far after each level count. Each
+    design's levels go to ``save_dir/splitter_<N>_levels.npz`` if given; ``start_file`` (such a
+    file) supplies a design to start from, so that ``--levels 16 --start splitter_8_levels.npz``
+    continues a chain without designing 4 and 8 levels again.
     """
     rows = []
     terms_ml = QUICK_TERMS if quick else 401
     levels = levels or ((2,) if quick else (2, 4, 8, 16))
     designs: dict[int, np.ndarray] = {}
+    if start_file:
+        with np.load(start_file) as f:
+            designs[int(f["n_levels"])] = np.asarray(f["levels"])
     for n in levels:
         start_from = n // 2 if n >= 8 and n // 2 in designs else None
         start = warm_start(designs[start_from], start_from, n) if start_from else None
         des = design_splitter(n, quick, start)
         lev, design_m, design_cpu, evals = des["levels"], des["metric"], des["cpu_s"], des["evaluations"]
         designs[n] = lev
+        if save_dir:
+            from pathlib import Path
+
+            Path(save_dir).mkdir(parents=True, exist_ok=True)
+            np.savez(Path(save_dir) / f"splitter_{n}_levels.npz", levels=lev, n_levels=n, quick=quick)
         if n == 2 and not quick:
             g, g_cpu = gym_score(lev)
             rows.append(dict(benchmark="splitter", figure="invrs-gym diffractive_splitter: binary design from doe's "
@@ -272,11 +284,13 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--rows")
     ap.add_argument("--levels", type=int, nargs="*", help="level counts to design (default 2 4 8 16)")
+    ap.add_argument("--save", help="folder for each design's levels (splitter_<N>_levels.npz)")
+    ap.add_argument("--start", help="a saved design (splitter_<N>_levels.npz) to start 2N levels from")
     args = ap.parse_args(argv)
     from doedesign.fileio import write_json
 
     rows = run(args.quick, tuple(args.levels) if args.levels else None,
-               (lambda r: write_json(args.rows, r)) if args.rows else None)
+               (lambda r: write_json(args.rows, r)) if args.rows else None, args.save, args.start)
     for r in rows:
         sys.stdout.write(f"{r['figure']}: {r['value']} {r['unit']} ({r['notes']})\n")
     return 0
