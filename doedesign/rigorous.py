@@ -271,7 +271,7 @@ def rigorous_efficiencies(height_m: np.ndarray, pitch_m: float, wavelengths_m: A
 
 
 def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: float, lattice: Any, expansion: Any,
-                     formulation: Any, solve: Callable | None = None) -> Any:
+                     formulation: Any, solve: Callable | None = None, batch_layers: bool = False) -> Any:
     """Transmitted efficiency of a layer stack at normal incidence, per order and polarization.
 
     The one place where this tool calls fmmax's eigensolves, scattering matrix and fluxes:
@@ -294,6 +294,10 @@ def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: 
     solve : callable, optional
         ``solve(permittivity, wavelength_um, in_plane_wavevector)``, e.g. a jitted eigensolve
         shared by the layers of one shape; fmmax's ``eigensolve_isotropic_media`` if None.
+    batch_layers : bool
+        Solve the layers of one array shape in one call (their permittivities stacked on a
+        leading axis, :func:`_layer_solves`) instead of one call per layer: inside ``jax.jit``
+        one eigensolve is traced and compiled whatever the layer count. The same numbers.
 
     Returns
     -------
@@ -314,7 +318,8 @@ def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: 
     k_in = fmmax.plane_wave_in_plane_wavevector(wavelength=wl_um, polar_angle=jnp.asarray(0.0),
                                                 azimuthal_angle=jnp.asarray(0.0),
                                                 permittivity=jnp.asarray(permittivities[0]).reshape(-1)[0])
-    solves = [solve(p, wl_um, k_in) for p in permittivities]
+    solves = _layer_solves(permittivities, solve, wl_um, k_in) if batch_layers else \
+        [solve(p, wl_um, k_in) for p in permittivities]
     s = fmmax.stack_s_matrix(layer_solve_results=solves, layer_thicknesses=[jnp.asarray(t) for t in thicknesses_um])
     a_in = jnp.zeros((2 * n, 2), dtype=complex).at[0, 0].set(1.0).at[n, 1].set(1.0)
     inc_fwd, _ = fmmax.amplitude_poynting_flux(forward_amplitude=a_in, backward_amplitude=s.s21 @ a_in,
@@ -322,6 +327,34 @@ def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: 
     out, _ = fmmax.amplitude_poynting_flux(forward_amplitude=s.s11 @ a_in, backward_amplitude=jnp.zeros_like(a_in),
                                            layer_solve_result=solves[-1])
     return (out[:n] + out[n:]).real / jnp.sum(inc_fwd, axis=0).real
+
+
+def _layer_solves(permittivities: list, solve: Callable, wavelength_um: Any, k_in: Any) -> list:
+    """One eigensolve per array shape: the layers of that shape stacked on a leading batch axis.
+
+    fmmax's eigensolves take leading batch dimensions; the batched result is split back into
+    one ``LayerSolveResult`` per layer (without its tangent vector field, which the scattering
+    matrix does not use) in the order of ``permittivities``.
+    """
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    _, fmmax = _solver()
+    groups: dict[tuple, list[int]] = {}
+    for i, p in enumerate(permittivities):
+        groups.setdefault(tuple(jnp.shape(p)), []).append(i)
+    solves: list = [None] * len(permittivities)
+    for idx in groups.values():
+        if len(idx) == 1:
+            solves[idx[0]] = solve(permittivities[idx[0]], wavelength_um, k_in)
+            continue
+        res = solve(jnp.stack([jnp.asarray(permittivities[i]) for i in idx]), wavelength_um, k_in)
+        res = fmmax.broadcast_result(dataclasses.replace(res, tangent_vector_field=None), (len(idx),))
+        for b, i in enumerate(idx):
+            solves[i] = jax.tree_util.tree_map(lambda x, b=b: x[b], res)
+    return solves
 
 
 def thin_element_efficiencies(height_m: np.ndarray, wavelengths_m: ArrayLike, index: IndexLike,
