@@ -14,7 +14,7 @@ from scipy.special import erfinv, fresnel
 
 from doedesign.errors import DoeError
 from masks import litho
-from masks.proximity import (GAUSSIAN_ERROR, ProximityOptics, aerial_image, aerial_image_naive, print_coverage,
+from masks.proximity import (GAUSSIAN_ERROR, ProximityOptics, aerial_image, aerial_image_naive, print_coverage, reach_m,
                              source_angles, threshold_for_dose)
 
 GAP = 30e-6
@@ -212,3 +212,47 @@ def test_print_check_reports_what_the_gap_prints():
     low = print_check(levels, PITCH, ProcessParams.ideal().copy(proximity_gap=30e-6, resist_threshold=0.6), 0.6e-6)
     assert all(m["edge_placement_um"] < -0.5 for m in low["masks"])  # a low dose shrinks every opening
     assert low["masks"][0]["isolated_lost"] >= far["masks"][0]["isolated_lost"]
+
+
+def test_sampling_rule_holds_the_collimation_and_37_degrees():
+    """The fine step ``g tan(theta) / 2`` (0.25 um at contact); the process model's image grid at
+    most 435.8 nm / 1.2 = 0.363 um (light up to sine 0.6 of the g line), finer below 20.8 um."""
+    from masks.proximity import image_step_m, recommended_step_m
+
+    half = math.tan(math.radians(2)) / 2
+    assert recommended_step_m(ProximityOptics(30e-6)) == pytest.approx(30e-6 * half)
+    assert recommended_step_m(ProximityOptics(0.0)) == 0.25e-6
+    assert image_step_m(ProximityOptics(10e-6)) == pytest.approx(10e-6 * half)
+    for gap in (30e-6, 40e-6, 60e-6):
+        assert image_step_m(ProximityOptics(gap)) == pytest.approx(435.8e-9 / 1.2)
+
+
+def test_cubic_spline_interpolation_has_no_chord_error():
+    """The image's interpolation onto the fine grid: on samples of x^2 a bilinear interpolant sits
+    h^2 f'' / 8 = 0.25 above the curve halfway between samples (its chords), the cubic spline on it."""
+    x = np.arange(40.0)
+    samples = np.repeat((x ** 2)[:, None], 6, axis=1)
+    mid = x[10:30] + 0.5
+    cols = np.arange(6.0)
+    linear = litho.interpolate_separable(samples, mid, cols, order=1)[:, 0]
+    cubic = litho.interpolate_separable(samples, mid, cols, order=3)[:, 0]
+    np.testing.assert_allclose(linear - mid ** 2, 0.25, atol=1e-3)
+    np.testing.assert_allclose(cubic, mid ** 2, atol=2e-3)
+    with pytest.raises(ValueError, match="order"):
+        litho.interpolate_separable(samples, mid, cols, order=2)
+
+
+def test_padding_by_half_the_reach_less_the_chrome_rim_is_one_wide_window():
+    """One window is padded by (reach - rim) / 2: the same image as a periodic window with the full
+    reach of chrome on every side, with and without a chrome rim around the openings."""
+    rng = np.random.default_rng(6)
+    step = PITCH / 8
+    optics = ProximityOptics(40e-6)
+    reach = int(math.ceil(reach_m(optics, step) / step)) + 1
+    for rim in (0, 3, 40):
+        mask = np.zeros((20 + 2 * rim, 22 + 2 * rim), bool)
+        mask[rim:rim + 20, rim:rim + 22] = rng.random((20, 22)) < 0.5
+        cov = litho.upsample_mask(mask, 8)
+        wide = np.pad(cov, 2 * reach)
+        ref = aerial_image(wide, step, optics, periodic=True)[2 * reach:-2 * reach, 2 * reach:-2 * reach]
+        np.testing.assert_allclose(aerial_image(cov, step, optics), ref, atol=2e-3)
