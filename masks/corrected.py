@@ -2,7 +2,7 @@
 
 The same die as ``doe masks`` (:func:`masks.element.write_element`: element, Cr aperture, die
 outline, labels, marks, test structures, the same cell names and layers), but each mask's
-merged polygons are offset by its own distance (:func:`masks.offset.offset_polygons`) and the
+openings are drawn offset by its own distance (:func:`masks.offset.offset_polygons`) and the
 file is read back and checked on a fine grid against the offset of the pixel masks
 (:func:`masks.offset.verify_offset_layer`) before it is renamed into place. The labels say
 which offset each mask carries. Dark tone only: a clear-tone layer draws chrome, whose
@@ -47,7 +47,8 @@ def offset_feasibility(mask: np.ndarray, pitch_m: float, offset_m: float,
     """Why offsetting ``mask``'s edges by ``offset_m`` cannot be drawn, or None when it can.
 
     Openings grow by ``2 offset`` and the gaps between them shrink by as much: the narrowest
-    of either must stay at least ``min_feature_m`` wide (and so stay apart and non-empty).
+    of either must stay at least ``min_feature_m`` wide (and so stay apart and non-empty); the
+    offset must also stay under half the pixel pitch (:func:`masks.offset.offset_polygons`).
     """
     narrow_open, narrow_gap = narrowest_runs_px(mask)
     if narrow_open is not None and offset_m < 0:
@@ -60,6 +61,8 @@ def offset_feasibility(mask: np.ndarray, pitch_m: float, offset_m: float,
         if width < min_feature_m:
             return (f"its {narrow_gap} px gaps between openings would close to {width * 1e6:.2f} um, below the "
                     f"{min_feature_m * 1e6:.2f} um minimum feature" + (" (the edges cross)" if width <= 0 else ""))
+    if 2 * abs(round(offset_m / PRECISION_M)) >= round(pitch_m / PRECISION_M):
+        return f"it reaches half the {pitch_m * 1e6:g} um pixel"
     return None
 
 

@@ -1,13 +1,16 @@
 """Edge offsets of mask geometry: a mask's merged pixel polygons grown or shrunk by a distance,
 and the read-back check of such geometry on a fine grid.
 
-Offsetting (:func:`offset_polygons`): the pixel polygons of :mod:`masks.polygons` are
-united and offset by gdstk (Clipper) with mitred joins, so every opening edge moves by the
-same distance and square corners stay square: for Manhattan geometry this is the Minkowski
-sum with a square (an opening grown by ``d`` covers every point within Chebyshev distance
-``d`` of it; shrunk, every point whose ``d``-square lies inside it). Vertices then sit on the
-lines ``k pitch +- d``, off the pixel grid, so the pixel-grid check of :mod:`masks.verify`
-no longer applies.
+Offsetting (:func:`offset_polygons`): an opening grown by ``d`` covers every point within
+Chebyshev distance ``d`` of it; shrunk, every point whose ``d``-square lies inside it (for
+Manhattan geometry the Minkowski sum with, or erosion by, a square: every opening edge moves by
+``d`` and square corners stay square). For ``|d|`` under half the pitch that region is a union
+of the cells cut by the lines ``k pitch +- |d|`` (:func:`offset_cells`), so it is built
+exactly as a raster of those cells traced by :mod:`masks.polygons` (merged, holes keyholed,
+split to the vertex limit), whose lattice is then mapped onto those lines. Vertices sit off
+the pixel grid, so the pixel-grid check of :mod:`masks.verify` no longer applies. (Offsetting
+the merged pixel polygons with Clipper instead opened every keyhole cut and every split into a
+slit when shrinking.)
 
 Checking (:func:`verify_offset_layer`), written apart from the offsetting: the polygons read
 back from the file are filled by a winding-number scanline at the points of a fine grid whose
@@ -33,7 +36,7 @@ from doedesign.errors import DoeError
 from .grid import MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid
 from .polygons import mask_polygons
 
-__all__ = ["expected_open", "offset_polygons", "sample_positions_dbu", "verify_offset_layer",
+__all__ = ["expected_open", "offset_cells", "offset_polygons", "sample_positions_dbu", "verify_offset_layer",
            "winding_at_samples"]
 
 
@@ -47,28 +50,74 @@ def offset_polygons(mask: np.ndarray, grid: PixelGrid, offset_m: float, layer: i
         True where the mask opens (dark tone: what is drawn), row 0 at the top.
     grid : PixelGrid
     offset_m : float
-        Edge offset (m), rounded to the 1 nm database unit; positive = openings wider.
+        Edge offset (m), rounded to the 1 nm database unit; positive = openings wider. Less
+        than half the pixel pitch in size.
     layer, datatype : int
 
     Returns
     -------
     list of gdstk.Polygon
-        In plate coordinates (um); holes joined by gdstk; vertex counts not yet limited (the
-        GDSII writer splits polygons above :data:`masks.grid.MAX_VERTICES`).
+        In plate coordinates (um), at most :data:`masks.grid.MAX_VERTICES` vertices each, holes
+        joined by zero-width cuts, no two overlapping.
+
+    Raises
+    ------
+    DoeError
+        An offset of half the pitch or more.
     """
-    pset = mask_polygons(np.asarray(mask, bool), MAX_VERTICES)
-    pts = grid.to_um(pset.vertices)
+    mask = np.asarray(mask, bool)
+    pitch = grid.pitch_dbu
+    b = int(round(offset_m / PRECISION_M))
+    if 2 * abs(b) >= pitch:
+        raise DoeError(f"an edge offset of {offset_m * 1e6:.3f} um reaches half the {grid.pitch_um:g} um pixel")
+    if b == 0:
+        pset = mask_polygons(mask, MAX_VERTICES)
+        pts = grid.to_um(pset.vertices)
+    else:
+        pset = mask_polygons(offset_cells(mask, b > 0), MAX_VERTICES)
+        x0, y0 = grid.origin_dbu
+        # refined lattice line j lies at (j // 2) pitch - |b| (j even) or + |b| (j odd)
+        line = pset.vertices // 2 * pitch + np.where(pset.vertices % 2 == 1, abs(b), -abs(b))
+        x = x0 + line[:, 0]
+        pts = np.stack([-x if grid.mirrored else x, y0 - line[:, 1]], axis=-1) * (PRECISION_M / UNIT_M)
     off = pset.offsets.tolist()
-    polys = [gdstk.Polygon(pts[a:b]) for a, b in zip(off[:-1], off[1:])]  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
-    if not polys:
-        return []
-    d_um = round(offset_m / PRECISION_M) * PRECISION_M / UNIT_M
-    # Union first: neighbouring pixel polygons share edges, and each one shrunk alone would
-    # open slits between them.
-    if d_um == 0:
-        return gdstk.boolean(polys, [], "or", precision=PRECISION_M / UNIT_M, layer=layer, datatype=datatype)
-    return gdstk.offset(polys, d_um, join="miter", tolerance=2, precision=PRECISION_M / UNIT_M, use_union=True,
-                        layer=layer, datatype=datatype)
+    return [gdstk.Polygon(pts[a:c], layer=layer, datatype=datatype)  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
+            for a, c in zip(off[:-1], off[1:])]
+
+
+def offset_cells(mask: np.ndarray, grow: bool) -> np.ndarray:
+    """The offset openings of ``mask`` as a raster of ``(2 rows + 1, 2 cols + 1)`` cells.
+
+    For an offset ``b`` with ``0 < |b| < pitch / 2`` the lines ``k pitch +- |b|`` cut the plate
+    into cells on which the offset is constant: cell ``2 k + 1`` of an axis is the middle of
+    pixel ``k``, ``[k p + |b|, (k + 1) p - |b|]``; cell ``2 k`` straddles pixel line ``k``,
+    ``[k p - |b|, k p + |b|]``, and the square of half-side ``|b|`` around any point inside
+    it meets the pixels on both sides. A cell is open when any (grown) or every (shrunk)
+    pixel its points' squares meet is open: a middle cell its own pixel, a straddling cell the
+    two pixels across its line, a cell straddling a pixel corner the four pixels there;
+    outside the grid is closed.
+
+    Parameters
+    ----------
+    mask : ndarray of bool (rows, cols)
+    grow : bool
+        True for a positive offset (openings wider), False for a negative one.
+
+    Returns
+    -------
+    ndarray of bool (2 rows + 1, 2 cols + 1)
+        The open cells; its lattice line ``j`` lies at ``(j // 2) pitch - |b|`` (``j`` even)
+        or ``(j // 2) pitch + |b|`` (``j`` odd) along either axis.
+    """
+    padded = np.pad(np.asarray(mask, bool), 1)
+    join = np.logical_or if grow else np.logical_and
+    cols = join(padded[:, :-1], padded[:, 1:])  # (rows + 2, cols + 1): across each column line
+    out = np.empty((2 * mask.shape[0] + 1, 2 * mask.shape[1] + 1), bool)
+    out[1::2, 1::2] = mask
+    out[1::2, 0::2] = cols[1:-1]
+    out[0::2, 1::2] = join(padded[:-1, 1:-1], padded[1:, 1:-1])
+    out[0::2, 0::2] = join(cols[:-1], cols[1:])
+    return out
 
 
 def sample_positions_dbu(n_px: int, pitch_dbu: int, offset_dbu: int, margin_px: int) -> np.ndarray:

@@ -357,3 +357,14 @@ def test_a_map_sets_the_aligner_dials_it_names_and_states_the_mask_scale(tmp_pat
     page = (out / "report.md").read_text()
     head = page.split("## Per mask")[0]
     assert "map" in head and "mask(s) 3" in head and "From the whole-element map" in page
+
+
+def test_a_positive_bias_shrinks_the_openings_of_a_110_px_design_and_verifies(tmp_path):
+    # The user's path: a measured linewidth bias of +0.194 um is drawn as a -0.194 um edge
+    # offset; the inward offset of merged polygons (holes, splits) used to fail the read-back.
+    design, path = _design(tmp_path, seed=5, px=110)
+    diags = [_field(tmp_path, f"f{i}", design, path, 0.0, b, 0.0, 0.0) for i, b in enumerate((0.193e-6, 0.194e-6, 0.195e-6))]
+    out = tmp_path / "out"
+    sheet = _correct(path, diags, out)
+    assert all(e["drawn_edge_offset_um"] == pytest.approx(-0.194) for e in sheet["masks"])
+    assert sheet["masks_verification"]["passed"] and (out / sheet["masks_file"]).is_file()
