@@ -37,11 +37,11 @@ setting) the binary design scores 0.209. Rerun 2026-12-03 with ``--levels 4 8`` 
 2026-12-02 run of the same stages gave 0.301, not reproduced, cause not found), 8 levels 0.363 (40 evaluations from the 4-level
 design, 133 s CPU with compilation; design model 0.518 -> 0.597). The 401-term figures are not
 converged against the challenge's 793 (0.209 against 0.175 on the same binary element), so they
-compare levels with each other, not with the leaderboard. 16 levels: not designed (the chain
-4 -> 8 -> 16 did not fit the session on the shared CPU, load 7-11); one 16-level evaluation with
-its gradient costs 5.63 s CPU at 121 terms (15 layers; compilation and the first evaluation 43.8
-s CPU), so the 20 warm-started evaluations of :func:`warm_stages` would take about 150 s CPU after
-the 4- and 8-level designs (about 460 s CPU with their scoring).
+compare levels with each other, not with the leaderboard. 16 levels (2026-12-03, the chain
+``--levels 4 8 16`` in one run, single-threaded XLA, which reproduced 0.326 and 0.3628 for 4 and 8):
+0.3628, the 8-level design itself: from it, the continuation stopped after 12 of its 20
+evaluations (113 s CPU) with a rounded result no better. One 16-level evaluation with its gradient
+costs 5.63 s CPU at 121 terms (15 layers; compilation and the first evaluation 43.8 s CPU).
 Batching the layers' eigensolves (``batch_layers``) gives the same numbers but did not pay here:
 3 batched layers had not finished their first evaluation in 600 s (one layer: 9 s with
 compilation), so the design traces one eigensolve per layer (7 layers: compiled and 40
