@@ -22,7 +22,7 @@ import numpy as np
 
 from doedesign.engine.backend import Array, Backend, select_backend
 
-__all__ = ["FOOT_DISTANCES_KEPT", "blurred", "box_kernel", "edge_foot", "expose", "grow", "grown_mask",
+__all__ = ["FOOT_DISTANCES_KEPT", "block_coverage", "blurred", "box_kernel", "edge_foot", "expose", "grow", "grown_mask",
            "interpolate_separable",
            "inverse_motion", "move", "threshold_coverage", "upsample_mask"]
 
@@ -533,3 +533,13 @@ def box_kernel(width_px: float, moments: bool = False) -> np.ndarray:
     taps = np.arange(-n, n + 1, dtype=float)
     weights = np.clip(np.minimum(taps + 0.5, half) - np.maximum(taps - 0.5, -half), 0.0, None)
     return weights / weights.sum()
+
+
+def block_coverage(mask: np.ndarray, subgrid: int) -> np.ndarray:
+    """Area coverage (float32) of the print grid's cells from a mask-grid array (block means)."""
+    m = np.asarray(mask, dtype=np.float32)
+    s = int(subgrid)
+    if s == 1:
+        return m
+    rows, cols = m.shape[0] // s, m.shape[1] // s
+    return m[:rows * s, :cols * s].reshape(rows, s, cols, s).mean(axis=(1, 3))

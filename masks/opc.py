@@ -76,7 +76,7 @@ METHODS = ("level-set", "density")
 # Opening-closing passes of the minimum-feature cleanup (it usually settles in two).
 _CLEANUP_PASSES = 8
 
-__all__ = ["METHODS", "OPC_SUBGRID", "MaskCorrection", "OpcSettings", "block_coverage", "correct_mask", "correct_masks", "correction_report",
+__all__ = ["METHODS", "OPC_SUBGRID", "MaskCorrection", "OpcSettings", "correct_mask", "correct_masks", "correction_report",
            "opc_bytes", "opc_upsample"]
 
 
@@ -152,16 +152,6 @@ class MaskCorrection:
     printed: np.ndarray
     area_error_m2: list = field(default_factory=list)
     best_iteration: int = 0
-
-
-def block_coverage(mask: np.ndarray, subgrid: int) -> np.ndarray:
-    """Area coverage (float32) of the print grid's cells from a mask-grid array (block means)."""
-    m = np.asarray(mask, dtype=np.float32)
-    s = int(subgrid)
-    if s == 1:
-        return m
-    rows, cols = m.shape[0] // s, m.shape[1] // s
-    return m[:rows * s, :cols * s].reshape(rows, s, cols, s).mean(axis=(1, 3))
 
 
 def _signed_distance(mask):
@@ -241,7 +231,7 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
             mask = starts[k]
             psi = _signed_distance(mask)
         padded = np.zeros(shape, dtype=np.float32)
-        padded[inner] = block_coverage(mask, s)
+        padded[inner] = litho.block_coverage(mask, s)
         image, vjp = aerial_image_vjp(padded, step_m, optics)
         printed = np.asarray(resist_print(image[inner], step_m, threshold, cr_undercut_m))
         cost = float(np.abs(printed - target).sum()) * cell_m2

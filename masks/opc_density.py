@@ -33,7 +33,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage, optimize, special
 
-from .opc import block_coverage
+from .litho import block_coverage
 from .proximity import ProximityOptics, aerial_image_vjp, reach_m
 
 __all__ = ["BETAS", "density_mask", "density_sigma_cells", "project"]

@@ -95,7 +95,7 @@ def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams,
     dict
         As :func:`print_check`.
     """
-    from .opc import block_coverage
+    from .litho import block_coverage
 
     levels = np.asarray(levels)
     masks = np.asarray(masks, dtype=bool)

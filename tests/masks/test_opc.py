@@ -14,7 +14,8 @@ import pytest
 from doedesign.errors import DoeError
 from masks import litho
 from masks.grid import narrowest_runs_px
-from masks.opc import OpcSettings, block_coverage, correct_mask
+from masks.litho import block_coverage
+from masks.opc import OpcSettings, correct_mask
 from masks.proximity import ProximityOptics, print_coverage
 
 PITCH = 5.4e-6
