@@ -296,7 +296,7 @@ def stack_efficiency(permittivities: list, thicknesses_um: list, wavelength_um: 
         shared by the layers of one shape; fmmax's ``eigensolve_isotropic_media`` if None.
     batch_layers : bool
         Solve the layers of one array shape in one call (their permittivities stacked on a
-        leading axis, :func:`_layer_solves`) instead of one call per layer: inside ``jax.jit``
+        leading axis, ``_layer_solves``) instead of one call per layer: inside ``jax.jit``
         one eigensolve is traced and compiled whatever the layer count. The same numbers.
 
     Returns
