@@ -84,10 +84,15 @@ class PixelGrid:
 
     def to_um(self, colrow: np.ndarray) -> np.ndarray:
         """Pixel-corner indices ``(col, row)`` -> plate coordinates (um), float array."""
-        colrow = np.asarray(colrow)
+        return self.dbu_to_um(np.asarray(colrow) * self.pitch_dbu)
+
+    def dbu_to_um(self, xy_dbu: np.ndarray) -> np.ndarray:
+        """Offsets ``(along the columns, down the rows)`` in nm from the corner of pixel (0, 0)
+        -> plate coordinates (um), float array (off-grid vertices, e.g. offset edges)."""
+        xy_dbu = np.asarray(xy_dbu)
         x0, y0 = self.origin_dbu
-        x = x0 + colrow[..., 0] * self.pitch_dbu
-        y = y0 - colrow[..., 1] * self.pitch_dbu
+        x = x0 + xy_dbu[..., 0]
+        y = y0 - xy_dbu[..., 1]
         if self.mirrored:
             x = -x
         return np.stack([x, y], axis=-1) * (PRECISION_M / UNIT_M)

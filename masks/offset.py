@@ -33,7 +33,7 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-from .grid import MAX_VERTICES, PRECISION_M, UNIT_M, PixelGrid
+from .grid import MAX_VERTICES, PRECISION_M, PixelGrid
 from .polygons import mask_polygons
 
 __all__ = ["expected_open", "offset_cells", "offset_polygons", "sample_positions_dbu", "verify_offset_layer",
@@ -75,11 +75,8 @@ def offset_polygons(mask: np.ndarray, grid: PixelGrid, offset_m: float, layer: i
         pts = grid.to_um(pset.vertices)
     else:
         pset = mask_polygons(offset_cells(mask, b > 0), MAX_VERTICES)
-        x0, y0 = grid.origin_dbu
         # refined lattice line j lies at (j // 2) pitch - |b| (j even) or + |b| (j odd)
-        line = pset.vertices // 2 * pitch + np.where(pset.vertices % 2 == 1, abs(b), -abs(b))
-        x = x0 + line[:, 0]
-        pts = np.stack([-x if grid.mirrored else x, y0 - line[:, 1]], axis=-1) * (PRECISION_M / UNIT_M)
+        pts = grid.dbu_to_um(pset.vertices // 2 * pitch + np.where(pset.vertices % 2 == 1, abs(b), -abs(b)))
     off = pset.offsets.tolist()
     return [gdstk.Polygon(pts[a:c], layer=layer, datatype=datatype)  # type: ignore[arg-type]  # gdstk takes any (k, 2) array; its stub says Sequence of tuples
             for a, c in zip(off[:-1], off[1:])]
