@@ -12,6 +12,7 @@ from doedesign.fileio import ensure_output_dir
 
 from .effects import effect_spec
 from .grid import GDS_VERTEX_CEILING, MAX_VERTICES, MIN_VERTICES, vertex_limits
+from .opc_element import PRINT_WINDOW_PX, default_print_region
 
 __all__ = ["VertexLimit", "register", "run_masks"]
 
@@ -96,10 +97,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 NO_LIMIT = "none"
-# Side (design px) of the default print-check window: the fine grid of a whole 1600 px element
-# at the sampling rule's 0.5 um step is 17280^2 cells, minutes and gigabytes; a central window
-# holds the element's feature sizes.
-PRINT_WINDOW_PX = 128
 # Bytes per fine cell of the print check (two surfaces, the printed masks, the aerial image's work).
 PRINT_BYTES_PER_CELL = 64
 
@@ -129,9 +126,7 @@ def _print_region(text, shape):
     if text is not None and text.strip().lower() == "all":
         return (0, shape[0], 0, shape[1])
     if text is None:
-        n_r, n_c = min(PRINT_WINDOW_PX, shape[0]), min(PRINT_WINDOW_PX, shape[1])
-        r0, c0 = (shape[0] - n_r) // 2, (shape[1] - n_c) // 2
-        return (r0, r0 + n_r, c0, c0 + n_c)
+        return default_print_region(shape)
     values = _int_list(text, "print-window")
     r0, c0, n_r, n_c = values if len(values) == 4 else (-1, -1, 0, 0)
     if n_r < 1 or n_c < 1 or r0 < 0 or c0 < 0 or r0 + n_r > shape[0] or c0 + n_c > shape[1]:
@@ -159,25 +154,20 @@ def _print_check(args, design, depths):
     from doedesign.budget import check_memory
     from doedesign.levels import quantize_design
 
+    from .corrected import MIN_FEATURE_M
+    from .opc_element import check_opc_memory, correct_element, opc_settings, print_upsample
     from .print_check import in_place_threshold, print_check
-    from .process import ProcessParams, fine_upsample, proximity_optics
-    from .proximity import recommended_step_m, threshold_for_dose
+    from .process import ProcessParams, proximity_optics
+    from .proximity import threshold_for_dose
 
     levels, _ = quantize_design(design, None, args.design)
     region = _print_region(args.print_window, levels.shape)
     base = ProcessParams.ideal(n_masks=design.n_masks, depths_m=depths if depths is not None else design.etch_depths_m())
     params = base.copy(proximity_gap=args.gap_um * 1e-6, collimation_half_angle=math.radians(args.collimation_deg),
                        resist_blur=args.resist_blur_um * 1e-6, cr_undercut=args.cr_undercut_um * 1e-6)
-    optics = proximity_optics(params)
-    step = min(0.5e-6, recommended_step_m(optics))
-    u = fine_upsample(design.pitch_m, step)
+    u = print_upsample(design.pitch_m, params, opc=args.opc)
     if args.opc:
-        from .opc import OPC_SUBGRID, opc_bytes, opc_upsample
-
-        u = opc_upsample(design.pitch_m, step, OPC_SUBGRID)
-        check_memory(opc_bytes(levels.shape, u, OPC_SUBGRID),
-                     f"{args.design}: the proximity correction of the whole {levels.shape[0]} x {levels.shape[1]} px "
-                     f"element at {design.pitch_m / u * 1e6:.3g} um (it is not tiled)")
+        check_opc_memory(levels.shape, u, design.pitch_m, args.design)
     cells = (region[1] - region[0]) * (region[3] - region[2]) * u * u
     check_memory(PRINT_BYTES_PER_CELL * cells,
                  f"{args.design}: the print check of {region[1] - region[0]} x {region[3] - region[2]} px at "
@@ -187,48 +177,20 @@ def _print_check(args, design, depths):
     elif args.resist_threshold is not None:
         threshold, how = args.resist_threshold, "resist threshold"
     else:
-        threshold, how = in_place_threshold(optics, design.pitch_m / u), "in place for a long edge"
+        threshold, how = in_place_threshold(proximity_optics(params), design.pitch_m / u), "in place for a long edge"
     params = params.copy(resist_threshold=threshold)
     check = print_check(levels, design.pitch_m, params, step_m=design.pitch_m / u, material=design.material,
                         region=region)
     corrected = None
     if args.opc:
-        check, corrected = _corrected(args, design, levels, params, u, region, check)
+        min_feature = MIN_FEATURE_M if args.opc_min_feature_um is None else args.opc_min_feature_um * 1e-6
+        settings = opc_settings(design.pitch_m / u, min_feature, args.opc_method or "density", args.opc_iterations)
+        check, corrected = correct_element(levels, design.pitch_m, params, u, settings, region,
+                                           material=design.material, uncorrected=check)
     check["threshold_from"] = how
     if all(dose_given):
         check["dose_mj_cm2"], check["dose_to_clear_mj_cm2"] = args.dose, args.dose_to_clear
     return check, corrected
-
-
-def _corrected(args, design, levels, params, u, region, uncorrected):
-    """``--opc``: the pre-distorted masks (and their cells a pixel) and the print check of both."""
-    import math
-
-    import numpy as np
-
-    from .corrected import MIN_FEATURE_M
-    from .decompose import levels_to_masks
-    from .opc import OPC_SUBGRID, OpcSettings, correct_masks, correction_report
-    from .print_check import print_check_masks
-    from .process import proximity_optics
-
-    step = design.pitch_m / u
-    cell = step / OPC_SUBGRID
-    min_feature = MIN_FEATURE_M if args.opc_min_feature_um is None else args.opc_min_feature_um * 1e-6
-    method = args.opc_method or "density"
-    # After the density stage the level set polishes with half steps (measured: best within 5-10 of them).
-    polish = method == "density"
-    settings = OpcSettings(iterations=args.opc_iterations or (10 if polish else 20), subgrid=OPC_SUBGRID,
-                           min_feature_cells=max(1, math.ceil(min_feature / cell - 1e-9)), method=method,
-                           step_cells=0.5 if polish else 1.0)
-    fixes = correct_masks(levels_to_masks(levels, design.n_masks), u, design.pitch_m, proximity_optics(params),
-                          params.resist_threshold, params.cr_undercut, settings)
-    masks = np.stack([f.mask for f in fixes])
-    check = print_check_masks(levels, design.pitch_m, params, masks, u, OPC_SUBGRID, material=design.material,
-                              region=region)
-    check["uncorrected"] = uncorrected
-    check["opc"] = correction_report(fixes, step, settings)
-    return check, (masks, u * OPC_SUBGRID)
 
 
 def run_masks(args: argparse.Namespace) -> int:

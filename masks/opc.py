@@ -53,6 +53,7 @@ features, 0.995 with 0.45 um; docs/guide/proximity.md).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -187,7 +188,8 @@ def _soft_target(target, step_m, cr_undercut_m):
 
 
 def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, threshold: float,
-                 cr_undercut_m: float = 0.0, settings: OpcSettings | None = None) -> MaskCorrection:
+                 cr_undercut_m: float = 0.0, settings: OpcSettings | None = None,
+                 bias_m: float = 0.0) -> MaskCorrection:
     """Pre-distort one binary mask so that its print through the gap matches it.
 
     Parameters
@@ -199,6 +201,11 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
     optics, threshold, cr_undercut_m
         The exposure, as for :func:`masks.proximity.print_coverage`.
     settings : OpcSettings, optional
+    bias_m : float
+        The mask's own linewidth bias (m, positive = openings wider than drawn, as
+        ``ProcessParams.linewidth_bias``: the opening grows before it prints). The correction
+        draws the mask that, grown by it, prints the target; the level set's step ignores the
+        growth (an edge moved moves its grown edge as much).
 
     Returns
     -------
@@ -225,13 +232,14 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
         starts.append(_manufacturable(start, settings.min_feature_cells))
     psi = _signed_distance(mask)
     cell_m2 = step_m ** 2
+    bias_cells = float(bias_m) * s / step_m
     result = None
     for k in range(settings.iterations + len(starts)):
         if k < len(starts):
             mask = starts[k]
             psi = _signed_distance(mask)
         padded = np.zeros(shape, dtype=np.float32)
-        padded[inner] = litho.block_coverage(mask, s)
+        padded[inner] = litho.block_coverage(litho.grow(mask.astype(np.float32), bias_cells) if bias_cells else mask, s)
         image, vjp = aerial_image_vjp(padded, step_m, optics)
         printed = np.asarray(resist_print(image[inner], step_m, threshold, cr_undercut_m))
         cost = float(np.abs(printed - target).sum()) * cell_m2
@@ -260,7 +268,7 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
 
 def correct_masks(masks: np.ndarray, upsample: int, pitch_m: float, optics: ProximityOptics, threshold: float,
                   cr_undercut_m: float = 0.0, settings: OpcSettings | None = None,
-                  progress: bool | None = None) -> list[MaskCorrection]:
+                  progress: bool | None = None, biases_m: Sequence[float] | np.ndarray | None = None) -> list[MaskCorrection]:
     """:func:`correct_mask` for every binary design mask, drawn on a print grid of ``pitch_m / upsample``.
 
     Parameters
@@ -275,14 +283,19 @@ def correct_masks(masks: np.ndarray, upsample: int, pitch_m: float, optics: Prox
         As for :func:`correct_mask`.
     progress : bool, optional
         Show a progress bar (default: when the stream is a terminal).
+    biases_m : sequence of float, optional
+        Each mask's linewidth bias (``bias_m`` of :func:`correct_mask`; default none).
     """
     masks = np.asarray(masks, dtype=bool)
     u = int(upsample)
+    biases = [0.0] * masks.shape[0] if biases_m is None else [float(b) for b in biases_m]
+    if len(biases) != masks.shape[0]:
+        raise DoeError(f"OPC: {len(biases)} linewidth biases for {masks.shape[0]} masks")
     out = []
     with Progress(masks.shape[0], "OPC masks", enabled=progress) as bar:
-        for m in masks:
+        for m, bias in zip(masks, biases):
             fine = np.repeat(np.repeat(m, u, axis=0), u, axis=1)
-            out.append(correct_mask(fine, pitch_m / u, optics, threshold, cr_undercut_m, settings))
+            out.append(correct_mask(fine, pitch_m / u, optics, threshold, cr_undercut_m, settings, bias))
             bar.update()
     return out
 

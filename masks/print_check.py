@@ -82,7 +82,9 @@ def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams,
     levels, pitch_m, material, wavelength_m, region
         As for :func:`print_check` (``region`` in design pixels).
     params : ProcessParams
-        The gap, collimation, resist blur, threshold, undercut and etch depths (no other effect).
+        The gap, collimation, resist blur, threshold, undercut, each mask's linewidth bias (its
+        opening grown on the mask grid before it prints, as :func:`masks.process.simulate_surface`
+        grows a drawn mask) and the etch depths (no other effect).
     masks : ndarray of bool, shape (n_masks, rows * upsample * subgrid, cols * upsample * subgrid)
         The drawn openings on the mask grid (row 0 at the top).
     upsample : int
@@ -95,7 +97,7 @@ def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams,
     dict
         As :func:`print_check`.
     """
-    from .litho import block_coverage
+    from .litho import block_coverage, grow
 
     levels = np.asarray(levels)
     masks = np.asarray(masks, dtype=bool)
@@ -107,12 +109,16 @@ def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams,
                        f"{rows} x {cols} px design at {m} cells a pixel")
     optics = proximity_optics(params)
     r0, r1, c0, c1 = (0, rows, 0, cols) if region is None else region
-    margin = int(math.ceil((reach_m(optics, step) + params.cr_undercut) / pitch_m)) + 1
+    assert params.linewidth_bias is not None  # ProcessParams fills every per-mask field
+    bias_reach = float(np.max(np.abs(params.linewidth_bias))) if params.n_masks else 0.0
+    margin = int(math.ceil((reach_m(optics, step) + params.cr_undercut + bias_reach) / pitch_m)) + 1
     w0, w1, v0, v1 = max(r0 - margin, 0), min(r1 + margin, rows), max(c0 - margin, 0), min(c1 + margin, cols)
     inner = (slice((r0 - w0) * u, (r1 - w0) * u), slice((c0 - v0) * u, (c1 - v0) * u))
     printed = []
     for j in range(params.n_masks):
-        cov = block_coverage(masks[j, w0 * m:w1 * m, v0 * m:v1 * m], sub)
+        drawn_j = masks[j, w0 * m:w1 * m, v0 * m:v1 * m]
+        bias_cells = float(params.linewidth_bias[j]) * m / pitch_m
+        cov = block_coverage(grow(drawn_j.astype(np.float32), bias_cells) if bias_cells else drawn_j, sub)
         pc = print_coverage(cov, step, optics, params.resist_threshold, params.cr_undercut)
         printed.append(np.asarray(pc, dtype=float)[inner])
     depths = np.asarray(params.etch_depth, dtype=float)

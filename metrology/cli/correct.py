@@ -20,7 +20,10 @@ gives per mask the etch target, the aligner offset and rotation to dial in (the 
 measured error; x toward increasing column, y up, counter-clockwise, relative to mask 0) and the
 bias taken out. A systematic etch loading is taken out of the etch targets in the mean over each
 mask's openings; what varies with the local pattern density no mask or etch setting removes, and
-the job sheet warns with its rms per mask. The rest is reported as spread. The figure of merit of the design, the measured
+the job sheet warns with its rms per mask. A systematic proximity_print (the masks printed through
+the aligner's gap) is corrected by drawing every mask pre-distorted for the diagnosed gap and
+threshold (optical proximity correction, its bias folded in; --no-opc draws them uncorrected),
+with the print check of the drawn and the corrected masks in OUT/masks/print_check.md. The rest is reported as spread. The figure of merit of the design, the measured
 wafer and the corrected next wafer are predicted with doe tolerance's process model, and
 OUT/process_spec.toml (a doe tolerance spec) carries the measured spreads as sigmas.
 
@@ -49,6 +52,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=Number(int, 0, 2**63 - 1), default=0, help="seed of the draws")
     p.add_argument("--min-feature-um", type=Number(float, 0, 100, unit="um"), default=None,
                    help="narrowest opening or gap the corrected masks may draw (default 1 um)")
+    p.add_argument("--no-opc", action="store_true",
+                   help="draw the masks uncorrected for a systematic proximity_print (default: pre-distorted for "
+                        "the diagnosed gap and threshold, optical proximity correction, with the print check of "
+                        "both in OUT/masks/print_check.md; --min-feature-um is its minimum feature)")
     p.add_argument("--redesign", action="store_true",
                    help="also re-design the element for the process as measured (OUT/redesign/: design.npz, "
                         "masks/, redesign.json) and predict its merit beside the plain correction")
@@ -95,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                     min_feature_m=None if args.min_feature_um is None else args.min_feature_um * 1e-6,
                     redesign_iterations=(args.redesign_iterations or DEFAULT_ITERATIONS) if args.redesign else None,
                     redesign_samples=args.redesign_samples, redesign_for=args.redesign_for or "measured",
-                    map_report=map_report, map_source=str(getattr(args, "map", None)))
+                    map_report=map_report, map_source=str(getattr(args, "map", None)), opc=not args.no_opc)
     merit = sheet["merit"]
     primary = merit["primary_metric"]
     print_json({"job_sheet": f"{args.out}/job.json", "masks": f"{args.out}/{sheet['masks_file']}",

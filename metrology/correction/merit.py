@@ -53,12 +53,28 @@ def _spec_param(e: Estimate, mean: float, sigma: float, nominal_depths_m: Sequen
     return Param(e.effect, mask, component, "normal", mean * scale, abs(sigma) * scale)
 
 
+def _print_param(e: Estimate, corrected: bool):
+    """A ``proximity_print`` parameter as the spec's ``proximity_gap`` or ``resist_threshold``
+    (added to the nominal clearing level, the parameter's null); with ``corrected`` (masks
+    pre-distorted for the gap, :mod:`.proximity`) the contact print they aim at: gap 0."""
+    from masks.tolerance.spec import Param
+
+    name = "proximity_gap" if e.param == "gap_m" else "resist_threshold"
+    if corrected:
+        return Param(name, None, "", "normal", 0.0, 0.0)
+    return Param(name, None, "", "normal", e.mean - e.null, abs(e.spread))
+
+
 def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nominal_depths_m: Sequence[float],
                      corrected: bool) -> list:
     """Tolerance-spec parameters (:class:`masks.tolerance.spec.Param`) of the measured wafer or,
     with ``corrected``, of the next one made with the job sheet ``jobs``."""
     out = []
+    gap = next((e for e in estimates if e.effect == "proximity_print" and e.param == "gap_m"), None)
     for e in estimates:
+        if e.effect == "proximity_print":
+            out.append(_print_param(e, corrected and gap is not None and gap.corrected))
+            continue
         if e.effect not in ("etch_depth", "mask_overlay", "mask_rotation", "linewidth_bias", "etch_loading",
                             "proximity_blur", "sidewall_slope", "etch_gradient", "microtrenching"):
             continue

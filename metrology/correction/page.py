@@ -26,6 +26,8 @@ def job_page(sheet: dict, folder: Path) -> Path:
     for e in sheet["estimates"]:
         scale, unit = _SCALE.get(e["unit"], (1.0, e["unit"]))
         verdict = "corrected" if e["corrected"] else ("systematic, no knob" if e["systematic"] else "spread only")
+        if e["effect"] == "proximity_print" and e["param"] == "threshold" and "proximity_correction" in sheet:
+            verdict = "the print's shape: corrected with the gap (OPC)"
         if e["corrected"] and e["effect"] == "etch_loading":
             verdict = "mean loss corrected (etch targets); the density-dependent rest is not (see warnings)"
         est_rows.append([e["effect"], e["param"], md.fmt_pm(e["mean"] * scale, e["standard_error"] * scale, 3, unit),
@@ -79,7 +81,7 @@ def job_page(sheet: dict, folder: Path) -> Path:
                   f"{', '.join(str(m['mask']) for m in sheet['masks'] if m.get('align_source') == 'map') or 'none'}; "
                   "see its section.**\n\n")
     parts = [f"# Job sheet for `{sheet['design']}`", *([first] if first else []), summary, "## Per mask", job, conventions,
-             *from_map,
+             *from_map, *_opc_section(sheet),
              "## What the fields say", est, "## Predicted merit", merit_table, "## Warnings", warnings,
              f"Corrected masks: `{sheet['masks_folder']}`; process spec for `doe tolerance`: "
              f"`{sheet['process_spec']}`.\n", md.json_link("job.json")]
@@ -97,3 +99,20 @@ def _map_section(sheet: dict) -> list[str]:
     return [f"## From the whole-element map `{sheet['map']['source']}`",
             md.table(rows, ["mask", "aligner dial from", "aligner offset dx, dy (um)", "aligner rotation (deg)",
                             "mask scale to draw (1 = as designed)"]), notes]
+
+
+def _opc_section(sheet: dict) -> list[str]:
+    """The masks pre-distorted for a diagnosed print: the print it corrects, and the print check."""
+    opc = sheet.get("proximity_correction")
+    if opc is None:
+        return []
+    r0, r1, c0, c1 = opc["region_px"]
+    text = (f"Every mask is drawn pre-distorted ({opc['method']}; minimum feature {opc['min_feature_um']:.3g} um on a "
+            f"{opc['mask_grid_um']:.4g} um grid) for the diagnosed print: gap {opc['gap_um']:.2f} um, resist threshold "
+            f"{opc['resist_threshold']:.3f} of the open field, linewidth biases "
+            f"{', '.join(f'{b:+.3f}' for b in opc['linewidth_bias_um'])} um (folded into the correction). Through "
+            f"that print, over design rows {r0}-{r1 - 1} and columns {c0}-{c1 - 1}, the field overlap at 550 nm with "
+            f"the design is {opc['field_overlap_drawn']:.4f} for the masks as drawn and "
+            f"{opc['field_overlap_corrected']:.4f} for the corrected ones (1 = a contact print); per mask: "
+            f"`{opc['print_check']}` and `masks/print_check.md`. Note: {opc['merit_note']}.\n")
+    return ["## Masks pre-distorted for the gap (OPC)", text]

@@ -56,6 +56,20 @@ def spec_table(estimates: Sequence[Estimate], jobs: Sequence[dict]) -> tuple[dic
         elif effect in ("proximity_blur", "sidewall_slope"):
             e = group[0]
             table[effect] = {"mean_um": e.mean * 1e6 if e.systematic else 0.0, "sigma_um": e.spread * 1e6}
+        elif effect == "proximity_print":
+            gap = next(e for e in group if e.param == "gap_m")
+            if gap.corrected:
+                notes.append(f"proximity_print: the corrected masks are pre-distorted for the {gap.mean * 1e6:.1f} um "
+                             "gap; the spec cannot hold those masks and leaves the print out (a tolerance run of the "
+                             "design's masks at that gap would count the error the correction takes out)")
+                continue
+            for e in group:
+                if e.param == "gap_m":
+                    table["proximity_gap"] = {"mean_um": e.mean * 1e6 if e.systematic else 0.0,
+                                              "sigma_um": e.spread * 1e6}
+                else:
+                    table["resist_threshold"] = {"mean": e.mean - e.null if gap.systematic else 0.0,
+                                                 "sigma": e.spread}
         elif effect == "etch_gradient":
             table[effect] = {"sigma_percent_per_mm": max(e.spread for e in group) * 0.1}
             if any(e.systematic for e in group):

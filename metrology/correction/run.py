@@ -24,6 +24,7 @@ from .jobsheet import check_offsets, check_same_process, job_entries, mask_label
 from .merit import predict_merit
 from .page import job_page
 from .process_spec import spec_table, toml_text
+from .proximity import no_opc, proximity_correction
 from .redesign import redesign, write_redesign
 from .systematic import DETECTION_LIMITS, SIGNIFICANCE, combine_fields
 
@@ -46,7 +47,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
             layers: Sequence[int] | None = None, mirrored: bool = False, samples: int = 12, seed: int = 0,
             min_feature_m: float | None = None, redesign_iterations: int | None = None,
             redesign_samples: int = 0, redesign_for: str = "measured", merit_oversample: int = 2,
-            map_report: dict | None = None, map_source: str = "map") -> dict:
+            map_report: dict | None = None, map_source: str = "map", opc: bool = True) -> dict:
     """Correct the next run from diagnosed fields of this design; write ``out``; return the job sheet.
 
     Parameters
@@ -81,6 +82,9 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         all of it under the sheet's ``map`` entry.
     map_source : str
         The map report's file name, for the sheet.
+    opc : bool
+        Draw the masks pre-distorted for a systematic ``proximity_print`` (:mod:`.proximity`);
+        False draws them uncorrected for it, with a warning.
 
     Returns
     -------
@@ -89,6 +93,7 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     """
     from masks.corrected import write_offset_element
     from masks.decompose import levels_to_masks
+    from masks.element import write_element
     from masks.tolerance.spec import build_spec
 
     if not diagnoses:
@@ -109,8 +114,10 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     masks = levels_to_masks(design_levels(design, source=name), len(depths))
     estimates = combine_fields(fields)
     jobs = job_entries(estimates, masks, design.pitch_m, depths, layers)
+    printed = proximity_correction(design, estimates, jobs, depths, min_feature_m, name) if opc else None
+    unprinted = [] if opc else no_opc(estimates)
     check_offsets(masks, design.pitch_m, jobs, min_feature_m, name)
-    warnings = warnings_for(estimates, fields, jobs)
+    warnings = [*warnings_for(estimates, fields, jobs), *unprinted]
     merit = predict_merit(design, estimates, jobs, depths, samples=samples, seed=seed, source=name,
                           oversample=merit_oversample)
     if redesign_iterations:
@@ -143,12 +150,17 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
         "masks_folder": "masks", "process_spec": "process_spec.toml",
         "process_spec_notes": spec_notes,
         **({"map": from_map} if from_map is not None else {}),
+        **({"proximity_correction": printed["entry"]} if printed is not None else {}),
     }
     notes = {job["mask"]: mask_label(job) for job in jobs}
     with output_run(out, f"doe correct {name}"):
         masks_dir = ensure_output_dir(out / "masks", create=True)
-        report = write_offset_element(design, masks_dir, [j["drawn_edge_offset_um"] * 1e-6 for j in jobs],
-                                      notes=notes, source=name, mirrored=mirrored, depths_m=depths, layers=layers)
+        if printed is not None:
+            report = write_element(design, masks_dir, source=name, mirrored=mirrored, depths_m=depths, layers=layers,
+                                   print_check=printed["check"], corrected_masks=printed["corrected"])
+        else:
+            report = write_offset_element(design, masks_dir, [j["drawn_edge_offset_um"] * 1e-6 for j in jobs],
+                                          notes=notes, source=name, mirrored=mirrored, depths_m=depths, layers=layers)
         sheet["masks_file"] = str(Path("masks") / Path(report["file"]).name)
         sheet["masks_verification"] = report["verification"]
         with atomic_path(out / "process_spec.toml") as tmp:

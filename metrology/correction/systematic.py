@@ -50,15 +50,18 @@ DISAGREEMENT_CHI2 = 9.0
 #: Smallest systematic value worth correcting, in the diagnosis's units: the aligner's dial
 #: (0.05 um, 0.002 deg = 35 urad), the mask writer's edge placement (0.02 um), etch-depth control
 #: (0.5 % of the depth), a 1 % loading, 0.1 um of blur or sidewall, 2 nm of trench, 0.1 %/mm of
-#: gradient. Each is also above what one diagnosed field resolves (its fitted uncertainty).
+#: gradient, a 2 um gap (an aligner's gap setting). Each is also above what one diagnosed field
+#: resolves (its fitted uncertainty).
 DETECTION_LIMITS = {
+    "proximity_print": 2e-6,
     "etch_depth": 0.005, "mask_overlay": 0.05e-6, "mask_rotation": 0.002, "linewidth_bias": 0.02e-6,
     "etch_loading": 0.01, "proximity_blur": 0.1e-6, "sidewall_slope": 0.1e-6, "microtrenching": 2e-9,
     "etch_gradient": 1.0,
 }
 #: The knob that takes a systematic effect out of the next run.
 KNOBS = {"etch_depth": "etch target depth", "mask_overlay": "aligner offset", "mask_rotation": "aligner rotation",
-         "linewidth_bias": "drawn edges offset", "etch_loading": "etch target depth (mean loss over the openings)"}
+         "linewidth_bias": "drawn edges offset", "etch_loading": "etch target depth (mean loss over the openings)",
+         "proximity_print": "masks pre-distorted for the gap (OPC)"}
 _MASK = re.compile(r"mask(\d+)")
 
 
@@ -107,8 +110,11 @@ def combine_fields(fields: Sequence[FieldDiagnosis]) -> list[Estimate]:
         eff = get_effect(effect)
         limit = DETECTION_LIMITS.get(effect, math.inf)
         for p in eff.params:
-            # A microtrench's width is a shape, not a size: its depth carries the significance.
-            p_limit = math.inf if effect == "microtrenching" and p.name.startswith("width") else limit
+            # A microtrench's width and a print's threshold are shapes, not sizes: the trench's depth
+            # and the print's gap carry the significance.
+            shape = (effect == "microtrenching" and p.name.startswith("width")) or (
+                effect == "proximity_print" and p.name == "threshold")
+            p_limit = math.inf if shape else limit
             vals, errs, n_named = [], [], 0
             tested = [f for f in fields if f.tested_effect(effect)]
             for f in tested:

@@ -67,7 +67,7 @@ RESIST_SIGMA_M = 0.1e-6
 REACH_DEG = 30.0
 _D_CLIP_M = 1e-6
 
-__all__ = ["make_proximity_case", "printed_coverage", "printed_coverages", "aerial_image",
+__all__ = ["make_proximity_case", "printed_coverage", "printed_coverages", "aerial_image", "intensity_of",
            "propagate", "cone_directions", "LAMP", "HALF_ANGLE_DEG"]
 
 
@@ -179,8 +179,18 @@ def aerial_image(masks, gap_m, lamp=LAMP, half_angle_deg=HALF_ANGLE_DEG, n_rings
     shape = (sfft.next_fast_len(rows + 2 * pad), sfft.next_fast_len(cols + 2 * pad))
     t = np.zeros((masks.shape[0],) + shape, np.complex64)
     t[:, pad:pad + rows, pad:pad + cols] = np.repeat(np.repeat(masks, per_px, 1), per_px, 2)
-    spec = sfft.fft2(t, axes=(-2, -1), workers=2)
+    inten = intensity_of(t, dx, gap_m, lamp, half_angle_deg, n_rings, resist_sigma_m)
     del t
+    return (inten[0] if single else inten), pad
+
+
+def intensity_of(t, dx, gap_m, lamp=LAMP, half_angle_deg=HALF_ANGLE_DEG, n_rings=N_RINGS,
+                 resist_sigma_m=RESIST_SIGMA_M):
+    """Resist-blurred intensity (float32, open field = 1) of transmissions ``t`` (..., R, C)
+    sampled at ``dx``, printed over ``gap_m``: steps 2-5 of the module docstring on an array
+    already padded with chrome (it is periodic)."""
+    spec = sfft.fft2(np.asarray(t, np.complex64), axes=(-2, -1), workers=2)
+    shape = spec.shape[-2:]
     u, wu = cone_directions(half_angle_deg, n_rings)
     weights = np.array([w for _, w in lamp], float)
     weights /= weights.sum()
@@ -194,8 +204,7 @@ def aerial_image(masks, gap_m, lamp=LAMP, half_angle_deg=HALF_ANGLE_DEG, n_rings
         fx = sfft.fftfreq(shape[1], dx)[None, :]
         g = np.exp(-2 * np.pi ** 2 * resist_sigma_m ** 2 * (fx ** 2 + fy ** 2)).astype(np.float32)
         inten = sfft.ifft2(sfft.fft2(inten, axes=(-2, -1), workers=2) * g, axes=(-2, -1), workers=2).real
-    inten = inten.astype(np.float32)
-    return (inten[0] if single else inten), pad
+    return inten.astype(np.float32)
 
 
 def _interp_axis(a, src, dst, axis):
