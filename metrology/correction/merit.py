@@ -56,7 +56,7 @@ def _spec_param(e: Estimate, mean: float, sigma: float, nominal_depths_m: Sequen
 def _print_param(e: Estimate, corrected: bool):
     """A ``proximity_print`` parameter as the spec's ``proximity_gap`` or ``resist_threshold``
     (added to the nominal clearing level, the parameter's null); with ``corrected`` (masks
-    pre-distorted for the gap, :mod:`.proximity`) the contact print they aim at: gap 0."""
+    pre-distorted for the gap, :mod:`metrology.correction.proximity`) the contact print they aim at: gap 0."""
     from masks.tolerance.spec import Param
 
     name = "proximity_gap" if e.param == "gap_m" else "resist_threshold"

@@ -83,7 +83,8 @@ def correct(design: Design, diagnoses: Sequence[str | Path], out: str | Path, *,
     map_source : str
         The map report's file name, for the sheet.
     opc : bool
-        Draw the masks pre-distorted for a systematic ``proximity_print`` (:mod:`.proximity`);
+        Draw the masks pre-distorted for a systematic ``proximity_print``
+        (:mod:`metrology.correction.proximity`);
         False draws them uncorrected for it, with a warning.
 
     Returns
