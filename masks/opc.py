@@ -239,7 +239,7 @@ def correct_mask(drawn: np.ndarray, step_m: float, optics: ProximityOptics, thre
             mask = starts[k]
             psi = _signed_distance(mask)
         padded = np.zeros(shape, dtype=np.float32)
-        padded[inner] = litho.block_coverage(litho.grow(mask.astype(np.float32), bias_cells) if bias_cells else mask, s)
+        padded[inner] = litho.block_coverage(litho.grow(mask.astype(np.float32), bias_cells), s)
         image, vjp = aerial_image_vjp(padded, step_m, optics)
         printed = np.asarray(resist_print(image[inner], step_m, threshold, cr_undercut_m))
         cost = float(np.abs(printed - target).sum()) * cell_m2

@@ -118,7 +118,7 @@ def print_check_masks(levels: np.ndarray, pitch_m: float, params: ProcessParams,
     for j in range(params.n_masks):
         drawn_j = masks[j, w0 * m:w1 * m, v0 * m:v1 * m]
         bias_cells = float(params.linewidth_bias[j]) * m / pitch_m
-        cov = block_coverage(grow(drawn_j.astype(np.float32), bias_cells) if bias_cells else drawn_j, sub)
+        cov = block_coverage(grow(drawn_j.astype(np.float32), bias_cells), sub)
         pc = print_coverage(cov, step, optics, params.resist_threshold, params.cr_undercut)
         printed.append(np.asarray(pc, dtype=float)[inner])
     depths = np.asarray(params.etch_depth, dtype=float)

@@ -30,17 +30,10 @@ import numpy as np
 
 from doedesign.errors import DoeError
 
-from .systematic import DISAGREEMENT_CHI2, SIGNIFICANCE, Estimate
+from .systematic import DISAGREEMENT_CHI2, SIGNIFICANCE, Estimate, find_estimate
 
 __all__ = ["check_offsets", "check_same_process", "job_entries", "loading_losses", "loading_warnings", "mask_label",
            "mean_loading_loss", "warnings_for"]
-
-
-def _value(estimates, effect, mask, prefix, corrected_only=True):
-    for e in estimates:
-        if e.effect == effect and e.mask == mask and e.param.startswith(prefix) and (e.corrected or not corrected_only):
-            return e
-    return None
 
 
 def loading_losses(masks: np.ndarray, pitch_m: float, depths_m: Sequence[float], loading: float
@@ -75,12 +68,12 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
     """One entry per mask: layer, datatype, nominal and target etch depth, aligner dials,
     linewidth bias taken out, and the corrections that went in (strict-JSON ready)."""
     n = len(depths_m)
-    loading = _value(estimates, "etch_loading", None, "loading")
+    loading = find_estimate(estimates, "etch_loading", None, "loading")
     loss, rest = loading_losses(masks, pitch_m, depths_m, loading.mean) if loading else (np.zeros(n), np.zeros(n))
     # The measured mean depth error over each mask's openings, corrected or not (what the etch target acts on).
     measured_loss = loss
     if not loading:
-        named = _value(estimates, "etch_loading", None, "loading", corrected_only=False)
+        named = find_estimate(estimates, "etch_loading", None, "loading", corrected_only=False)
         if named and named.mean:
             measured_loss = mean_loading_loss(masks, pitch_m, depths_m, named.mean)
     entries = []
@@ -88,7 +81,7 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
         done = []
         nominal = float(depths_m[j])
         target = nominal
-        depth = _value(estimates, "etch_depth", j, "depth_error")
+        depth = find_estimate(estimates, "etch_depth", j, "depth_error")
         if depth:
             target /= 1.0 + depth.mean
             done.append(f"etch depth error {depth.mean * 100:+.2f} % taken out of the target")
@@ -97,20 +90,20 @@ def job_entries(estimates: Sequence[Estimate], masks: np.ndarray, pitch_m: float
             done.append(f"etch loading {loading.mean:.3f}: mean loss {loss[j] * 100:.2f} % over the openings "
                         f"added to the target (density-dependent rest, rms {rest[j] * nominal * 1e9:.2f} nm, "
                         "not correctable by mask or etch)")
-        measured_depth = _value(estimates, "etch_depth", j, "depth_error", corrected_only=False)
+        measured_depth = find_estimate(estimates, "etch_depth", j, "depth_error", corrected_only=False)
         mean_error = (1.0 + (measured_depth.mean if measured_depth else 0.0)) * (1.0 - measured_loss[j]) - 1.0
         shift = [0.0, 0.0]
         for c, axis in enumerate(("dx", "dy")):
-            e = _value(estimates, "mask_overlay", j, axis)
+            e = find_estimate(estimates, "mask_overlay", j, axis)
             if e:
                 shift[c] = -e.mean
         if any(shift):
             done.append(f"aligner offset {shift[0] * 1e6:+.3f}, {shift[1] * 1e6:+.3f} um")
-        rot = _value(estimates, "mask_rotation", j, "rotation")
+        rot = find_estimate(estimates, "mask_rotation", j, "rotation")
         rotation = -rot.mean if rot else 0.0
         if rot:
             done.append(f"aligner rotation {rotation:+.4f} deg")
-        bias = _value(estimates, "linewidth_bias", j, "bias")
+        bias = find_estimate(estimates, "linewidth_bias", j, "bias")
         bias_m = bias.mean if bias else 0.0
         if bias:
             done.append(f"edges drawn {-bias_m * 1e6:+.3f} um (linewidth bias {bias_m * 1e6:+.3f} um taken out)")
@@ -190,7 +183,7 @@ def incomplete_warnings(estimates: Sequence[Estimate], fields: Sequence) -> list
 
 def loading_warnings(estimates: Sequence[Estimate], jobs: Sequence[dict]) -> list[str]:
     """The part of a compensated etch loading that no knob removes, with the measured values."""
-    loading = _value(estimates, "etch_loading", None, "loading")
+    loading = find_estimate(estimates, "etch_loading", None, "loading")
     if not loading or not jobs:
         return []
     rest = ", ".join(f"mask {m['mask']} {m['etch_loading_residual_rms_nm']:.2f} nm" for m in jobs)

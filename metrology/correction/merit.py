@@ -26,7 +26,7 @@ import numpy as np
 from doedesign.design import Design
 from doedesign.progress import Progress
 
-from .systematic import Estimate
+from .systematic import Estimate, find_estimate
 
 if TYPE_CHECKING:
     from masks.tolerance.evaluate import Evaluator
@@ -70,10 +70,10 @@ def params_for_wafer(estimates: Sequence[Estimate], jobs: Sequence[dict], nomina
     """Tolerance-spec parameters (:class:`masks.tolerance.spec.Param`) of the measured wafer or,
     with ``corrected``, of the next one made with the job sheet ``jobs``."""
     out = []
-    gap = next((e for e in estimates if e.effect == "proximity_print" and e.param == "gap_m"), None)
+    gap = find_estimate(estimates, "proximity_print", None, "gap")  # corrected: the masks are pre-distorted
     for e in estimates:
         if e.effect == "proximity_print":
-            out.append(_print_param(e, corrected and gap is not None and gap.corrected))
+            out.append(_print_param(e, corrected and gap is not None))
             continue
         if e.effect not in ("etch_depth", "mask_overlay", "mask_rotation", "linewidth_bias", "etch_loading",
                             "proximity_blur", "sidewall_slope", "etch_gradient", "microtrenching"):

@@ -17,7 +17,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from .systematic import Estimate
+from .systematic import Estimate, find_estimate
 
 __all__ = ["spec_table", "toml_text"]
 
@@ -57,7 +57,8 @@ def spec_table(estimates: Sequence[Estimate], jobs: Sequence[dict]) -> tuple[dic
             e = group[0]
             table[effect] = {"mean_um": e.mean * 1e6 if e.systematic else 0.0, "sigma_um": e.spread * 1e6}
         elif effect == "proximity_print":
-            gap = next(e for e in group if e.param == "gap_m")
+            gap = find_estimate(group, effect, None, "gap", corrected_only=False)
+            assert gap is not None  # a named print has both parameters
             if gap.corrected:
                 notes.append(f"proximity_print: the corrected masks are pre-distorted for the {gap.mean * 1e6:.1f} um "
                              "gap; the spec cannot hold those masks and leaves the print out (a tolerance run of the "

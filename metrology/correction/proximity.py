@@ -29,7 +29,7 @@ from doedesign.design import Design
 from doedesign.levels import design_levels
 from metrology.diagnosis.effects import get_effect
 
-from .systematic import Estimate
+from .systematic import Estimate, find_estimate
 
 if TYPE_CHECKING:
     from masks.process import ProcessParams
@@ -39,21 +39,18 @@ __all__ = ["diagnosed_print", "no_opc", "proximity_correction"]
 EFFECT = "proximity_print"
 
 
-def _mean(estimates: Sequence[Estimate], effect: str, param: str) -> Estimate | None:
-    return next((e for e in estimates if e.effect == effect and e.param == param), None)
-
-
-def diagnosed_print(estimates: Sequence[Estimate], depths_m: Sequence[float],
-                    corrected_bias: bool = True) -> ProcessParams | None:
+def diagnosed_print(estimates: Sequence[Estimate], jobs: Sequence[dict],
+                    depths_m: Sequence[float]) -> ProcessParams | None:
     """The process the fields' combined ``proximity_print`` describes, or None when it is not corrected.
 
     Parameters
     ----------
     estimates : sequence of Estimate
+    jobs : sequence of dict
+        The job entries (:func:`metrology.correction.jobsheet.job_entries`): each mask's
+        linewidth bias taken out (``linewidth_bias_um``, 0 where none is corrected).
     depths_m : sequence of float
         The diagnosed nominal etch depths.
-    corrected_bias : bool
-        Include each mask's linewidth bias where it is corrected (systematic).
 
     Returns
     -------
@@ -61,19 +58,13 @@ def diagnosed_print(estimates: Sequence[Estimate], depths_m: Sequence[float],
     """
     from masks.process import ProcessParams
 
-    gap = _mean(estimates, EFFECT, "gap_m")
-    if gap is None or not gap.corrected:
+    gap = find_estimate(estimates, EFFECT, None, "gap")
+    if gap is None:
         return None
-    threshold = _mean(estimates, EFFECT, "threshold")
+    threshold = find_estimate(estimates, EFFECT, None, "threshold", corrected_only=False)
     base = ProcessParams.ideal(depths_m=depths_m)
     params = get_effect(EFFECT).apply(base, np.array([gap.mean, threshold.mean if threshold else 0.5]))
-    if corrected_bias:
-        bias = np.zeros(len(depths_m))
-        for e in estimates:
-            if e.effect == "linewidth_bias" and e.corrected and e.mask is not None:
-                bias[e.mask] = e.mean
-        params = params.copy(linewidth_bias=bias)
-    return params
+    return params.copy(linewidth_bias=np.array([job["linewidth_bias_um"] * 1e-6 for job in jobs]))
 
 
 def proximity_correction(design: Design, estimates: Sequence[Estimate], jobs: list[dict], depths_m: Sequence[float],
@@ -93,7 +84,7 @@ def proximity_correction(design: Design, estimates: Sequence[Estimate], jobs: li
     from masks.corrected import MIN_FEATURE_M
     from masks.opc_element import check_opc_memory, correct_element, default_print_region, opc_settings, print_upsample
 
-    params = diagnosed_print(estimates, depths_m)
+    params = diagnosed_print(estimates, jobs, depths_m)
     if params is None:
         return None
     levels = design_levels(design, source=source)

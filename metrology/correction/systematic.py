@@ -41,7 +41,7 @@ from metrology.diagnosis.effects import get_effect
 from .diagnoses import FieldDiagnosis
 
 __all__ = ["DETECTION_LIMITS", "DISAGREEMENT_CHI2", "Estimate", "KNOBS", "SIGNIFICANCE", "combine_fields",
-           "parameter_mask"]
+           "find_estimate", "parameter_mask"]
 
 SIGNIFICANCE = 3.0
 #: chi2 per degree of freedom above which fields disagree beyond their fitted uncertainties
@@ -98,6 +98,16 @@ class Estimate:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def find_estimate(estimates: Sequence[Estimate], effect: str, mask: int | None, prefix: str,
+                  corrected_only: bool = True) -> Estimate | None:
+    """The first estimate of ``effect`` on ``mask`` (None: a whole-run parameter) whose parameter
+    name starts with ``prefix``; only a corrected one unless ``corrected_only`` is False."""
+    for e in estimates:
+        if e.effect == effect and e.mask == mask and e.param.startswith(prefix) and (e.corrected or not corrected_only):
+            return e
+    return None
 
 
 def combine_fields(fields: Sequence[FieldDiagnosis]) -> list[Estimate]:
