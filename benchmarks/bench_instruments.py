@@ -23,6 +23,13 @@ spikes drawn afresh), ``doe calibrate instrument`` fits it, and ``doe diagnose -
 holds the result (``calibration_cpu_s`` in the row).
 
 Resumable: each finished case is one JSON line of ``OUT/cases.jsonl``; a rerun skips those.
+With ``--alone`` the diagnoses run one at a time while ``--workers`` other processes make the
+next cases' files ahead of them (the instruments of one seed in one process, which makes their
+wafer once; ``OUT/work/INSTRUMENT_SEED/case.json`` marks a case made): each diagnosis shares the
+two cores with one file maker, as a user's with one other job, where two cases side by side
+(``--workers 2`` without ``--alone``) inflate the CPU seconds as well as the wall (a CSI null: 68
+CPU s beside another case, 32 alone). ``--files-only`` makes the files and stops; a run with
+``--alone`` after it diagnoses on the idle machine.
 ``OUT/summary.md`` and ``OUT/summary.json`` hold the table per instrument.
 
     python -m benchmarks.bench_instruments --n 30 --workers 2 --out benchmarks/results/instruments
@@ -47,6 +54,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -263,20 +271,38 @@ def score(names, truth, report):
                           and ratio <= FINAL_LIMIT)}
 
 
-def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None,
-             calibrated=False, design_px=DESIGN_PX, field=None):
-    """Make, diagnose and score one case (``calibrated``: through a calibration of its
-    instrument, :func:`calibrate`; ``design_px``, ``field``: as :func:`make_files`); return its
-    journal row."""
+def prepare_case(instrument, names, seed, work, design_px=DESIGN_PX, field=None):
+    """Make one case's files in ``work/INSTRUMENT_SEED`` (:func:`make_files`) and its journal
+    row's first part, kept beside them as ``case.json``; a folder that holds one is reused."""
     directory = Path(work) / f"{instrument}_{seed}"
+    made = directory / "case.json"
+    if made.exists():
+        return json.loads(made.read_text())
     if directory.exists():
         shutil.rmtree(directory)
     t = time.process_time()
     case = make_files(instrument, names, seed, directory, design_px, field)
     inst = {k: v for k, v in case.instrument.items() if k != "spikes"}
-    row = {"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth, "camera": inst,
-           "field_px": int(case.height_m.shape[0]), "make_cpu_s": time.process_time() - t,
-           "surface_cpu_s": case.extra["surface_cpu_s"]}
+    row = json_ready({"instrument": instrument, "hidden": list(names), "seed": seed, "truth": case.truth,
+                      "camera": inst, "field_px": int(case.height_m.shape[0]), "make_cpu_s": time.process_time() - t,
+                      "surface_cpu_s": case.extra["surface_cpu_s"]})
+    write_json(made, row)
+    return row
+
+
+def _prepare_one(args):
+    instruments, names, seed, *rest = args
+    return [prepare_case(i, names, seed, *rest) for i in instruments]
+
+
+def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=TIME_LIMIT_S, cpu_limit_s=None,
+             calibrated=False, design_px=DESIGN_PX, field=None):
+    """Make (or reuse, :func:`prepare_case`), diagnose and score one case (``calibrated``: through
+    a calibration of its instrument, :func:`calibrate`; ``design_px``, ``field``: as
+    :func:`make_files`); return its journal row."""
+    directory = Path(work) / f"{instrument}_{seed}"
+    row = prepare_case(instrument, names, seed, work, design_px, field)
+    case = types.SimpleNamespace(truth=row["truth"], seed=seed, instrument=row["camera"])
     cal = None
     if calibrated:
         cal, row["calibration_cpu_s"], err = calibrate(instrument, case, directory / "artefact", time_limit_s)
@@ -294,6 +320,55 @@ def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=T
     if row.get("all_right") and not keep:  # a wrong answer keeps its files for analysis
         shutil.rmtree(directory)
     return json_ready(row)
+
+
+def _prepare_all(cases, workers):
+    """Every case's files (:func:`prepare_case`), ``workers`` side by side; the instruments of one
+    seed in one worker, which makes their wafer once."""
+    by_seed = {}
+    for i, names, seed, *rest in cases:
+        by_seed.setdefault(seed, [[], names, seed, *rest])[0].append(i)
+    tasks = list(by_seed.values())
+    if workers <= 1:
+        rows = map(_prepare_one, tasks)
+        for made in rows:
+            log.info("files made: seed %d (%s)", made[0]["seed"], ", ".join(r["instrument"] for r in made))
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers) as pool:
+        for made in pool.map(_prepare_one, tasks):
+            log.info("files made: seed %d (%s)", made[0]["seed"], ", ".join(r["instrument"] for r in made))
+
+
+class _Ahead:
+    """Cases' files made ahead of their diagnoses in other processes (:func:`_prepare_ahead`)."""
+
+    def __init__(self, pool, futures):
+        self.pool, self.futures = pool, futures
+
+    def wait(self, seed):
+        """Block until the files of ``seed``'s cases are made (True; a maker's error is raised)."""
+        if seed in self.futures:
+            self.futures.pop(seed).result()
+        return True
+
+    def close(self):
+        self.pool.shutdown(cancel_futures=True)
+
+
+def _prepare_ahead(cases, workers):
+    """Start making every case's files, in order, in ``workers`` processes (at least one) beside
+    the diagnoses; a case whose ``case.json`` exists is reused at once."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    by_seed = {}
+    for i, names, seed, *rest in cases:
+        by_seed.setdefault(seed, [[], names, seed, *rest])[0].append(i)
+    # One process per worker, each making one seed's cases at a time (a 800 px point field's
+    # surface holds 12 GB while it is made: two makers and a diagnosis fill a 23 GB machine).
+    pool = ProcessPoolExecutor(max(1, workers))
+    return _Ahead(pool, {seed: pool.submit(_prepare_one, task) for seed, task in by_seed.items()})
 
 
 def _run_one(args):
@@ -369,11 +444,14 @@ def summary_markdown(table, rows, info=None, design_px=DESIGN_PX, field=None):
 
 
 def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS), extra=(), keep=False,
-        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None, calibrated=False, design_px=DESIGN_PX, field=None):
+        time_limit_s=TIME_LIMIT_S, cpu_limit_s=None, calibrated=False, design_px=DESIGN_PX, field=None,
+        alone=False, files_only=False):
     """Run (or resume) the cases; return ``benchmarks.run`` rows (one per instrument and figure).
 
     ``quick``: one null case per instrument. ``out`` (a folder) keeps ``cases.jsonl`` and the
     summaries; without it the cases run in a temporary folder and nothing resumes.
+    ``alone``: the diagnoses one at a time, the files made ahead by ``workers`` processes beside
+    them. ``files_only``: make the files and stop (a later ``alone`` run diagnoses them).
     """
     import tempfile
 
@@ -392,7 +470,16 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     todo = [(i, names, seed, out / "work", tuple(extra), keep, time_limit_s, cpu_limit_s, calibrated, design_px, field)
             for names, seed in planned
             for i in instruments if (i, seed) not in seen]
-    if workers > 1:
+    made = None
+    if files_only:
+        _prepare_all([(i, names, seed, out / "work", design_px, field) for i, names, seed, *_ in todo], workers)
+        return []
+    if alone:
+        made = _prepare_ahead([(i, names, seed, out / "work", design_px, field) for i, names, seed, *_ in todo],
+                              workers)
+        results = (_run_one(args) for args in todo if made.wait(args[2]))
+        pool = None
+    elif workers > 1:
         from concurrent.futures import ProcessPoolExecutor
 
         pool = ProcessPoolExecutor(workers)
@@ -407,6 +494,8 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+        if made is not None:
+            made.close()
     keys = {(i, s): k for k, (i, s) in enumerate((i, s) for i in instruments for _, s in planned)}
     rows = sorted((r for r in done if (r["instrument"], r["seed"]) in keys),
                   key=lambda r: keys[(r["instrument"], r["seed"])])
@@ -459,6 +548,10 @@ def main(argv=None):
                              "(default: the largest field inside the design)")
     parser.add_argument("--calibrated", action="store_true",
                         help="diagnose through a calibration of each case's instrument on an artefact it measured")
+    parser.add_argument("--alone", action="store_true",
+                        help="diagnose the cases one at a time, their files made ahead by --workers other processes "
+                             "(none once --files-only has made them: the diagnoses then run on the idle machine)")
+    parser.add_argument("--files-only", action="store_true", help="make every case's files and stop")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     names = [s.strip() for s in args.instruments.split(",") if s.strip()]
@@ -471,7 +564,8 @@ def main(argv=None):
         parser.error(str(exc))
     run(n=args.n, workers=args.workers, out=args.out, instruments=names, extra=args.diagnose_option,
         keep=args.keep, time_limit_s=args.time_limit, cpu_limit_s=args.cpu_limit, calibrated=args.calibrated,
-        design_px=args.design_px, field=args.field_px)
+        design_px=args.design_px, field=args.field_px, alone=args.alone,
+        files_only=args.files_only)
     log.info("summary: %s", Path(args.out, "summary.md"))
     return 0
 

@@ -48,6 +48,7 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
             if budget.fired:
                 return model, errors, crit
             c_alt = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
+            log.info("revision: %s in %s's place: criterion %+.1f", alt, st.effect, c_alt - crit)
             prefer = problem.effects[alt].kind == "artefact" and problem.effects[st.effect].kind != "artefact"
             if c_alt < crit - threshold or (prefer and c_alt <= crit + threshold):
                 log.info("revision: %s replaces %s (criterion %+.1f)", alt, st.effect, c_alt - crit)
