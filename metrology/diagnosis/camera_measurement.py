@@ -1,5 +1,5 @@
 """A profilometer measurement diagnosed in the camera's frame (``doe diagnose --frame camera``,
-``doe demo``): the comparison's registration starts :func:`~metrology.diagnosis.camera.diagnose_camera`'s
+``doe demo``): the comparison's registration starts :func:`~metrology.diagnosis.camera_diagnosis.diagnose_camera`'s
 placement, and the data stay as read.
 """
 
@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from doedesign.errors import DoeError
 from metrology.diagnosis import engine as dg
-from metrology.diagnosis.camera import diagnose_camera
+from metrology.diagnosis.camera_diagnosis import diagnose_camera
 from metrology.matching.transfer import LateralTransfer
 
 if TYPE_CHECKING:
@@ -52,7 +52,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     transfer : LateralTransfer, optional
         The instrument's calibrated lateral transfer, held fixed (default: fitted).
     batwing, limit
-        As for :func:`~metrology.diagnosis.camera.diagnose_camera` (no limit by default).
+        As for :func:`~metrology.diagnosis.camera_diagnosis.diagnose_camera` (no limit by default).
 
     Returns
     -------

@@ -87,7 +87,7 @@ class Diagnosis:
         ``MIN_POWER_SHARE`` (:mod:`metrology.diagnosis.engine`) of the floor's power (``effect``, ``criterion_change``,
         ``floor_power_share``): not named, and the selection ended there.
     placement, excluded_pixels, window_camera_px : dict, int, list of int, or None
-        Set by the camera-frame diagnosis (:func:`metrology.diagnosis.camera.diagnose_camera`):
+        Set by the camera-frame diagnosis (:func:`metrology.diagnosis.camera_diagnosis.diagnose_camera`):
         the refined placement with uncertainties, the pixels left out, the window diagnosed
         (``[row0, row1, col0, col1]``); None for any other.
     """

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-import metrology.diagnosis.camera as cam
+import metrology.diagnosis.camera_diagnosis as cam
 from metrology.diagnosis.budget import Deadline
 from metrology.matching.instrument import Placement
 

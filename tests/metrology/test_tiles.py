@@ -60,7 +60,7 @@ def test_tiled_residual_is_the_whole_fields_levelling_on_the_tiles():
 
 @pytest.mark.slow
 def test_a_300_px_window_fitted_on_tiles_names_the_hidden_overlay():
-    from metrology.diagnosis.camera import diagnose_camera
+    from metrology.diagnosis.camera_diagnosis import diagnose_camera
 
     case = filegen.make_case(["mask_overlay"], 11, design_px=70, field_px=300)
     inst = case.instrument

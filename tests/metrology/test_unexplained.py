@@ -129,7 +129,7 @@ def test_effect_outside_the_vocabulary_is_unexplained_then_named_once_registered
     """A depth nonlinearity (filegen's, not in the registry) in a camera file: the first run
     names no fabrication effect and says where; the user's effect, registered, is named."""
     import filegen
-    from metrology.diagnosis.camera import diagnose_camera
+    from metrology.diagnosis.camera_diagnosis import diagnose_camera
     from metrology.diagnosis.effects import register_effect, unregister_effect
     from metrology.matching.instrument import Placement
 
