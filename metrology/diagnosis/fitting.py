@@ -33,7 +33,7 @@ from metrology.diagnosis.parallel import WORKERS, parallel_map
 if TYPE_CHECKING:
     from metrology.diagnosis.problem import Problem
 
-__all__ = ["JAC_STEP", "bic_eff", "fit_effects", "standard_errors"]
+__all__ = ["JAC_STEP", "bic_eff", "fit_effects", "power_share", "standard_errors"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,11 @@ BROYDEN_STEPS = 4
 def bic_eff(rss: float, n: int, n_eff: float, k: int) -> float:
     """Information criterion with an effective sample count: ``n_eff ln(RSS/N) + k ln(n_eff)``."""
     return float(n_eff * np.log(rss / n) + k * np.log(n_eff))
+
+
+def power_share(problem: Problem, r: np.ndarray, rss: float) -> float:
+    """The share of the floor's power (per sample) that going from residual ``r`` to ``rss`` explains."""
+    return (float(np.sum(r ** 2)) - rss) / (r.size * problem.noise.sigma ** 2)
 
 
 def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[str],

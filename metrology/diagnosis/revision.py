@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from metrology.diagnosis.budget import Deadline, FitStop
-from metrology.diagnosis.fitting import bic_eff, fit_effects
+from metrology.diagnosis.fitting import bic_eff, fit_effects, power_share
 from metrology.diagnosis.problem import Problem
 
 __all__ = ["refit_kept", "revise"]
@@ -23,14 +23,16 @@ log = logging.getLogger(__name__)
 
 def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.ndarray], steps: list,
            alternatives: dict[str, list[str]], nuisance: Sequence[str], n: int, n_eff: float, threshold: float,
-           deadline: Deadline) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+           deadline: Deadline, min_share: float = 0.0) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
     """Backward pass of the stepwise selection, once all named effects are in the model.
 
     Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
     be told apart once everything else is explained: each named effect is tried against the
     alternatives that scored close to it when it was chosen (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
-    dropped if the criterion no longer needs it (the weakest first). Past ``deadline`` (:class:`~metrology.diagnosis.budget.Deadline`) the
+    dropped if the criterion no longer needs it or if, in the final model, it explains less than
+    ``min_share`` of the noise floor's power (the forward selection's rule for naming one: less
+    is within what the instrument model's mismatch leaves), the weakest first. Past ``deadline`` (:class:`~metrology.diagnosis.budget.Deadline`) the
     pass stops where it is (the model stays the forward pass's or its last revision; a fit the
     deadline cut short changes nothing).
     """
@@ -69,8 +71,10 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
         if budget.fired:
             break
         c_drop = bic_eff(rss, n, n_eff, sum(problem.effects[m].n_params for m in fitted))
-        if c_drop < crit + threshold:
-            log.info("revision: %s no longer needed (criterion %+.1f)", st.effect, c_drop - crit)
+        share = -power_share(problem, problem.residual(model), rss)
+        if c_drop < crit + threshold or share < min_share:
+            log.info("revision: %s no longer needed (criterion %+.1f, %.2f %% of the floor's power)", st.effect,
+                     c_drop - crit, 100 * share)
             model, errors, crit = fitted, errs, c_drop
     return model, errors, crit
 
