@@ -447,6 +447,19 @@ def test_a_gradient_on_a_560_px_pixel_integrating_field_is_not_read_as_a_depth(t
     assert _bench().score(["etch_gradient"], case.truth, report)["all_right"]
 
 
+@pytest.mark.slow
+def test_a_csi_gradient_and_loading_on_an_800_px_field_leave_no_false_depth(tmp_path):
+    # The large-field table's CSI case 1047219578 (a 2.97 % per mm gradient at 166 deg and an 8.2 %
+    # loading, 800 camera px of 0.708 um): the first pass named depth, gradient and loading and
+    # dropped the depth; the rerun on re-admitted pixels screened the loading from the first pass's
+    # value beside its own depth and gradient (+7789: counted twice) and ended on the depth alone,
+    # 1.34x the floor. Screened from the better of the two starts, then the depth (0.15 %, 0.3 % of
+    # the floor's power) dropped by the forward rule's 5 %, it ends on the gradient and the loading.
+    case, report = _large_field_case("csi", ["etch_gradient", "etch_loading"], 1047219578, tmp_path)
+    assert sorted(_fabrication(report)) == ["etch_gradient", "etch_loading"]
+    assert _bench().score(["etch_gradient", "etch_loading"], case.truth, report)["all_right"]
+
+
 def _large_field_case(instrument, effects, seed, tmp_path):
     """One case of the large-field tables (``--design-px 108 --field-px 400-800``) through ``doe
     diagnose`` with its defaults: (case, report)."""
