@@ -322,25 +322,6 @@ def run_case(instrument, names, seed, work, extra=(), keep=False, time_limit_s=T
     return json_ready(row)
 
 
-def _prepare_all(cases, workers):
-    """Every case's files (:func:`prepare_case`), ``workers`` side by side; the instruments of one
-    seed in one worker, which makes their wafer once."""
-    by_seed = {}
-    for i, names, seed, *rest in cases:
-        by_seed.setdefault(seed, [[], names, seed, *rest])[0].append(i)
-    tasks = list(by_seed.values())
-    if workers <= 1:
-        rows = map(_prepare_one, tasks)
-        for made in rows:
-            log.info("files made: seed %d (%s)", made[0]["seed"], ", ".join(r["instrument"] for r in made))
-        return
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(workers) as pool:
-        for made in pool.map(_prepare_one, tasks):
-            log.info("files made: seed %d (%s)", made[0]["seed"], ", ".join(r["instrument"] for r in made))
-
-
 class _Ahead:
     """Cases' files made ahead of their diagnoses in other processes (:func:`_prepare_ahead`)."""
 
@@ -350,7 +331,8 @@ class _Ahead:
     def wait(self, seed):
         """Block until the files of ``seed``'s cases are made (True; a maker's error is raised)."""
         if seed in self.futures:
-            self.futures.pop(seed).result()
+            made = self.futures.pop(seed).result()
+            log.info("files made: seed %d (%s)", seed, ", ".join(r["instrument"] for r in made))
         return True
 
     def close(self):
@@ -471,12 +453,15 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
             for names, seed in planned
             for i in instruments if (i, seed) not in seen]
     made = None
-    if files_only:
-        _prepare_all([(i, names, seed, out / "work", design_px, field) for i, names, seed, *_ in todo], workers)
-        return []
-    if alone:
+    if alone or files_only:
         made = _prepare_ahead([(i, names, seed, out / "work", design_px, field) for i, names, seed, *_ in todo],
                               workers)
+    if files_only:
+        for seed in list(made.futures):
+            made.wait(seed)
+        made.close()
+        return []
+    if alone:
         results = (_run_one(args) for args in todo if made.wait(args[2]))
         pool = None
     elif workers > 1:
