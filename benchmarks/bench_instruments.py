@@ -497,6 +497,11 @@ def run(quick=False, n=None, workers=1, out=None, instruments=tuple(INSTRUMENTS)
         path.write_text(summary_markdown(table, rows, info, design_px, field))
     if tmp is not None:
         tmp.cleanup()
+    return table_rows(table, design_px, field)
+
+
+def table_rows(table, design_px=DESIGN_PX, field=None):
+    """The benchmark table's rows (``benchmarks.run``'s columns) of :func:`summary`'s ``table``."""
     where = (f", design {design_px} px, fields {field[0]}-{field[1]} px" if isinstance(field, tuple)
              else f", design {design_px} px, field {field} px" if field else "")
     return [dict(benchmark="instruments", figure=f"{t['instrument']}{where}: cases all right", value=t["all_right"],

@@ -23,11 +23,12 @@ before its result is reported:
   fill factor, and keeps what earns its parameters. A coherence-scanning interferometer's file
   needs it: under a Gaussian blur with whole pixels its objective's long spread left 7 nm in
   the flat interiors against 0.67 nm of noise. The stage's fits are short ones on a square
-  of the window: the members it chose are refitted to convergence on the whole window (the
-  depths free), from its values and from a narrow batwing (``NARROW_BATWING``; from the
-  stage's alone, a 0.13 batwing at 0.2 um was fitted as -0.012 at 1.1 um beside NA 0.83 for
-  0.47), and the result is held in a last camera-frame fit of the depths, overlay, bias and
-  placement.
+  of the window: the members it chose are refitted on the whole window (the depths free),
+  from its values and from a narrow batwing (``NARROW_BATWING``; from the stage's alone, a
+  0.13 batwing at 0.2 um was fitted as -0.012 at 1.1 um beside NA 0.83 for 0.47), each to the
+  criterion's tolerances, the better then to convergence (a calibration's tolerances: the
+  same optimum as both starts fitted to convergence, at about half the refit's time), and the
+  result is held in a last camera-frame fit of the depths, overlay, bias and placement.
 
 A calibrated transfer (``--instrument``) is held as it is and none of this runs.
 """

@@ -152,7 +152,9 @@ def measure(surface_m, fine, design_shape, out_shape, rng, **overrides):
     pc = cols.reshape(-1, 1) + dv.reshape(1, -1)
     fi = (matrix[0, 0] * pr + matrix[0, 1] * pc + offset[0] + 0.5) * fine - 0.5 + pad
     fj = (matrix[1, 0] * pr + matrix[1, 1] * pc + offset[1] + 0.5) * fine - 0.5 + pad
-    i0, j0 = int(fi.min()) - 10, int(fj.min()) - 10
+    # Ten cells of margin for the spline, inside the padded grid (a coarse grid's padding can be
+    # narrower: 6 cells of 5.4 um).
+    i0, j0 = max(int(fi.min()) - 10, 0), max(int(fj.min()) - 10, 0)
     i1, j1 = int(fi.max()) + 11, int(fj.max()) + 11
     window = seen_wing[i0:i1, j0:j1]
     vals = ndi.map_coordinates(window, [(fi - i0).ravel(), (fj - j0).ravel()], order=3, mode="nearest")
