@@ -460,6 +460,21 @@ def test_a_csi_gradient_and_loading_on_an_800_px_field_leave_no_false_depth(tmp_
     assert _bench().score(["etch_gradient", "etch_loading"], case.truth, report)["all_right"]
 
 
+@pytest.mark.slow
+def test_a_point_sampled_bias_named_before_an_overlay_keeps_its_instrument(tmp_path):
+    # The large-field table's point-sampling case 1733410116 (a 0.226 um bias on every mask and a
+    # 0.44 um overlay of mask 2, 650 camera px of 0.719 um): the bias was named first, and with the
+    # overlay still in the residual (29x the floor) the instrument stage ran again, its shared edge
+    # profile -328 in the criterion but 2 % of the residual's excess: it added an objective and a
+    # batwing and ended at fill 1, NA 0.95, an etch depth fitted 88 % of its footprint's excess,
+    # and both named effects were left at 3.18x the floor. The stage now waits until the profile
+    # holds half that excess.
+    case, report = _large_field_case("point", ["linewidth_bias", "mask_overlay"], 1733410116, tmp_path)
+    row = _bench().score(["linewidth_bias", "mask_overlay"], case.truth, report)
+    assert row["all_right"], row
+    assert report["inputs"]["placement"]["instrument"]["na"] == 0
+
+
 def _large_field_case(instrument, effects, seed, tmp_path):
     """One case of the large-field tables (``--design-px 108 --field-px 400-800``) through ``doe
     diagnose`` with its defaults: (case, report)."""
