@@ -169,20 +169,12 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 return
             # Nor where what they leave holds no edge profile shared by every mask that would pay for
             # one parameter: a screen, not a bound (the family's refit earned -1082, the profile -472).
-            r_map = fit.residual_map(model)
-            rss, gain = shared_profile_gain(r_map, problem.edge_m, problem.base.etch_depth, problem.keep)
+            rss, gain = shared_profile_gain(fit.residual_map(model), problem.edge_m, problem.base.etch_depth,
+                                            problem.keep)
             n_eff = max(np.count_nonzero(problem.keep) / problem.noise.corr_area_px, 2.0)
             bound = n_eff * np.log(max(rss - gain, 1e-300) / rss) + np.log(n_eff)
-            # Nor while what they leave is mostly a fabrication effect not yet named: the profile
-            # must hold the early rule's share of the residual's excess over the floor (a 0.23 um
-            # bias named before a 0.44 um overlay left 29x the floor, the profile 2 % of it, and the
-            # stage then fitted a point-sampling instrument as whole pixels, NA 0.95 and a batwing).
-            n = np.count_nonzero(problem.keep & np.isfinite(r_map))
-            excess = rss - n * problem.noise.sigma ** 2
-            share = 1.0 if excess <= 0 else gain / excess
-            log.info("after %s: a shared edge profile would change the criterion by %.1f (%.0f %% of the "
-                     "residual's excess over the floor)", sorted(fab), bound, 100 * share)
-            if bound >= -threshold or share < dg.EARLY_EXCESS_SHARE:
+            log.info("after %s: a shared edge profile would change the criterion by %.1f", sorted(fab), bound)
+            if bound >= -threshold:
                 return
             restaged = True
             again = stage({CAMERA.name: model[CAMERA.name], **fab})
