@@ -461,17 +461,14 @@ def test_a_csi_gradient_and_loading_on_an_800_px_field_leave_no_false_depth(tmp_
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 50: the instrument stage restages after the bias, before the "
-                   "overlay is named, and fits a point-sampling instrument as whole pixels (3.18x the floor)")
 def test_a_point_sampled_bias_named_before_an_overlay_keeps_its_instrument(tmp_path):
     # The large-field table's point-sampling case 1733410116 (a 0.226 um bias on every mask and a
-    # 0.44 um overlay of mask 2, 650 camera px of 0.719 um): the bias is named first, and with the
-    # overlay still in the residual (29x the floor) the instrument stage runs again (its shared
-    # edge profile -328 in the criterion, but 2 % of the residual's excess over the floor), adds
-    # an objective and a batwing and ends at fill 1, NA 0.95; an etch depth then fits 88 % of its
-    # footprint's excess and both named effects are left at 3.18x the floor. Asking the profile
-    # for half the excess before restaging closes this case (1.05x, point samples, blur 0.355 um)
-    # but opens two CSI ones, whose profiles held 18-36 % (seeds 1965675193: 1.84x, 772335818).
+    # 0.44 um overlay of mask 2, 650 camera px of 0.719 um): the bias was named first, and with the
+    # overlay still in the residual (29x the floor) the instrument stage ran again (its shared edge
+    # profile -328 in the criterion, but 2 % of the residual's excess over the floor), added an
+    # objective and a batwing and ended at fill 1, NA 0.95; an etch depth then fitted 88 % of its
+    # footprint's excess and both named effects were left at 3.18x the floor. The stage now runs
+    # again only where the profile holds a tenth of that excess.
     case, report = _large_field_case("point", ["linewidth_bias", "mask_overlay"], 1733410116, tmp_path)
     row = _bench().score(["linewidth_bias", "mask_overlay"], case.truth, report)
     assert row["all_right"], row
