@@ -179,8 +179,8 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             rss, gain = shared_profile_gain(r_map, problem.edge_m, problem.base.etch_depth, problem.keep)
             n_eff = max(np.count_nonzero(problem.keep) / problem.noise.corr_area_px, 2.0)
             bound = n_eff * np.log(max(rss - gain, 1e-300) / rss) + np.log(n_eff)
-            excess = rss - np.count_nonzero(problem.keep & np.isfinite(r_map)) * problem.noise.sigma ** 2
-            share = 1.0 if excess <= 0 else gain / excess
+            n = max(np.count_nonzero(problem.keep & np.isfinite(r_map)), 1)
+            share = dg.excess_share(gain / n, rss / n, problem.noise.sigma)
             log.info("after %s: a shared edge profile would change the criterion by %.1f (%.0f %% of the "
                      "residual's excess over the floor)", sorted(fab), bound, 100 * share)
             if bound >= -threshold or share < RESTAGE_PROFILE_SHARE:

@@ -46,7 +46,7 @@ from metrology.diagnosis.result import Diagnosis, Step
 from metrology.diagnosis.revision import refit_kept, revise
 
 __all__ = ["DEFAULT_THRESHOLD", "Diagnosis", "JAC_STEP", "Problem",
-           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "fit_effects", "run_diagnosis",
+           "SCREEN_ITER", "Step", "UNEXPLAINED_RATIO", "bic_eff", "excess_share", "fit_effects", "run_diagnosis",
            "standard_errors"]
 
 log = logging.getLogger(__name__)
@@ -133,11 +133,31 @@ def _rms(r):
     return float(np.sqrt(np.mean(r ** 2)))
 
 
+def excess_share(explained_power: float, power: float, sigma: float) -> float:
+    """Share of a residual's mean power above the noise floor that a model of it explains.
+
+    Parameters
+    ----------
+    explained_power : float
+        Mean power (m^2 per sample) the model explains.
+    power : float
+        The residual's mean power (m^2 per sample).
+    sigma : float
+        Noise floor, rms (m).
+
+    Returns
+    -------
+    float
+        ``explained_power / (power - sigma**2)``; 1 where the residual is at the floor.
+    """
+    excess = power - sigma ** 2
+    return 1.0 if excess <= 0 else explained_power / excess
+
+
 def _excess_share(signature, r, sigma):
-    """Share of the residual's power above the noise floor that an instrument signature's shared
-    edge profile holds (1 where the residual is at the floor)."""
-    excess = _rms(r) ** 2 - sigma ** 2
-    return 1.0 if excess <= 0 else signature["explained_rms_m"] ** 2 / excess
+    """Share of the residual's excess over the floor that an instrument signature's shared edge
+    profile holds."""
+    return excess_share(signature["explained_rms_m"] ** 2, _rms(r) ** 2, sigma)
 
 
 def _structure_test(problem, r_map, n_eff, n):
@@ -441,12 +461,13 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
     inadequate = early if early is not None else problem.instrument_signature(final_map) if unexplained else None
     if inadequate is not None and inadequate["odd_share"] < FINAL_ODD_SHARE:
         inadequate = None
-    if (inadequate is not None and early is None
-            and _excess_share(inadequate, r, problem.noise.sigma) < EARLY_EXCESS_SHARE):
+    final_share = (_excess_share(inadequate, r, problem.noise.sigma)
+                   if inadequate is not None and early is None else 1.0)
+    if final_share < EARLY_EXCESS_SHARE:
         # An edge profile beside a larger residual it does not explain is not the whole story:
         # the fabrication names fitted beside it stand.
         log.info("a shared edge profile holds %.0f %% of the final residual's excess over the floor: "
-                 "not an inadequate instrument model", 100 * _excess_share(inadequate, r, problem.noise.sigma))
+                 "not an inadequate instrument model", 100 * final_share)
         inadequate = None
     if inadequate is not None:
         # The residual is the instrument's (the same at every mask's edges): its model's family
