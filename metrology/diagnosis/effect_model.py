@@ -107,6 +107,12 @@ class Effect:
     mask_params : callable, optional
         For a per-mask effect, ``mask_params(n_masks) -> list of Parameter``: its parameters for
         an element of that many masks (:meth:`for_masks`); ``params`` holds those of four.
+    rivals : tuple of str
+        Effects that model the same physical cause in another form (the aligner's gap: a Gaussian
+        blur of the aerial image, or the Fresnel print through it). The selection's first pick
+        between them can be the wrong form, which then leaves what the other would have explained
+        to false names; the backward pass always tries each rival in this one's place
+        (:func:`metrology.diagnosis.revision.revise`), and the criterion chooses.
     """
 
     name: str
@@ -123,6 +129,7 @@ class Effect:
     fourier: Callable[..., Any] | None = None
     beside_objective: bool = False
     mask_params: Callable[[int], Sequence[Parameter]] | None = None
+    rivals: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.domain not in DOMAINS:

@@ -200,14 +200,14 @@ BUILTIN_HEIGHT = [
     Effect("proximity_blur", "height", "process",
            [Parameter("sigma_m", "m", 0.0, 4 * _UM, 0.5 * _UM)], _proximity_blur,
            "The contact-print gap blurs the mask's aerial image before the resist threshold: corners round "
-           "and small isolated features shrink.", start=(0.8 * _UM,)),
+           "and small isolated features shrink.", start=(0.8 * _UM,), rivals=("proximity_print",)),
     Effect("proximity_print", "height", "process",
            [Parameter("gap_m", "m", 0.0, 100 * _UM, 5 * _UM),
             Parameter("threshold", "1", 0.15, 0.85, 0.05, 0.5)], _proximity_print,
            "The masks printed through a gap between chrome and resist (masks.proximity: Fresnel diffraction "
            "of the lamp's lines, collimation, resist threshold): each edge moves by an amount that depends on "
            "the feature's size and the dose, small openings print smaller or vanish, edges ripple.",
-           start=(30 * _UM, 0.4), order=1),
+           start=(30 * _UM, 0.4), order=1, rivals=("proximity_blur",)),
     Effect("sidewall_slope", "height", "process",
            [Parameter("ramp_width_m", "m", 0.0, 3 * _UM, 0.3 * _UM)], _sidewall_slope,
            "The etch leaves sloped sidewalls: steps become ramps of a finite width.", start=(1.5 * _UM,)),

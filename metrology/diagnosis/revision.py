@@ -28,7 +28,8 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
 
     Nearly degenerate effects (a sub-pixel instrument blur and a narrow sidewall ramp) can only
     be told apart once everything else is explained: each named effect is tried against the
-    alternatives that scored close to it when it was chosen (swap if better by the threshold,
+    alternatives that scored close to it when it was chosen and its rivals (another form of the
+    same cause: :class:`~metrology.diagnosis.effect_model.Effect`) (swap if better by the threshold,
     or if tied and the alternative is a measurement artefact), then each named effect is
     dropped if the criterion no longer needs it or if, in the final model, it explains less than
     ``min_share`` of the noise floor's power (the forward selection's rule for naming one: less
@@ -41,10 +42,16 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
     by_name = {st.effect: st for st in steps}
     budget = FitStop(deadline)
     for st in list(steps):
-        for alt in alternatives.get(st.effect, []):
+        rivals = [e for e in problem.effects[st.effect].rivals if e in problem.effects] if st.effect in model else []
+        for alt in dict.fromkeys([*alternatives.get(st.effect, []), *rivals]):
             if alt in model or st.effect not in model or deadline.past():
                 continue
             trial = {k: v for k, v in model.items() if k != st.effect}
+            if alt in rivals:
+                # Another form of the same cause: what was named after this one was fitted around
+                # the wrong form, a basin the rival's fit cannot leave; it restarts from null.
+                later = {s.effect for s in steps[steps.index(st) + 1:]} - set(nuisance)
+                trial = {k: problem.effects[k].null_values() if k in later else v for k, v in trial.items()}
             trial[alt] = problem.effects[alt].start_values()
             fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
             if budget.fired:

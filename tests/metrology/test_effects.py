@@ -31,6 +31,17 @@ def test_builtin_names_domains_and_artefacts():
         assert np.all(lo <= e.start_values()) and np.all(e.start_values() <= hi)
 
 
+def test_rivals_are_registered_symmetric_and_of_one_domain():
+    # The backward pass swaps a named effect for its rivals (another form of the same cause);
+    # a one-sided or misspelt rival would leave the wrong form's first pick standing.
+    rivals = {n: get_effect(n).rivals for n in BUILTIN if get_effect(n).rivals}
+    assert rivals["proximity_blur"] == ("proximity_print",)
+    for name, others in rivals.items():
+        for other in others:
+            assert name in get_effect(other).rivals, (name, other)
+            assert get_effect(other).domain == get_effect(name).domain
+
+
 def test_user_registration_decorator_and_object():
     @register_effect(name="test_piston_tilt", domain="height", stage="surface",
                      params=[Parameter("slope", "rad", -1e-3, 1e-3, 1e-4)],
