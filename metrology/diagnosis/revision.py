@@ -41,8 +41,8 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
     crit = bic_eff(float(np.sum(r ** 2)), n, n_eff, sum(problem.effects[m].n_params for m in model))
     by_name = {st.effect: st for st in steps}
     budget = FitStop(deadline)
-    for st in list(steps):
-        rivals = [e for e in problem.effects[st.effect].rivals if e in problem.effects] if st.effect in model else []
+    for i, st in enumerate(list(steps)):
+        rivals = [e for e in problem.effects[st.effect].rivals if e in problem.effects]
         for alt in dict.fromkeys([*alternatives.get(st.effect, []), *rivals]):
             if alt in model or st.effect not in model or deadline.past():
                 continue
@@ -50,7 +50,7 @@ def revise(problem: Problem, model: dict[str, np.ndarray], errors: dict[str, np.
             if alt in rivals:
                 # Another form of the same cause: what was named after this one was fitted around
                 # the wrong form, a basin the rival's fit cannot leave; it restarts from null.
-                later = {s.effect for s in steps[steps.index(st) + 1:]} - set(nuisance)
+                later = {s.effect for s in steps[i + 1:]} - set(nuisance)
                 trial = {k: problem.effects[k].null_values() if k in later else v for k, v in trial.items()}
             trial[alt] = problem.effects[alt].start_values()
             fitted, rss, errs = fit_effects(problem, trial, list(trial), stop=budget)
