@@ -17,6 +17,7 @@ import numpy as np
 
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.effects import Effect, Parameter, get_effect
+from metrology.diagnosis.parallel import parallel_map
 from metrology.diagnosis.tiles import TiledCameraProblem
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
@@ -204,15 +205,24 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
     # whose criterion, bounded so from a fitted one, cannot beat the blur and fill factor alone
     # by the threshold is not fitted: a third of the stage where the family adds nothing.
     fits: dict[tuple[str, ...], tuple[float, dict[str, np.ndarray]]] = {}
-    for members in sorted(MEMBERS, key=len, reverse=True):
-        bounds = [fits[m][0] - (member_params(m) - member_params(members)) * np.log(n_eff) for m in fits
-                  if set(members) < set(m) and set(m) - set(members) <= set(NESTING)]
-        if bounds and max(bounds) >= current - threshold:
-            continue
-        problem = problem_of(members)
-        for start in member_starts(members, model, transfer):
-            fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
-            c = crit(problem, rss)
+    free_now = [*held]
+
+    def short(task):
+        problem, start, names = task
+        fitted, rss, _ = dg.fit_effects(problem, start, names, max_iter=12, central=False)
+        return crit(problem, rss), fitted
+
+    for wave in _waves(sorted(MEMBERS, key=len, reverse=True)):
+        tasks = []
+        for members in wave:
+            bounds = [fits[m][0] - (member_params(m) - member_params(members)) * np.log(n_eff) for m in fits
+                      if _nests(m, members)]
+            if bounds and max(bounds) >= current - threshold:
+                continue
+            problem = problem_of(members)
+            tasks += [(members, (problem, start, [*problem.nuisance, *free_now]))
+                      for start in member_starts(members, model, transfer)]
+        for (members, _), (c, fitted) in zip(tasks, _fit_all(plain, [t for _, t in tasks], short)):
             if members not in fits or c < fits[members][0]:
                 fits[members] = (c, fitted)
     # A combination that nests a fitted one is fitted again from the nested one's optimum, the
@@ -220,14 +230,13 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
     # end in another optimum (a CSI's objective and batwing: NA 0.51 against 0.36, -947 against
     # the objective alone's -1132, and a false etch loading paid for the difference).
     for members in [m for m in fits if len(m) > 1]:
-        inner = [m for m in fits if set(m) < set(members) and set(members) - set(m) <= set(NESTING)]
+        inner = [m for m in fits if _nests(members, m)]
         if not inner:
             continue
         best = min(inner, key=lambda m: fits[m][0])
         problem = problem_of(members)
         start = {**fits[best][1], BATWING: get_effect(BATWING).start_values()}  # the one member that nests
-        fitted, rss, _ = dg.fit_effects(problem, start, [*problem.nuisance, *held], max_iter=12, central=False)
-        c = crit(problem, rss)
+        c, fitted = short((problem, start, [*problem.nuisance, *free_now]))
         if c < fits[members][0]:
             fits[members] = (c, fitted)
     free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
@@ -235,14 +244,11 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
         log.info("instrument stage before %s were freed: %s", free,
                  {"+".join(m): round(c - current, 1) for m, (c, _) in fits.items()})
         extra = {k: plain.effects[k].start_values() for k in free}
-        model, rss, _ = dg.fit_effects(plain, {**model, **extra}, [CAMERA.name, *held, *free], max_iter=12,
-                                       central=False)
-        current = crit(plain, rss)
-        for members, (_, fitted) in list(fits.items()):
-            problem = problem_of(members)
-            again, rss, _ = dg.fit_effects(problem, {**fitted, **extra}, [*problem.nuisance, *held, *free],
-                                           max_iter=12, central=False)
-            fits[members] = (crit(problem, rss), again)
+        names = [*held, *free]
+        refits = [(plain, {**model, **extra}, [CAMERA.name, *names])]
+        refits += [(problem_of(m), {**fitted, **extra}, [*problem_of(m).nuisance, *names]) for m, (_, fitted) in fits.items()]
+        (current, model), *again = _fit_all(plain, refits, short)
+        fits = dict(zip(fits, again))
     changes = {"+".join(m): c - current for m, (c, _) in fits.items()}
     chosen = earned_members({m: c for m, (c, _) in fits.items()}, current, threshold)
     if chosen:
@@ -250,6 +256,34 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
         state = {k: k in chosen for k in state}
     log.info("instrument stage: %s (criterion changes %s)", state, {k: round(v, 1) for k, v in changes.items()})
     return state, _without(model, free), {k: float(v) for k, v in changes.items()}
+
+
+def _nests(outer: tuple[str, ...], inner: tuple[str, ...]) -> bool:
+    """Whether the combination ``outer`` holds ``inner`` as a special case: it adds only members
+    that can act as nothing (:data:`NESTING`), so its fit bounds ``inner``'s criterion."""
+    return set(inner) < set(outer) and set(outer) - set(inner) <= set(NESTING)
+
+
+def _waves(ordered: list[tuple[str, ...]]) -> list[list[tuple[str, ...]]]:
+    """``ordered`` (larger combinations first) in waves whose members' fits are independent:
+    each after every combination that nests it, whose fit may bound it out."""
+    waves: list[list[tuple[str, ...]]] = []
+    for members in ordered:
+        after = max((i for i, wave in enumerate(waves) for m in wave if _nests(m, members)), default=-1)
+        if after + 1 == len(waves):
+            waves.append([])
+        waves[after + 1].append(members)
+    return waves
+
+
+def _fit_all(plain: Any, tasks: list[Any], short: Callable[[Any], Any]) -> list[Any]:
+    """``short(task)`` of every task in its order: side by side where the problem's fits are
+    thread-safe (:func:`~metrology.diagnosis.parallel.parallel_map`), each then with its
+    Jacobian's columns in its own thread. The stage's short fits are independent of each other
+    within a wave, and their results do not depend on the threads (each fit is computed alone):
+    on a CSI file the Jacobians' two threads kept 1.35 cores busy, the fits' serial steps the rest."""
+    workers = None if getattr(plain, "parallel_fits", False) else 1
+    return list(parallel_map(short, tasks, workers))
 
 
 def _without(model: dict[str, np.ndarray], names: list[str]) -> dict[str, np.ndarray]:

@@ -389,9 +389,11 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
         # fabrication effect must not be blamed for what the instrument does.
         close = _close(scores, best, threshold)
         screened = dict(scores)
-        refits = {}
+        # Side by side, as the screening: each refit is computed alone (the same result in one
+        # thread or two), and two fits overlap each other's serial steps.
+        refits = dict(zip(close, parallel_map(lambda c: _converge(problem, screen, fits[c], list(model) + [c], budget),
+                                              close, workers)))
         for c in close:
-            refits[c] = _converge(problem, screen, fits[c], list(model) + [c], budget)
             scores[c] = bic_eff(refits[c][1], n, n_eff, k_now + problem.effects[c].n_params) - crit
         if budget.fired:
             stopped = _cut_short("its fit to convergence", close)
