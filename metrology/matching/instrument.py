@@ -88,8 +88,8 @@ ETCH_CACHE_BYTES = 1024 * 2 ** 20
 # Crops' models an instrument model keeps (:meth:`InstrumentModel.part`): an instrument stage's
 # window and a selection's screening square.
 PARTS_KEPT = 2
-#: Camera pixels' spline coordinates kept, one array per placement: a Jacobian's columns of the
-#: process sample new maps under the same placement.
+# Camera pixels' spline coordinates kept, one array per placement: a Jacobian's columns of the
+# process sample new maps under the same placement.
 COORDS_KEPT = 8
 
 
