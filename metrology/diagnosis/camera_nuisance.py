@@ -17,7 +17,7 @@ import numpy as np
 
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.effects import Effect, Parameter, get_effect
-from metrology.diagnosis.parallel import parallel_map
+from metrology.diagnosis.parallel import fit_workers, parallel_map
 from metrology.diagnosis.tiles import TiledCameraProblem
 from metrology.matching.instrument import MAX_BLUR_M, PLACEMENT_PARAMS
 from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
@@ -205,8 +205,6 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
     # whose criterion, bounded so from a fitted one, cannot beat the blur and fill factor alone
     # by the threshold is not fitted: a third of the stage where the family adds nothing.
     fits: dict[tuple[str, ...], tuple[float, dict[str, np.ndarray]]] = {}
-    free_now = [*held]
-
     def short(task):
         problem, start, names = task
         fitted, rss, _ = dg.fit_effects(problem, start, names, max_iter=12, central=False)
@@ -220,7 +218,7 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
             if bounds and max(bounds) >= current - threshold:
                 continue
             problem = problem_of(members)
-            tasks += [(members, (problem, start, [*problem.nuisance, *free_now]))
+            tasks += [(members, (problem, start, [*problem.nuisance, *held]))
                       for start in member_starts(members, model, transfer)]
         for (members, _), (c, fitted) in zip(tasks, _fit_all(plain, [t for _, t in tasks], short)):
             if members not in fits or c < fits[members][0]:
@@ -236,7 +234,7 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
         best = min(inner, key=lambda m: fits[m][0])
         problem = problem_of(members)
         start = {**fits[best][1], BATWING: get_effect(BATWING).start_values()}  # the one member that nests
-        c, fitted = short((problem, start, [*problem.nuisance, *free_now]))
+        c, fitted = short((problem, start, [*problem.nuisance, *held]))
         if c < fits[members][0]:
             fits[members] = (c, fitted)
     free = [k for k in STAGE_FREE if k not in held and k in getattr(plain, "effects", {})]
@@ -282,8 +280,7 @@ def _fit_all(plain: Any, tasks: list[Any], short: Callable[[Any], Any]) -> list[
     Jacobian's columns in its own thread. The stage's short fits are independent of each other
     within a wave, and their results do not depend on the threads (each fit is computed alone):
     on a CSI file the Jacobians' two threads kept 1.35 cores busy, the fits' serial steps the rest."""
-    workers = None if getattr(plain, "parallel_fits", False) else 1
-    return list(parallel_map(short, tasks, workers))
+    return list(parallel_map(short, tasks, fit_workers(plain)))
 
 
 def _without(model: dict[str, np.ndarray], names: list[str]) -> dict[str, np.ndarray]:

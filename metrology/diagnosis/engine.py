@@ -39,7 +39,7 @@ from doedesign.progress import Progress
 from metrology.diagnosis import budget as clock
 from metrology.diagnosis.budget import Deadline, FitStop
 from metrology.diagnosis.fitting import JAC_STEP, bic_eff, fit_effects, power_share, standard_errors
-from metrology.diagnosis.parallel import WORKERS, parallel_map
+from metrology.diagnosis.parallel import fit_workers, parallel_map
 from metrology.diagnosis.locate import locate_residual, partial_matches
 from metrology.diagnosis.problem import Problem
 from metrology.diagnosis.result import Diagnosis, Step
@@ -365,7 +365,7 @@ def run_diagnosis(problem: Problem, threshold: float = DEFAULT_THRESHOLD, max_st
                   iters=iters, quick=quick_screen, n_s=n_s, n_eff_s=n_eff_s, crit_s=crit_s, k_now=k_now, n_eff=n_eff,
                   power_s=float(np.sum(r_s ** 2)), floor_s=screen.noise.sigma,
                   prior=prior or {}, stop=budget)
-        workers = WORKERS if problem.parallel_fits else 1
+        workers = fit_workers(problem)
         # Those with the most parameters first (the longest fits): the workers then finish together.
         by_size = sorted(pending, key=lambda c: -problem.effects[c].n_params)
         with Progress(len(pending), desc=f"diagnosis step {len(steps) + 1}") as bar:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
-from metrology.diagnosis.parallel import WORKERS, parallel_map
+from metrology.diagnosis.parallel import fit_workers, parallel_map
 
 if TYPE_CHECKING:
     from metrology.diagnosis.problem import Problem
@@ -121,7 +121,7 @@ def fit_effects(problem: Problem, model: dict[str, np.ndarray], free: Sequence[s
     best: dict[str, Any] = {}  # the lowest-cost evaluation: where a fit that ``stop`` ends returns
     crawl = []  # the cost at each Jacobian's point
     held: dict[str, Any] = {}  # the last Jacobian: its point, residual, matrix, Broyden updates since a full one, evaluations
-    workers = WORKERS if problem.parallel_fits else 1
+    workers = fit_workers(problem)
 
     def fun(x):
         if np.array_equal(last.get("x"), x):
@@ -206,7 +206,7 @@ def standard_errors(problem: Problem, model: dict[str, np.ndarray], free: Sequen
     others held: one central-difference Jacobian, as :func:`fit_effects` reports them, without
     the solver's iterations."""
     effs, scale, lo, hi, x0, _, residual = _fit_setup(problem, model, free)
-    jac = _jacobian(residual, x0, lo, hi, True, WORKERS if problem.parallel_fits else 1)
+    jac = _jacobian(residual, x0, lo, hi, True, fit_workers(problem))
     return _split(effs, _errors(problem, residual(x0), jac, scale))
 
 

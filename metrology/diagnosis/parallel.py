@@ -30,7 +30,7 @@ from typing import Any
 
 from doedesign.engine.threaded_fft import cpu_threads
 
-__all__ = ["WORKERS", "in_worker", "one_thread", "parallel_map"]
+__all__ = ["WORKERS", "fit_workers", "in_worker", "one_thread", "parallel_map"]
 
 #: Threads that share the work: beyond two the Python-level part of each evaluation, which holds
 #: the GIL, leaves little to gain (and the machines this is measured on have two cores).
@@ -78,6 +78,12 @@ def one_thread() -> Iterator[None]:
                 _one_state["limits"].restore_original_limits()
                 OpenBLASController.clear_controlling_thread(force=True)
                 _one_state["limits"] = None
+
+
+def fit_workers(problem: Any) -> int:
+    """Threads for ``problem``'s independent fits and Jacobian columns: :data:`WORKERS` where its
+    renders are safe to share between threads (``parallel_fits``), else 1."""
+    return WORKERS if getattr(problem, "parallel_fits", False) else 1
 
 
 def in_worker() -> bool:

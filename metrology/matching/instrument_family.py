@@ -121,7 +121,7 @@ def fit_instrument_family(fit: Callable[..., InstrumentFit], height_m: np.ndarra
     """
     from metrology.diagnosis import engine as dg
     from metrology.diagnosis.camera_nuisance import BATWING, choose_transfer
-    from metrology.diagnosis.parallel import WORKERS, parallel_map
+    from metrology.diagnosis.parallel import fit_workers, parallel_map
 
     whole = fit(fill=1.0, start=None)
     # Point samples start from the blur of the same second moment (the box's variance added).
@@ -181,8 +181,8 @@ def fit_instrument_family(fit: Callable[..., InstrumentFit], height_m: np.ndarra
     # Each start to the criterion's tolerances (a third of a precise fit's evaluations): enough
     # to tell which optimum it reaches (rss 5.4e-14 against 2.6e-14 on a CSI null). The starts
     # are fitted side by side (each fit alone: the same results in one thread or two).
-    for s, (fitted, rss, _) in zip(starts, parallel_map(lambda s: dg.fit_effects(problem, s, free), starts,
-                                                                         WORKERS if problem.parallel_fits else 1)):
+    fits = parallel_map(lambda s: dg.fit_effects(problem, s, free), starts, fit_workers(problem))
+    for s, (fitted, rss, _) in zip(starts, fits):
         log.info("compare: instrument members refitted from %s: rss %.4g", {k: np.round(v, 9).tolist() for k, v in s.items()
                                                                             if k != "camera"}, rss)
         if best is None or rss < best[1]:

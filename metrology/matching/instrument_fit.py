@@ -242,6 +242,12 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
     if passes < 1:
         raise DoeError(f"instrument-frame fit: passes must be at least 1, got {passes}")
     res = maps = leveller = None
+
+    # The finite-difference Jacobian's columns in threads (the same evaluations in any order:
+    # the same fit); its serial columns were a fifth of a CSI file's serial time.
+    def columns(f, xs):
+        return list(parallel_map(f, xs))
+
     for k in range(passes):
         maps = _MaskMaps(model, levels, pitch_m, x[i_bias:i_blur] * _UM, max(x[i_blur], 0.02) * _UM, fill, transfer,
                          None if batwing is None else tuple(float(v) for v in batwing))
@@ -261,11 +267,6 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
 
         def fun(p, render=render, leveller=leveller, keep=keep):
             return leveller(crop[keep] - render(p)[keep]) / _H
-
-        # The finite-difference Jacobian's columns in threads (the same evaluations in any order:
-        # the same fit); its serial columns were a fifth of a CSI file's serial time.
-        def columns(f, xs):
-            return list(parallel_map(f, xs))
 
         res = optimize.least_squares(fun, x, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=400,
                                      workers=columns)

@@ -11,7 +11,7 @@ import pytest
 import filegen
 from doedesign.errors import DoeError
 from masks.process import ProcessParams
-from metrology.diagnosis import fitting
+from metrology.diagnosis import fitting, parallel
 from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.parallel import in_worker, parallel_map
@@ -116,9 +116,9 @@ def test_a_camera_fit_is_the_same_in_threads_as_in_one_thread(monkeypatch):
                  **{n: problem.effects[n].start_values() for n in names}}
         return fitting.fit_effects(problem, start, [CAMERA.name, *names], max_iter=3)
 
-    monkeypatch.setattr(fitting, "WORKERS", 2)
+    monkeypatch.setattr(parallel, "WORKERS", 2)
     threaded = fit()
-    monkeypatch.setattr(fitting, "WORKERS", 1)
+    monkeypatch.setattr(parallel, "WORKERS", 1)
     alone = fit()
     assert threaded[1] == alone[1]
     for name in threaded[0]:

@@ -76,12 +76,9 @@ def test_the_same_file_gives_the_same_answer_idle_and_beside_a_cpu_hog_with_one_
     # Beside a busy process (both cores contended), with the fits' worker threads cut to one and
     # the BLAS pool set to two threads before the command (another machine's default): the same
     # names and parameters, bit for bit (the command runs on one BLAS thread whatever it finds).
-    import metrology.diagnosis.engine as engine
-    import metrology.diagnosis.fitting as fitting
     import metrology.diagnosis.parallel as parallel
 
-    for module in (engine, fitting, parallel):
-        monkeypatch.setattr(module, "WORKERS", 1)
+    monkeypatch.setattr(parallel, "WORKERS", 1)  # read at each call (fit_workers, parallel_map)
     from threadpoolctl import threadpool_limits
 
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
