@@ -3,7 +3,9 @@
 On the camera window with the most design edges (cropped, never resampled), the measurement model
 is part of the fitted model (:class:`~metrology.diagnosis.camera.CameraHeightProblem`): the
 instrument stage chooses the lateral transfer's family members first
-(:func:`~metrology.diagnosis.camera_nuisance.choose_transfer`), then the stepwise selection
+(:func:`~metrology.diagnosis.camera_nuisance.choose_transfer`; or the comparison's stage has,
+on a larger window with its members fitted to convergence, and they start the diagnosis), then
+the stepwise selection
 (:func:`~metrology.diagnosis.engine.run_diagnosis`) names the effects. Spikes and invalid pixels
 are excluded by a robust rule on the residual of the model that explains the data; the selection
 runs again if the final model re-admits pixels, and the stage again once large fabrication effects
@@ -25,7 +27,7 @@ from metrology.diagnosis import budget as clock
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.breakdown import shared_profile_gain
 from metrology.diagnosis.camera import CAMERA, CameraHeightProblem
-from metrology.diagnosis.camera_nuisance import RESTAGE_WINDOW_PX, STAGE_WINDOW_PX, choose_transfer
+from metrology.diagnosis.camera_nuisance import RESTAGE_WINDOW_PX, STAGE_WINDOW_PX, InstrumentFamily, choose_transfer
 from metrology.diagnosis.effects import effects_for
 from metrology.diagnosis.parallel import one_thread
 from metrology.diagnosis.tiles import TILED_WINDOW_PX, TiledCameraProblem
@@ -67,7 +69,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                     step_m: float | None = None, screen: tuple[ProcessParams, float] | None = None,
                     screen_window_px: int = SCREEN_WINDOW_PX, transfer: LateralTransfer | None = None,
                     limit: clock.Deadline | None = None,
-                    batwing: Sequence[float] | None = None) -> dg.Diagnosis:
+                    batwing: Sequence[float] | None = None, family: InstrumentFamily | None = None) -> dg.Diagnosis:
     """Diagnose a measured height map on the camera's own pixels.
 
     Parameters
@@ -94,6 +96,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         once they hold most of the residual, the selection going on through a family that grew).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held with its transfer.
+    family : InstrumentFamily, optional
+        The members of the lateral transfer's family a comparison's instrument stage chose on the
+        same field, with their values fitted to convergence on its window: where it chose any, the
+        diagnosis starts from them instead of choosing again on its own smaller square (the
+        stage again once fabrication effects are named still runs).
     limit : Deadline, optional
         A limit the user asked for (default none: every pass runs to its end). Past it no further
         round or revision starts and one under way stops
@@ -127,7 +134,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                     transfer=as_transfer(screen_blur), **held)
         keep = robust_valid(first.residual_map({CAMERA.name: np.zeros(5)}), finite)
         diag = problem = fit = None
-        extras, prior, instrument_stage, noise = {}, None, None, first.noise
+        extras, prior, instrument_stage, noise, chosen_by = {}, None, None, first.noise, None
 
         def make(keep, **extras):
             # The floor is the measurement's, estimated on the screening model's residual (not the
@@ -143,10 +150,16 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
             # The instrument stage (:func:`~metrology.diagnosis.camera_nuisance.choose_transfer`) on the busiest square, then the floor
             # again through what it chose beyond blur and fill (an objective or a batwing rings into
             # the interiors), only ever lowered: a higher one is process error leaking in.
-            stage_px = min(size, RESTAGE_WINDOW_PX if named else STAGE_WINDOW_PX)
-            chosen, fitted, changes = choose_transfer(
-                lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
-                threshold, named)
+            if named is None and family is not None and any(family.chosen().values()):
+                chosen, fitted, changes = family.chosen(), family.start(), dict(family.criterion_changes)
+                log.info("instrument stage: the comparison's %s, from its fit on the field", chosen)
+                source = "the comparison's instrument stage (on its window, refitted to convergence)"
+            else:
+                stage_px = min(size, RESTAGE_WINDOW_PX if named else STAGE_WINDOW_PX)
+                chosen, fitted, changes = choose_transfer(
+                    lambda **kw: make(keep, **kw)[0].crop(stage_px) if size > stage_px else make(keep, **kw)[1],
+                    threshold, named)
+                source = f"the diagnosis's instrument stage (on its {stage_px} px square)"
             floor = noise
             if any(chosen.values()):
                 seen = (make(keep, **chosen)[0] if named else
@@ -155,11 +168,11 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                 again = seen.noise_at(fitted)
                 log.info("noise floor %.3g m after the instrument stage (%.3g m before)", again.sigma, noise.sigma)
                 floor = min(noise, again, key=lambda e: e.sigma)
-            return chosen, fitted, changes, floor
+            return chosen, fitted, changes, floor, source
 
         if transfer is None:
             bar.stage("instrument stage: the lateral transfer's family")
-            extras, prior, instrument_stage, noise = stage()
+            extras, prior, instrument_stage, noise, chosen_by = stage()
         bar.update(1)
         done, carried = None, ()  # the last pass that ran to its end: (problem, fit, keep, diagnosis)
         restaged = transfer is not None
@@ -202,7 +215,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
                                         quick_screen=True, stop_at_floor=False, prior=diag.model if diag else prior,
                                         limit=deadline, after_step=restage, carried=carried)
             except _Restage as again:
-                (extras, prior, instrument_stage, noise), carried = again.args
+                (extras, prior, instrument_stage, noise, chosen_by), carried = again.args
                 diag = None
                 continue
             carried = ()  # a rerun on re-admitted pixels selects afresh
@@ -233,6 +246,7 @@ def diagnose_camera(design_levels: np.ndarray, pitch_m: float, measured_height_m
         diag.placement = problem.placement_report(diag.model, errors)
         if instrument_stage is not None:
             diag.placement["instrument"]["criterion_change"] = instrument_stage
+            diag.placement["instrument"]["members_chosen_by"] = chosen_by
         diag.excluded_pixels = int(np.isfinite(crop).sum() - keep.sum())
         diag.window_camera_px = [r0, r0 + size, c0, c0 + size]
         bar.update(1, ", ".join(diag.named) or "nothing named")

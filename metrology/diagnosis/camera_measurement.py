@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from doedesign.errors import DoeError
 from metrology.diagnosis import engine as dg
 from metrology.diagnosis.camera_diagnosis import diagnose_camera
+from metrology.diagnosis.camera_nuisance import InstrumentFamily
 from metrology.matching.transfer import LateralTransfer
 
 if TYPE_CHECKING:
@@ -79,10 +80,13 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
     depths = process_depths_m(design, depths_m, source)
     # The comparison's placement was refined in the camera's frame (same measurement model).
     fit = comp.instrument_fit
+    stage = (comp.instrument_family or {}).get("stage", {})
+    family = (InstrumentFamily(fit.transfer, fit.batwing, stage.get("criterion_changes", {}))
+              if transfer is None and stage.get("members") else None)
     diag = diagnose_camera(design_levels(design), design.pitch_m, measurement.height_m, fit.placement,
                            depths_m=depths, candidates=candidates, threshold=threshold, window_px=window_px,
                            screen=(comp.fitted_params(), fit.blur_sigma_m), transfer=transfer,
-                           batwing=batwing, limit=limit)
+                           batwing=batwing, limit=limit, family=family)
     return diag, {"frame": "camera", "window_camera_px": diag.window_camera_px, "placement": diag.placement,
                   "excluded_pixels": diag.excluded_pixels,
                   "registration_ncc": getattr(comp.registration, "match_ncc", None), "nominal_depths_m": depths,

@@ -10,7 +10,8 @@ NA-limited transfer (:data:`OBJECTIVE`) and the batwing join it when the data as
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -25,7 +26,7 @@ from metrology.matching.transfer import NA_BOUNDS, LateralTransfer
 if TYPE_CHECKING:
     from metrology.diagnosis.camera import CameraHeightProblem
 
-__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "RESTAGE_WINDOW_PX",
+__all__ = ["BATWING", "CAMERA", "DEFAULT_TRANSFER", "InstrumentFamily", "MEMBERS", "NESTING", "OBJECTIVE", "PLACED", "RESTAGE_WINDOW_PX",
            "STAGE_FREE", "STAGE_WINDOW_PX",
            "choose_transfer", "earned_members", "instrument_report", "member_params", "member_starts",
            "objective_starts", "placement_report"]
@@ -113,6 +114,41 @@ def instrument_report(t: LateralTransfer, sigma_err_m: float = np.nan, fill_err:
             "fill_factor": t.fill_factor, "fill_factor_uncertainty": float(fill_err),
             "na": t.na, "na_uncertainty": float(na_err), "wavelength_m": t.wavelength_m,
             "source": "calibration (held fixed)" if calibrated else "fitted with the placement"}
+
+
+@dataclass(frozen=True)
+class InstrumentFamily:
+    """The lateral transfer's family members an instrument stage chose and their fitted values
+    (``doe compare``'s stage, refitted to convergence on its window,
+    :func:`metrology.matching.instrument_family.fit_instrument_family`).
+
+    Attributes
+    ----------
+    transfer : LateralTransfer
+        Blur, fill factor and the objective's NA (0: no objective chosen).
+    batwing : (float, float) or None
+        The batwing (amplitude, sigma_m), where chosen.
+    criterion_changes : dict
+        The stage's criterion change of each combination it tried (``"objective"``, ...).
+    """
+
+    transfer: LateralTransfer
+    batwing: Sequence[float] | None = None
+    criterion_changes: dict[str, float] = field(default_factory=dict)
+
+    def chosen(self) -> dict[str, bool]:
+        """The ``objective`` and ``batwing`` flags of a camera problem (:func:`choose_transfer`'s)."""
+        return {"objective": self.transfer.na > 0, "batwing": self.batwing is not None}
+
+    def start(self) -> dict[str, np.ndarray]:
+        """The nuisances' values at the start placement: what :func:`choose_transfer` returns."""
+        t = self.transfer
+        model = {CAMERA.name: np.array([0.0, 0.0, 0.0, 0.0, 0.0, t.sigma_m, t.fill_factor])}
+        if t.na > 0:
+            model[OBJECTIVE.name] = np.array([t.na])
+        if self.batwing is not None:
+            model[BATWING] = np.array(self.batwing, float)
+        return model
 
 
 def objective_starts(model: dict[str, np.ndarray], transfer: LateralTransfer) -> list[dict[str, np.ndarray]]:

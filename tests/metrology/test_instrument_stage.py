@@ -142,3 +142,45 @@ def test_a_member_an_etch_depth_pays_for_is_not_chosen(monkeypatch):
     assert again == {(), ("objective",), ("batwing",), ("objective", "batwing")}
     assert "etch_depth" not in model and "mask_overlay" in model
     assert min(changes.values()) > -10.0
+
+
+class _Started(Exception):
+    """Raised by the stand-in selection once it has seen its problem and start."""
+
+
+def test_a_comparisons_family_starts_the_diagnosis_without_a_second_stage(monkeypatch):
+    # Issue 50: the comparison fits the family's members to convergence on its window; the
+    # diagnosis's own short fits on a 96 px square ended at fill 0 +- 0.14 for a 0.96 (CSI null,
+    # benchmark seed 567376861). Its values start the selection, and no stage runs first.
+    import filegen
+    import metrology.diagnosis.camera_diagnosis as cam
+    from metrology.matching.instrument import Placement
+
+    case = filegen.make_case([], 11, design_px=40, field_px=130)
+    placement = Placement(np.asarray(case.instrument["matrix"]), np.asarray(case.instrument["offset"]))
+    family = cn.InstrumentFamily(LateralTransfer(0.1e-6, 0.9, 0.4, 0.55e-6), (0.1, 0.25e-6), {"objective+batwing": -50.0})
+    seen = {}
+
+    def stage(*args, **kw):
+        raise AssertionError("the instrument stage ran again")
+
+    def run(fit, **kw):
+        seen.update(nuisance=sorted(fit.nuisance), prior=kw["prior"])
+        raise _Started
+
+    monkeypatch.setattr(cam, "choose_transfer", stage)
+    monkeypatch.setattr(cam.dg, "run_diagnosis", run)
+    with pytest.raises(_Started):
+        cam.diagnose_camera(case.levels, filegen.PITCH_M, case.height_m, placement, candidates=["etch_depth"],
+                            window_px=96, family=family)
+    assert seen["nuisance"] == sorted([cn.CAMERA.name, cn.OBJECTIVE.name, cn.BATWING])
+    prior = seen["prior"]
+    assert prior[cn.CAMERA.name].tolist() == [0.0, 0.0, 0.0, 0.0, 0.0, 0.1e-6, 0.9]
+    assert prior[cn.OBJECTIVE.name].tolist() == [0.4]
+    assert prior[cn.BATWING].tolist() == [0.1, 0.25e-6]
+
+
+def test_a_family_without_members_leaves_the_choice_to_the_diagnosis():
+    family = cn.InstrumentFamily(LateralTransfer(0.3e-6, 1.0, 0.0, 0.55e-6))
+    assert family.chosen() == {"objective": False, "batwing": False}
+    assert sorted(family.start()) == [cn.CAMERA.name]
