@@ -143,7 +143,8 @@ class InstrumentFamily:
     def start(self) -> dict[str, np.ndarray]:
         """The nuisances' values at the start placement: what :func:`choose_transfer` returns."""
         t = self.transfer
-        model = {CAMERA.name: np.array([0.0, 0.0, 0.0, 0.0, 0.0, t.sigma_m, t.fill_factor])}
+        # No refinement of the placement: the diagnosis's start placement is the comparison's.
+        model = {CAMERA.name: np.array([*np.zeros(len(PLACEMENT_PARAMS)), t.sigma_m, t.fill_factor])}
         if t.na > 0:
             model[OBJECTIVE.name] = np.array([t.na])
         if self.batwing is not None:
