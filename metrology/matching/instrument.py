@@ -88,6 +88,9 @@ ETCH_CACHE_BYTES = 1024 * 2 ** 20
 # Crops' models an instrument model keeps (:meth:`InstrumentModel.part`): an instrument stage's
 # window and a selection's screening square.
 PARTS_KEPT = 2
+# Factors of the objective's transfer kept (pixel footprint, blur, optical transfer): a
+# Jacobian's values of the instrument's parameters.
+TRANSFER_FACTORS_KEPT = 24
 # Camera pixels' spline coordinates kept, one array per placement: a Jacobian's columns of the
 # process sample new maps under the same placement.
 COORDS_KEPT = 8
@@ -148,6 +151,8 @@ class InstrumentModel:
         self._unit_spectra = ArrayCache(cache_bytes, max_items=8)
         self._coords = ArrayCache(cache_bytes // 8, max_items=COORDS_KEPT)
         self._transfers = transfers if transfers is not None else self.transfer_cache()
+        # The objective's transfer's factors (pixel, blur, optical transfer) on this model's grid.
+        self._transfer_factors = ArrayCache(ETCH_CACHE_BYTES // 4, max_items=TRANSFER_FACTORS_KEPT)
         # The last transfer with edge responses beside it: (transfer, beside, sum).
         self._beside: tuple[Any, tuple[np.ndarray, ...], np.ndarray] | None = None
         self._parts: OrderedDict = OrderedDict()  # :meth:`part`'s models, the newest last
@@ -419,12 +424,16 @@ class InstrumentModel:
         """
         t = as_transfer(transfer)
         key = (shape, t)
-        if self._transfers.get(key) is None:
+        spectrum = self._transfers.get(key)
+        if spectrum is None:
             wr, wc = self.fourier_grid()
+            prefilter = ((6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32),
+                         (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32))
             if t.na > 0:
+                # Zero beyond the cut-off: the prefilter applied on the block inside it (the same numbers).
                 spectrum = objective_spectrum(self.placement.matrix, self.pitch_m, self.step_m, t,
                                               wr / (2 * np.pi * self.step_m), wc / (2 * np.pi * self.step_m),
-                                              np.complex64)
+                                              np.complex64, weights=prefilter, factors=self._transfer_factors)
             else:
                 kernel = footprint_kernel(self.placement.matrix, self.pitch_m, self.step_m, t.sigma_m,
                                           t.fill_factor)
@@ -435,10 +444,10 @@ class InstrumentModel:
                 offsets = np.arange(-k, k + 1)
                 wrapped[np.ix_(offsets % shape[0], offsets % shape[1])] = kernel[::-1, ::-1]
                 spectrum = sfft.rfft2(wrapped, overwrite_x=True)
-            spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
-            spectrum *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
+                spectrum *= prefilter[0][:, None]
+                spectrum *= prefilter[1][None, :]
             self._transfers.put(key, spectrum)
-        return self._transfers.get(key)
+        return spectrum
 
     def covers(self, placement: Placement, sigma_m: float | LateralTransfer) -> bool:
         """Whether every camera pixel under ``placement`` reads only the rendered window: its

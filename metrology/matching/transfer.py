@@ -48,6 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
+from metrology.matching.array_cache import ArrayCache
+
 __all__ = ["DEFAULT_WAVELENGTH_M", "NA_BOUNDS", "LateralTransfer", "as_transfer", "footprint_kernel",
            "footprint_spectrum", "kernel_half_width", "na_mtf", "objective_spectrum"]
 
@@ -197,29 +199,63 @@ def footprint_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, sigma_
     ndarray
         The transfer (real: the kernel is centred and symmetric), 1 at zero frequency.
     """
-    sigma_m = max(float(sigma_m), 0.0)
-    m = _footprint(matrix, pitch_m, fill_factor)
     nu_r, nu_c = np.asarray(nu_r, float), np.asarray(nu_c, float)
-    # The footprint is m @ [u, v] over the unit square centred at 0: a sinc per edge vector.
+    return _pixel_factor(matrix, pitch_m, step_m, fill_factor, nu_r, nu_c) * _blur_factor(sigma_m, nu_r, nu_c)
+
+
+def _pixel_factor(matrix, pitch_m, step_m, fill_factor, nu_r, nu_c):
+    """:func:`footprint_spectrum`'s fine cell and pixel footprint: the footprint is ``m @ [u, v]``
+    over the unit square centred at 0, a sinc per edge vector."""
+    m = _footprint(matrix, pitch_m, fill_factor)
     return (np.sinc(nu_r * step_m) * np.sinc(nu_c * step_m)
-            * np.sinc(nu_r * m[0, 0] + nu_c * m[1, 0]) * np.sinc(nu_r * m[0, 1] + nu_c * m[1, 1])
-            * np.exp(-2.0 * np.pi ** 2 * sigma_m ** 2 * (nu_r ** 2 + nu_c ** 2)))
+            * np.sinc(nu_r * m[0, 0] + nu_c * m[1, 0]) * np.sinc(nu_r * m[0, 1] + nu_c * m[1, 1]))
+
+
+def _blur_factor(sigma_m, nu_r, nu_c):
+    """:func:`footprint_spectrum`'s Gaussian blur."""
+    return np.exp(-2.0 * np.pi ** 2 * max(float(sigma_m), 0.0) ** 2 * (nu_r ** 2 + nu_c ** 2))
 
 
 def objective_spectrum(matrix: np.ndarray, pitch_m: float, step_m: float, transfer: LateralTransfer,
-                       nu_r: np.ndarray, nu_c: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+                       nu_r: np.ndarray, nu_c: np.ndarray, dtype: type = np.float64,
+                       weights: tuple[np.ndarray, np.ndarray] | None = None,
+                       factors: ArrayCache | None = None) -> np.ndarray:
     """The whole lateral transfer under an objective on a fine grid's Fourier grid:
     :func:`footprint_spectrum` times :func:`na_mtf`, evaluated inside the cut-off only (0 beyond).
 
     ``nu_r`` and ``nu_c`` (1-D, cycles/m) are the grid's frequencies along rows and columns; the
     result has shape ``(nu_r.size, nu_c.size)``, in ``dtype``. Only the block of rows and columns
     within the cut-off is computed (the rest of the grid, up to its Nyquist frequency, is 0).
+    ``weights``: per row and per column factors (of ``dtype``'s precision) the result is then
+    multiplied by, in that order (a spline prefilter), on the block alone. ``factors``: a store of
+    the three factors (pixel footprint, blur, optical transfer), each kept per the parameters it
+    depends on (the grid and ``matrix`` among them; one ``pitch_m`` and ``step_m`` per store): a Jacobian column of the blur, fill factor or NA recomputes
+    that factor alone. The same numbers either way.
     """
     cutoff = transfer.cutoff_per_m
     nu_r, nu_c = np.ravel(nu_r), np.ravel(nu_c)
     rows, cols = np.flatnonzero(np.abs(nu_r) < cutoff), np.flatnonzero(np.abs(nu_c) < cutoff)
     r, c = nu_r[rows][:, None], nu_c[cols][None, :]
+    block = (nu_r.size, nu_c.size, rows.size, cols.size)  # the grid and, with it, the cut-off's block
+
+    def factor(key, make):
+        if factors is None:
+            return make()
+        value = factors.get(key)
+        if value is None:
+            value = make()
+            factors.put(key, value)
+        return value
+
+    pixel = factor(("pixel", block, np.asarray(matrix, float).tobytes(), transfer.fill_factor),
+                   lambda: _pixel_factor(matrix, pitch_m, step_m, transfer.fill_factor, r, c))
+    blur = factor(("blur", block, transfer.sigma_m), lambda: _blur_factor(transfer.sigma_m, r, c))
+    mtf = factor(("mtf", block, transfer.na, transfer.wavelength_m),
+                 lambda: na_mtf(np.hypot(r, c), transfer.na, transfer.wavelength_m))
+    inside = (pixel * blur * mtf).astype(dtype)
+    if weights is not None:
+        inside *= weights[0][rows][:, None]
+        inside *= weights[1][cols][None, :]
     out: np.ndarray = np.zeros((nu_r.size, nu_c.size), dtype)
-    out[np.ix_(rows, cols)] = (footprint_spectrum(matrix, pitch_m, step_m, transfer.sigma_m, transfer.fill_factor, r, c)
-                               * na_mtf(np.hypot(r, c), transfer.na, transfer.wavelength_m))
+    out[np.ix_(rows, cols)] = inside
     return out

@@ -172,3 +172,27 @@ def test_a_step_through_pixel_and_objective_is_the_continuous_convolution(sigma,
     x = _camera_cols_m(model) - edge * model.step_m
     near = np.abs(x) < 8e-6
     assert np.abs(got - np.interp(x, xs, image))[near].max() < 1e-11
+
+
+def test_the_objective_transfer_from_kept_factors_is_the_plain_product_bit_for_bit():
+    """A Jacobian's columns of blur, fill factor and NA reuse the factors the others left; the
+    transfer is still footprint x blur x chinese hat x the spline prefilter, the same bits."""
+    from metrology.matching.transfer import footprint_spectrum, na_mtf
+
+    matrix = np.array([[0.16, 0.003], [-0.003, 0.158]])
+    model = InstrumentModel(np.zeros((30, 30), int), PITCH, (40, 40), Placement(matrix, np.array([8.0, 8.0])))
+    _, shape = model._padding()
+    wr, wc = model.fourier_grid()
+    nu_r, nu_c = wr / (2 * np.pi * model.step_m), wc / (2 * np.pi * model.step_m)
+    base = LateralTransfer(0.3e-6, 0.7, 0.45)
+    for t in [base, LateralTransfer(0.31e-6, 0.7, 0.45), LateralTransfer(0.3e-6, 0.72, 0.45),
+              LateralTransfer(0.3e-6, 0.7, 0.47), base]:
+        plain = (footprint_spectrum(matrix, PITCH, model.step_m, t.sigma_m, t.fill_factor, nu_r[:, None], nu_c[None, :])
+                 * na_mtf(np.hypot(nu_r[:, None], nu_c[None, :]), t.na, t.wavelength_m))
+        plain[(np.abs(nu_r) >= t.cutoff_per_m)[:, None] | (np.abs(nu_c) >= t.cutoff_per_m)[None, :]] = 0.0
+        expected = plain.astype(np.complex64)
+        expected *= (6.0 / (4.0 + 2.0 * np.cos(wr))).astype(np.float32)[:, None]
+        expected *= (6.0 / (4.0 + 2.0 * np.cos(wc))).astype(np.float32)[None, :]
+        got = model._transfer(shape, t)
+        assert got.dtype == np.complex64
+        assert np.array_equal(got.view(np.float32), expected.view(np.float32))
