@@ -144,6 +144,58 @@ def test_a_member_an_etch_depth_pays_for_is_not_chosen(monkeypatch):
     assert min(changes.values()) > -10.0
 
 
+def test_a_whole_left_above_the_objective_once_the_depths_are_freed_is_fitted_again(monkeypatch):
+    # A CSI null (benchmark seed 1107046601; NA 0.43, a 0.105 batwing at 0.21 um): once the
+    # depths were freed, the whole's short refit ended above the objective alone (-3371 against
+    # -3388), which it nests, so the objective was chosen without its batwing and the diagnosis
+    # stopped at "instrument model inadequate", 1.44x the floor. Fitted again from the
+    # objective's optimum (depths included), the whole reaches the lower RSS and is chosen; a
+    # combination that already lies below what it nests is not refitted.
+    fits = []
+
+    class _WithDepth(_Problem):
+        effects = {"etch_depth": get_effect("etch_depth")}
+
+    def fit(problem, start, free, **kw):
+        depth = "etch_depth" in free
+        tagged = "tag" in start
+        fits.append((problem.members, depth, tagged))
+        if not depth:
+            rss = {(): 1.0, ("objective",): 0.96, ("batwing",): 0.95, ("objective", "batwing"): 0.955}
+            return dict(start), rss[problem.members], {}
+        if problem.members == ("objective",):
+            return {**start, "tag": np.zeros(1)}, 0.90, {}
+        if problem.members == ("objective", "batwing"):
+            return dict(start), 0.85 if tagged else 0.905, {}
+        return dict(start), {(): 0.99, ("batwing",): 0.93}[problem.members], {}
+
+    monkeypatch.setattr(dg, "fit_effects", fit)
+    chosen, _, changes = cn.choose_transfer(lambda objective, batwing: _WithDepth(
+        [m for m, on in (("objective", objective), ("batwing", batwing)) if on]), 10.0, {"mask_overlay": np.zeros(3)})
+    assert (("objective", "batwing"), True, True) in fits  # the whole again, from the objective's optimum
+    assert [f for f in fits if f[1] and f[0] == ("objective", "batwing")] == [
+        (("objective", "batwing"), True, False), (("objective", "batwing"), True, True)]
+    assert chosen == {"objective": True, "batwing": True}
+    assert changes["objective+batwing"] < changes["objective"] - 10.0
+
+
+def test_a_whole_below_what_it_nests_is_not_fitted_again_once_the_depths_are_freed(monkeypatch):
+    fits = []
+
+    class _WithDepth(_Problem):
+        effects = {"etch_depth": get_effect("etch_depth")}
+
+    def fit(problem, start, free, **kw):
+        fits.append((problem.members, "etch_depth" in free))
+        rss = {(): 1.0, ("objective",): 0.96, ("batwing",): 0.95, ("objective", "batwing"): 0.94}[problem.members]
+        return dict(start), rss - (0.05 if "etch_depth" in free else 0.0), {}
+
+    monkeypatch.setattr(dg, "fit_effects", fit)
+    cn.choose_transfer(lambda objective, batwing: _WithDepth(
+        [m for m, on in (("objective", objective), ("batwing", batwing)) if on]), 10.0, {"mask_overlay": np.zeros(3)})
+    assert fits.count((("objective", "batwing"), True)) == 1
+
+
 class _Started(Exception):
     """Raised by the stand-in selection once it has seen its problem and start."""
 
