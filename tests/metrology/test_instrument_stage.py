@@ -35,6 +35,12 @@ class _Problem:
         return LateralTransfer(0.4e-6, 1.0, 0.0, 0.55e-6)
 
 
+class _WithDepth(_Problem):
+    """A problem whose fabrication effects include every mask's etch depth (:data:`~metrology.diagnosis.camera_nuisance.STAGE_FREE`)."""
+
+    effects = {"etch_depth": get_effect("etch_depth")}
+
+
 def _choose(monkeypatch, rss_of):
     """Run the stage with each combination's RSS given; return its choice and the combinations fitted."""
     fitted = []
@@ -122,9 +128,6 @@ def test_a_member_an_etch_depth_pays_for_is_not_chosen(monkeypatch):
     # criteria choose: here the depth holds all the objective earned.
     fits = []
 
-    class _WithDepth(_Problem):
-        effects = {"etch_depth": get_effect("etch_depth")}
-
     def fit(problem, start, free, **kw):
         depth = "etch_depth" in free
         fits.append((problem.members, depth, "etch_depth" in start))
@@ -153,9 +156,6 @@ def test_a_whole_left_above_the_objective_once_the_depths_are_freed_is_fitted_ag
     # combination that already lies below what it nests is not refitted.
     fits = []
 
-    class _WithDepth(_Problem):
-        effects = {"etch_depth": get_effect("etch_depth")}
-
     def fit(problem, start, free, **kw):
         depth = "etch_depth" in free
         tagged = "tag" in start
@@ -181,9 +181,6 @@ def test_a_whole_left_above_the_objective_once_the_depths_are_freed_is_fitted_ag
 
 def test_a_whole_below_what_it_nests_is_not_fitted_again_once_the_depths_are_freed(monkeypatch):
     fits = []
-
-    class _WithDepth(_Problem):
-        effects = {"etch_depth": get_effect("etch_depth")}
 
     def fit(problem, start, free, **kw):
         fits.append((problem.members, "etch_depth" in free))
