@@ -178,7 +178,7 @@ def choose_transfer(make: Callable[..., CameraHeightProblem | TiledCameraProblem
     only when they beat each alone by as much). Where one earns, every combination and the
     blur and fill factor alone are fitted again with the effects of :data:`STAGE_FREE` free
     (a combination then left above one it nests fitted once more from that one's optimum:
-    :func:`_refit_nested`), and those criteria choose (the effects left out of what this returns). Short fits with
+    ``_refit_nested``), and those criteria choose (the effects left out of what this returns). Short fits with
     forward differences: the diagnosis refits the nuisances to convergence from what this
     returns.
 
