@@ -134,7 +134,7 @@ def calibrate_instrument(design: Design, measurement: Measurement, depths_m: Seq
     from metrology.matching.window import busiest_camera_window
 
     try:
-        comp = compare_measurement(measurement, design, force=force)
+        comp = compare_measurement(measurement, design, force=force, texture=False)
     except DoeError as exc:
         raise DoeError(f"{source}: {exc}") from None
     levels = design_levels(design)

@@ -220,7 +220,8 @@ def _camera(design, path, args, candidates):
         from metrology.matching.compare import compare_measurement
 
         try:
-            comparison = compare_measurement(measurement, design, force=args.force, transfer=args.transfer)
+            comparison = compare_measurement(measurement, design, force=args.force, transfer=args.transfer,
+                                             texture=False)
         except DoeError as exc:
             raise DoeError(f"{path}: {exc}") from None
     diag, inputs = diagnose_camera_measurement(design, measurement, depths_m=depths, candidates=candidates,

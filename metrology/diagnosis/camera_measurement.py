@@ -73,7 +73,7 @@ def diagnose_camera_measurement(design: Design, measurement: Measurement, depths
         with Progress(1, desc="doe diagnose: comparison") as bar:
             bar.stage("registration, levelling, the instrument's fit on the whole field")
             try:
-                comp = compare_measurement(measurement, design, force=force, transfer=transfer)
+                comp = compare_measurement(measurement, design, force=force, transfer=transfer, texture=False)
             except DoeError as exc:
                 raise DoeError(f"{source}: {exc}") from None
             bar.update(1, "done")

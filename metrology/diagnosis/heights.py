@@ -345,7 +345,7 @@ def diagnose_measurement(design: Design, measurement: Measurement, region_px: in
     if upsample < 1:
         raise DoeError(f"--upsample must be a positive integer, got {upsample}")
     try:
-        comp = compare_measurement(measurement, design, force=force)
+        comp = compare_measurement(measurement, design, force=force, texture=False)
     except DoeError as exc:
         raise DoeError(f"{source}: {exc}") from None
     levelled = comp.height_m

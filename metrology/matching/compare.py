@@ -214,7 +214,7 @@ class Comparison:
 def compare_measurement(measurement: Measurement, design: Design, n_masks: int | None = None,
                         window_px: int = INSTRUMENT_WINDOW_PX, progress: Progress | None = None,
                         force: bool = False, transfer: LateralTransfer | None = None,
-                        batwing: tuple[float, float] | None = None) -> Comparison:
+                        batwing: tuple[float, float] | None = None, texture: bool = True) -> Comparison:
     """Level, register and compare a measurement with its design.
 
     Parameters
@@ -237,6 +237,10 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
         :func:`metrology.matching.instrument_family.fit_instrument_family`).
     batwing : (float, float), optional
         The calibration's batwing (amplitude, sigma_m), held beside ``transfer``.
+    texture : bool
+        Compute the surface texture (:func:`~metrology.matching.texture.field_texture`); a
+        diagnosis, which does not report it, skips it (its library's import alone took 1.4 s
+        of a CSI null's 45).
 
     Returns
     -------
@@ -335,7 +339,7 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
     flat = flat_interiors(height, labels, margin, step_m, 1.0 / reg.decompose()["scale"])
     in_flat = flat[r0:r1, c0:c1] & np.isfinite(inst.residual_m)
     flat_rms = float(np.sqrt(np.mean(inst.residual_m[in_flat] ** 2))) if in_flat.any() else float("nan")
-    texture = field_texture(height, labels, flat, err_design, px, pitch, n_levels)
+    surface = field_texture(height, labels, flat, err_design, px, pitch, n_levels) if texture else None
     have = st.count > 0
     roughness = float(np.sqrt(np.sum(st.count[have] * st.std_m[have] ** 2) / st.count[have].sum()))
     step("done")
@@ -347,5 +351,5 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
                       error_design_m=err_design, error_model_m=err_model, model_window=(r0, r1, c0, c1),
                       spikes_removed=n_spikes, roughness_m=roughness, match=match, lattice=lattice, duty_cycle=duty,
                       raster_scan=raster,
-                      terrace_fit=terrace, terrace_check=terrace_check, texture=texture, instrument_family=family,
+                      terrace_fit=terrace, terrace_check=terrace_check, texture=surface, instrument_family=family,
                       flat_residual_m=flat_rms)

@@ -125,6 +125,35 @@ def test_a_camera_fit_is_the_same_in_threads_as_in_one_thread(monkeypatch):
         np.testing.assert_array_equal(threaded[0][name], alone[0][name])
 
 
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU: the map runs in place")
+def test_a_comparison_is_the_same_in_threads_as_in_one_thread(monkeypatch, tmp_path):
+    # The edge fit's masks, the camera-frame fit's coverages, maps and trial samples, and the
+    # instrument stage run side by side outside a Jacobian: each piece computed alone and summed
+    # in order, so the comparison a diagnosis starts from must be the one one thread gives.
+    from doedesign.design import Design
+    from metrology.formats.readers import read_measurement
+    from metrology.matching.compare import compare_measurement
+
+    case = filegen.make_case(["mask_overlay", "linewidth_bias"], 5, design_px=40, field_px=110)
+    d_path, m_path = case.write(tmp_path)
+    design, measurement = Design.load(d_path), read_measurement(m_path).square_pixels()
+
+    def compare(texture):
+        comp = compare_measurement(measurement, design, texture=texture)
+        fit = comp.instrument_fit
+        return comp, [comp.edge_fit.shift_m, comp.edge_fit.bias_m, comp.edge_fit.depths_m, fit.depths_m, fit.overlay_m,
+                      fit.bias_m, fit.placement.matrix, fit.placement.offset, fit.residual_m]
+
+    monkeypatch.setattr(parallel, "WORKERS", 2)
+    threaded, numbers = compare(texture=True)
+    monkeypatch.setattr(parallel, "WORKERS", 1)
+    alone, same = compare(texture=False)
+    for a, b in zip(numbers, same):
+        np.testing.assert_array_equal(a, b)
+    assert threaded.texture is not None and alone.texture is None
+    assert alone.report()["texture"] is None
+
+
 def test_registration_and_camera_maps_never_start_scipys_fft_thread_pool():
     # scipy.fft's thread pool, once started, shuts down and restarts around every fork; a fork soon
     # after a restart can hang for ever in pocketfft's prefork handler (a CSI diagnosis did, once in
