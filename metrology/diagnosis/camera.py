@@ -272,8 +272,8 @@ class CameraHeightProblem(dg.Problem):
             # surface's route keeps it out of the objective's transfer.
             return None
         direct_values = tuple((e.name, tuple(np.asarray(model[e.name], float))) for e in direct)
-
-        def group_values(motion):
+        out = np.zeros(self.measured.shape)
+        for motion in dict.fromkeys(motions):
             group = [j for j, m in enumerate(motions) if m == motion]
             keys = tuple((etch_key(still, j), still.sidewall_slope, direct_values) for j in group)
             coeffs = self._coeffs.get((keys, blur, surface_values))
@@ -293,13 +293,7 @@ class CameraHeightProblem(dg.Problem):
                     spectra.append(spectrum)
                 coeffs = self.instrument.map_of(spectra, blur, factors=factors, beside=beside)
                 self._coeffs.put((keys, blur, surface_values), coeffs)
-            return self._sampled(coeffs, (keys, blur, surface_values), placements[motion])
-
-        # The groups side by side (a solver's trial step; in a Jacobian's thread, in turn),
-        # summed in their order: the same numbers.
-        out = np.zeros(self.measured.shape)
-        for values in parallel_map(group_values, list(dict.fromkeys(motions))):
-            out += values
+            out += self._sampled(coeffs, (keys, blur, surface_values), placements[motion])
         return out
 
     def _sampled(self, coeffs, key, placement):

@@ -239,8 +239,8 @@ def compare_measurement(measurement: Measurement, design: Design, n_masks: int |
         The calibration's batwing (amplitude, sigma_m), held beside ``transfer``.
     texture : bool
         Compute the surface texture (:func:`~metrology.matching.texture.field_texture`); a
-        diagnosis, which does not report it, skips it (its library's import alone took 1.4 s
-        of a CSI null's 45).
+        diagnosis, which does not report it, skips it (SurfaceTopography's import alone, with
+        pandas, is about 1.4 s).
 
     Returns
     -------

@@ -129,8 +129,6 @@ def fit_edges(height_m: np.ndarray, levels: np.ndarray, registration: Registrati
     -------
     EdgeFit
     """
-    from metrology.diagnosis.parallel import parallel_map
-
     h = np.asarray(height_m, float)
     valid = np.isfinite(h)
     stride = max(1, int(np.ceil(np.sqrt(valid.sum() / max_points))))
@@ -156,10 +154,8 @@ def fit_edges(height_m: np.ndarray, levels: np.ndarray, registration: Registrati
         sigma = np.exp(log_sigma)
         zz = top + tilt[0] * rc + tilt[1] * cc
         cols_j = []
-        # The masks' blurred maps side by side, summed in the masks' order: the same numbers.
-        blurred = parallel_map(lambda j: _blurred_mask(masks[j], pad, r - shift[j, 0], c - shift[j, 1], sigma),
-                               range(n))
-        for j, (val, dr, dc) in enumerate(blurred):
+        for j in range(n):
+            val, dr, dc = _blurred_mask(masks[j], pad, r - shift[j, 0], c - shift[j, 1], sigma)
             grad = np.sqrt(dr * dr + dc * dc)
             zz = zz - depth[j] * (val + bias[j] * grad)
             if jac:

@@ -103,19 +103,15 @@ class _MaskMaps:
     the blur's column is zero."""
 
     def __init__(self, model, levels, pitch_m, bias_m, sigma_m, fill=1.0, transfer=None, batwing=None):
-        from metrology.diagnosis.parallel import parallel_map
-
         self.bias_m = np.asarray(bias_m, float).copy()
         self.sigma_m = float(sigma_m) if transfer is None else transfer.sigma_m
-        # The three coverages, then the masks' maps, side by side: each computed alone, the same numbers.
-        cov, up, down = parallel_map(lambda b: self._coverage(model, levels, pitch_m, b),
-                                     [self.bias_m, self.bias_m + BIAS_STEP_M, self.bias_m - BIAS_STEP_M])
-        d_bias = (up - down) / (2 * BIAS_STEP_M / _UM)
+        cov = self._coverage(model, levels, pitch_m, self.bias_m)
+        d_bias = (self._coverage(model, levels, pitch_m, self.bias_m + BIAS_STEP_M)
+                  - self._coverage(model, levels, pitch_m, self.bias_m - BIAS_STEP_M)) / (2 * BIAS_STEP_M / _UM)
         if transfer is not None:
             self.transfer = transfer
-
-            def mask_maps(c, db):
-                return _mapped(model, c, transfer, batwing), _mapped(model, db, transfer, batwing), np.zeros(c.shape)
+            self.maps = [(_mapped(model, c, transfer, batwing), _mapped(model, db, transfer, batwing),
+                          np.zeros(c.shape)) for c, db in zip(cov, d_bias)]
         else:
             self.transfer = LateralTransfer(sigma_m=self.sigma_m, fill_factor=fill)
 
@@ -123,12 +119,9 @@ class _MaskMaps:
                 return LateralTransfer(sigma_m=sigma, fill_factor=fill)
 
             hs = min(SIGMA_STEP_M, 0.5 * self.sigma_m)
-
-            def mask_maps(c, db):
-                return (model.camera_map(c, self.transfer), model.camera_map(db, self.transfer),
-                        (model.camera_map(c, at(self.sigma_m + hs)) - model.camera_map(c, at(self.sigma_m - hs)))
-                        / (2 * hs / _UM))
-        self.maps = list(parallel_map(lambda pair: mask_maps(*pair), list(zip(cov, d_bias))))
+            self.maps = [(model.camera_map(c, self.transfer), model.camera_map(db, self.transfer),
+                          (model.camera_map(c, at(self.sigma_m + hs)) - model.camera_map(c, at(self.sigma_m - hs)))
+                          / (2 * hs / _UM)) for c, db in zip(cov, d_bias)]
         self._samples = {}
         self._lock = threading.Lock()
 
@@ -266,11 +259,9 @@ def fit_in_camera_frame(height_m: np.ndarray, levels: np.ndarray, placement: Pla
             db = p[i_bias:i_blur] - maps.bias_m / _UM
             ds = p[i_blur] - maps.sigma_m / _UM
             total = np.zeros(crop.shape)
-            # Overlay alone (no rotation): each mask's maps sampled where the moved mask shows, the
-            # masks side by side (a solver's trial step; in a Jacobian's thread, in turn), summed in order.
-            sampled = parallel_map(lambda j: maps.sampled(model, j, place.in_frame_of(shifts[j], 0.0, (0.0, 0.0))),
-                                   range(n))
-            for j, (v0, v_b, v_s) in enumerate(sampled):
+            for j in range(n):
+                # Overlay alone (no rotation): the mask's map sampled where the moved mask shows.
+                v0, v_b, v_s = maps.sampled(model, j, place.in_frame_of(shifts[j], 0.0, (0.0, 0.0)))
                 total -= p[j] * (v0 + db[j] * v_b + ds * v_s)
             return total * _H
 

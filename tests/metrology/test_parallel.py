@@ -127,9 +127,9 @@ def test_a_camera_fit_is_the_same_in_threads_as_in_one_thread(monkeypatch):
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU: the map runs in place")
 def test_a_comparison_is_the_same_in_threads_as_in_one_thread(monkeypatch, tmp_path):
-    # The edge fit's masks, the camera-frame fit's coverages, maps and trial samples, and the
-    # instrument stage run side by side outside a Jacobian: each piece computed alone and summed
-    # in order, so the comparison a diagnosis starts from must be the one one thread gives.
+    # The camera-frame fits' Jacobian columns and the instrument stage's fits run side by side:
+    # each piece computed alone, so the comparison a diagnosis starts from must be the one one
+    # thread gives; without its surface texture (a diagnosis's) it is the same comparison.
     from doedesign.design import Design
     from metrology.formats.readers import read_measurement
     from metrology.matching.compare import compare_measurement
